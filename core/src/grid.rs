@@ -1,0 +1,409 @@
+//! The sparse VDB-style grid: a hash-mapped root over fixed-size internal nodes over
+//! 8x8x8 leaves.
+//!
+//! ```text
+//! root     HashMap<internal key, internal index>        one entry per 128^3 voxels
+//! internal 16^3 child slots + child mask (4096 bits)    children are leaf indices
+//! leaf     8^3 values + active mask (512 bits)          stored in a pooled arena
+//! ```
+//!
+//! Leaves live in a [`LeafPool`] of fixed-size chunks allocated zeroed, so a new leaf costs
+//! no allocator call and the map never moves a leaf once created. Leaf indices are stable
+//! and let the integration pass update disjoint leaves in parallel without `unsafe`.
+//! Voxel `(x, y, z)` has in-leaf offset `x | y << 3 | z << 6` (`x`, `y`, `z` taken mod 8).
+
+use crate::coord::VoxelCoord;
+use crate::mask::{BitIter, Mask512};
+use hashbrown::HashMap;
+
+/// log2 of a leaf's edge in voxels.
+pub const LEAF_LOG2: u32 = 3;
+/// Voxels per leaf.
+pub const LEAF_VOXELS: usize = 1 << (3 * LEAF_LOG2);
+/// log2 of an internal node's edge in leaves.
+pub const INTERNAL_LOG2: u32 = 4;
+/// log2 of an internal node's edge in voxels.
+pub const INTERNAL_TOTAL_LOG2: u32 = LEAF_LOG2 + INTERNAL_LOG2;
+/// Children (leaves) per internal node.
+pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
+/// Leaves per pool chunk.
+const POOL_CHUNK: usize = 256;
+
+/// In-leaf offset of a voxel.
+#[inline]
+pub fn leaf_offset(v: VoxelCoord) -> usize {
+    ((v.x & 7) | (v.y & 7) << 3 | (v.z & 7) << 6) as usize
+}
+
+/// Origin (minimum corner) of the leaf holding `v`.
+#[inline]
+pub fn leaf_origin(v: VoxelCoord) -> VoxelCoord {
+    VoxelCoord::new(v.x & !7, v.y & !7, v.z & !7)
+}
+
+/// Voxel at in-leaf offset `i` of the leaf with origin `o`.
+#[inline]
+pub fn voxel_at(o: VoxelCoord, i: usize) -> VoxelCoord {
+    let i = i as i32;
+    VoxelCoord::new(o.x + (i & 7), o.y + (i >> 3 & 7), o.z + (i >> 6))
+}
+
+#[inline]
+fn internal_key(v: VoxelCoord) -> VoxelCoord {
+    v.shr(INTERNAL_TOTAL_LOG2)
+}
+
+#[inline]
+fn child_index(v: VoxelCoord) -> usize {
+    let l = v.shr(LEAF_LOG2);
+    let m = (1 << INTERNAL_LOG2) - 1;
+    ((l.x & m) | (l.y & m) << INTERNAL_LOG2 | (l.z & m) << (2 * INTERNAL_LOG2)) as usize
+}
+
+/// Values a grid can hold: plain old data whose all-zero pattern is the background.
+pub trait GridValue: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug {}
+impl<T: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug> GridValue for T {}
+
+/// An 8x8x8 block of voxels: a value per voxel and which of them are active.
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct Leaf<V> {
+    pub active: Mask512,
+    pub values: [V; LEAF_VOXELS],
+}
+
+impl<V: GridValue> Leaf<V> {
+    #[inline]
+    pub fn get(&self, i: usize) -> Option<V> {
+        self.active.get(i).then(|| self.values[i])
+    }
+}
+
+struct Internal {
+    origin: VoxelCoord,
+    child_mask: [u64; INTERNAL_CHILDREN / 64],
+    children: [u32; INTERNAL_CHILDREN],
+}
+
+/// Leaves in zeroed chunks of [`POOL_CHUNK`]; indices are stable for the pool's life.
+pub struct LeafPool<V> {
+    chunks: Vec<Box<[Leaf<V>]>>,
+    len: usize,
+}
+
+impl<V: GridValue> LeafPool<V> {
+    fn new() -> Self {
+        Self { chunks: Vec::new(), len: 0 }
+    }
+
+    fn push_zeroed(&mut self) -> u32 {
+        if self.len == self.chunks.len() * POOL_CHUNK {
+            self.chunks.push(bytemuck::allocation::zeroed_slice_box(POOL_CHUNK));
+        }
+        self.len += 1;
+        (self.len - 1) as u32
+    }
+
+    #[inline]
+    pub fn get(&self, i: u32) -> &Leaf<V> {
+        let i = i as usize;
+        &self.chunks[i / POOL_CHUNK][i % POOL_CHUNK]
+    }
+
+    #[inline]
+    pub fn get_mut(&mut self, i: u32) -> &mut Leaf<V> {
+        let i = i as usize;
+        &mut self.chunks[i / POOL_CHUNK][i % POOL_CHUNK]
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Apply `f` to each listed leaf, in parallel across chunks, and sum what it returns.
+    /// `items` must be sorted by leaf index with no index twice; each leaf is then borrowed
+    /// mutably exactly once.
+    pub fn par_update<T: Sync>(&mut self, items: &[(u32, T)], f: impl Fn(&mut Leaf<V>, &T) -> u64 + Sync) -> u64 {
+        use rayon::prelude::*;
+        assert!(items.windows(2).all(|w| w[0].0 < w[1].0), "par_update: leaf indices must be strictly increasing");
+        // Split `items` into one run per chunk, then hand each run its chunk.
+        let mut runs: Vec<(usize, &[(u32, T)])> = Vec::new();
+        let mut rest = items;
+        while let Some(first) = rest.first() {
+            let c = first.0 as usize / POOL_CHUNK;
+            let n = rest.partition_point(|it| (it.0 as usize) / POOL_CHUNK == c);
+            runs.push((c, &rest[..n]));
+            rest = &rest[n..];
+        }
+        let mut chunk_refs: Vec<Option<&mut Box<[Leaf<V>]>>> = self.chunks.iter_mut().map(Some).collect();
+        let work: Vec<(&mut Box<[Leaf<V>]>, &[(u32, T)])> =
+            runs.into_iter().map(|(c, run)| (chunk_refs[c].take().expect("one run per chunk"), run)).collect();
+        work.into_par_iter()
+            .with_max_len(4)
+            .map(|(chunk, run)| run.iter().map(|(i, t)| f(&mut chunk[*i as usize % POOL_CHUNK], t)).sum::<u64>())
+            .sum()
+    }
+}
+
+/// A sparse grid of `V` over the signed 32-bit voxel index space.
+pub struct Grid<V> {
+    root: HashMap<VoxelCoord, u32>,
+    internals: Vec<Box<Internal>>,
+    leaves: LeafPool<V>,
+}
+
+impl<V: GridValue> Default for Grid<V> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<V: GridValue> Grid<V> {
+    pub fn new() -> Self {
+        Self { root: HashMap::new(), internals: Vec::new(), leaves: LeafPool::new() }
+    }
+
+    pub fn leaf_count(&self) -> usize {
+        self.leaves.len()
+    }
+
+    /// Active voxels.
+    pub fn active_count(&self) -> u64 {
+        (0..self.leaves.len() as u32).map(|i| u64::from(self.leaves.get(i).active.count())).sum()
+    }
+
+    /// Bytes this grid holds on the heap: leaf chunks, internal nodes, root table.
+    pub fn memory_bytes(&self) -> usize {
+        let leaf = self.leaves.chunks.len() * POOL_CHUNK * std::mem::size_of::<Leaf<V>>()
+            + self.leaves.chunks.capacity() * std::mem::size_of::<Box<[Leaf<V>]>>();
+        let internal = self.internals.len() * std::mem::size_of::<Internal>()
+            + self.internals.capacity() * std::mem::size_of::<Box<Internal>>();
+        let root = self.root.capacity() * (std::mem::size_of::<(VoxelCoord, u32)>() + 1);
+        leaf + internal + root
+    }
+
+    /// Index of the leaf with the given origin, if present.
+    pub fn leaf_index(&self, origin: VoxelCoord) -> Option<u32> {
+        let ii = *self.root.get(&internal_key(origin))?;
+        self.internals[ii as usize].child(child_index(origin))
+    }
+
+    pub fn leaf(&self, index: u32) -> &Leaf<V> {
+        self.leaves.get(index)
+    }
+
+    pub fn leaf_mut(&mut self, index: u32) -> &mut Leaf<V> {
+        self.leaves.get_mut(index)
+    }
+
+    pub fn leaf_pool_mut(&mut self) -> &mut LeafPool<V> {
+        &mut self.leaves
+    }
+
+    /// The value at `v` if active.
+    pub fn get(&self, v: VoxelCoord) -> Option<V> {
+        let li = self.leaf_index(leaf_origin(v))?;
+        self.leaves.get(li).get(leaf_offset(v))
+    }
+
+    /// Set `v` active with `value`, creating its leaf if needed.
+    pub fn set(&mut self, v: VoxelCoord, value: V) {
+        let li = self.leaf_index_or_insert(leaf_origin(v), None);
+        let leaf = self.leaves.get_mut(li);
+        leaf.active.set(leaf_offset(v));
+        leaf.values[leaf_offset(v)] = value;
+    }
+
+    /// Index of the leaf at `origin`, created (all inactive) if absent. `hint` is a cached
+    /// internal node (key, index) that is used when it matches and updated otherwise.
+    pub fn leaf_index_or_insert(&mut self, origin: VoxelCoord, hint: Option<&mut (VoxelCoord, u32)>) -> u32 {
+        let key = internal_key(origin);
+        let ii = match hint {
+            Some(h) if h.0 == key && (h.1 as usize) < self.internals.len() => h.1,
+            other => {
+                let ii = match self.root.get(&key) {
+                    Some(&ii) => ii,
+                    None => {
+                        let ii = self.internals.len() as u32;
+                        self.internals.push(Internal::new(key.shl(INTERNAL_TOTAL_LOG2)));
+                        self.root.insert(key, ii);
+                        ii
+                    }
+                };
+                if let Some(h) = other {
+                    *h = (key, ii);
+                }
+                ii
+            }
+        };
+        let ci = child_index(origin);
+        if let Some(li) = self.internals[ii as usize].child(ci) {
+            return li;
+        }
+        let li = self.leaves.push_zeroed();
+        let node = &mut self.internals[ii as usize];
+        node.child_mask[ci >> 6] |= 1 << (ci & 63);
+        node.children[ci] = li;
+        li
+    }
+
+    /// Every leaf as (origin, leaf), in no particular order.
+    pub fn leaves(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
+        self.internals.iter().flat_map(move |node| {
+            node.child_mask.iter().enumerate().flat_map(move |(wi, &w)| {
+                BitIter(w).map(move |b| {
+                    let ci = wi * 64 + b;
+                    let m = (1 << INTERNAL_LOG2) - 1;
+                    let c = ci as i32;
+                    let o = node.origin
+                        + VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2)).shl(LEAF_LOG2);
+                    (o, self.leaves.get(node.children[ci]))
+                })
+            })
+        })
+    }
+
+    /// Every active voxel as (coordinate, value), in no particular order.
+    pub fn active_voxels(&self) -> impl Iterator<Item = (VoxelCoord, V)> + '_ {
+        self.leaves().flat_map(|(o, leaf)| leaf.active.iter_ones().map(move |i| (voxel_at(o, i), leaf.values[i])))
+    }
+
+    /// A read accessor that caches the last leaf it visited.
+    pub fn accessor(&self) -> Accessor<'_, V> {
+        Accessor { grid: self, leaf_key: None, leaf: None }
+    }
+}
+
+impl Internal {
+    fn new(origin: VoxelCoord) -> Box<Self> {
+        Box::new(Self { origin, child_mask: [0; INTERNAL_CHILDREN / 64], children: [0; INTERNAL_CHILDREN] })
+    }
+
+    #[inline]
+    fn child(&self, ci: usize) -> Option<u32> {
+        (self.child_mask[ci >> 6] >> (ci & 63) & 1 != 0).then(|| self.children[ci])
+    }
+}
+
+/// Cached read access: remembers the last leaf, so spatially coherent lookups (along a
+/// ray, across a box) skip the root hash and the internal node. One per thread.
+///
+/// ```
+/// use voxmap_core::{grid::Grid, coord::VoxelCoord};
+/// let mut g = Grid::<i8>::new();
+/// g.set(VoxelCoord::new(1, 2, 3), 5);
+/// let mut acc = g.accessor();
+/// assert_eq!(acc.get(VoxelCoord::new(1, 2, 3)), Some(5));
+/// assert_eq!(acc.get(VoxelCoord::new(1, 2, 4)), None); // same leaf: no hash lookup
+/// ```
+pub struct Accessor<'a, V> {
+    grid: &'a Grid<V>,
+    leaf_key: Option<VoxelCoord>,
+    leaf: Option<&'a Leaf<V>>,
+}
+
+impl<'a, V: GridValue> Accessor<'a, V> {
+    /// The leaf holding `v`, if any.
+    #[inline]
+    pub fn leaf(&mut self, v: VoxelCoord) -> Option<&'a Leaf<V>> {
+        let o = leaf_origin(v);
+        if self.leaf_key != Some(o) {
+            self.leaf_key = Some(o);
+            self.leaf = self.grid.leaf_index(o).map(|li| self.grid.leaf(li));
+        }
+        self.leaf
+    }
+
+    #[inline]
+    pub fn get(&mut self, v: VoxelCoord) -> Option<V> {
+        self.leaf(v)?.get(leaf_offset(v))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn set_get_across_signs_and_nodes() {
+        let mut g = Grid::<i8>::new();
+        let pts = [
+            VoxelCoord::new(0, 0, 0),
+            VoxelCoord::new(-1, -1, -1),
+            VoxelCoord::new(7, 8, -8),
+            VoxelCoord::new(127, 128, -129),
+            VoxelCoord::new(i32::MAX >> 2, i32::MIN >> 2, 5),
+        ];
+        for (i, &p) in pts.iter().enumerate() {
+            g.set(p, i as i8 + 1);
+        }
+        for (i, &p) in pts.iter().enumerate() {
+            assert_eq!(g.get(p), Some(i as i8 + 1), "{p:?}");
+            assert_eq!(g.accessor().get(p), Some(i as i8 + 1));
+        }
+        assert_eq!(g.get(VoxelCoord::new(1, 0, 0)), None);
+        assert_eq!(g.leaf_count(), 5);
+        let mut got: Vec<_> = g.active_voxels().collect();
+        got.sort();
+        let mut want: Vec<_> = pts.iter().enumerate().map(|(i, &p)| (p, i as i8 + 1)).collect();
+        want.sort();
+        assert_eq!(got, want);
+    }
+
+    #[test]
+    fn leaf_geometry() {
+        let v = VoxelCoord::new(-1, 9, -9);
+        assert_eq!(leaf_origin(v), VoxelCoord::new(-8, 8, -16));
+        assert_eq!(voxel_at(leaf_origin(v), leaf_offset(v)), v);
+    }
+
+    #[test]
+    fn memory_grows_with_leaves_and_accessor_matches_get() {
+        let mut g = Grid::<i8>::new();
+        let m0 = g.memory_bytes();
+        let mut rng = 12345u64;
+        let mut next = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng % 2000) as i32 - 1000
+        };
+        let mut pts = Vec::new();
+        for _ in 0..5000 {
+            let p = VoxelCoord::new(next(), next(), next());
+            g.set(p, 1);
+            pts.push(p);
+        }
+        assert!(g.memory_bytes() >= g.leaf_count() * std::mem::size_of::<Leaf<i8>>());
+        assert!(g.memory_bytes() > m0);
+        let mut acc = g.accessor();
+        for _ in 0..20000 {
+            let p = VoxelCoord::new(next(), next(), next());
+            assert_eq!(acc.get(p), g.get(p));
+        }
+        for p in pts {
+            assert_eq!(acc.get(p), Some(1));
+        }
+    }
+
+    #[test]
+    fn par_update_touches_each_listed_leaf_once() {
+        let mut g = Grid::<i8>::new();
+        let idx: Vec<u32> = (0..1000).map(|i| g.leaf_index_or_insert(VoxelCoord::new(i * 8, 0, 0), None)).collect();
+        let items: Vec<(u32, i8)> = idx.iter().step_by(3).map(|&i| (i, (i % 100) as i8)).collect();
+        let n = g.leaf_pool_mut().par_update(&items, |leaf, &v| {
+            leaf.values[0] += v;
+            leaf.active.set(0);
+            1
+        });
+        assert_eq!(n, items.len() as u64);
+        for (k, &li) in idx.iter().enumerate() {
+            let want = if k % 3 == 0 { Some((li % 100) as i8) } else { None };
+            assert_eq!(g.leaf(li).get(0), want);
+        }
+    }
+}

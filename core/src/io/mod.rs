@@ -1,0 +1,2 @@
+//! File formats: PCD point clouds.
+pub mod pcd;

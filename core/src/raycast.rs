@@ -1,0 +1,254 @@
+//! Exact 3D DDA (Amanatides & Woo) in continuous voxel units.
+//!
+//! A ray from `o` to `e` visits every voxel its segment passes through, each once, in order,
+//! from `floor(o)` to `floor(e)`: exactly `|Δx| + |Δy| + |Δz|` steps, one axis at a time.
+//! When the segment crosses an edge or corner exactly, the tie goes to the lowest axis
+//! (x, then y, then z), so the walk is deterministic. Step counts are fixed up front, so
+//! rounding can never carry the walk past the end voxel.
+
+use crate::coord::VoxelCoord;
+
+/// The state of one traversal. Call [`Dda::step`] exactly [`Dda::steps`] times.
+#[derive(Clone, Debug)]
+pub struct Dda {
+    /// Current voxel.
+    pub v: [i32; 3],
+    step: [i32; 3],
+    /// Next face crossed on each axis, in voxel units.
+    face: [f64; 3],
+    inv: [f64; 3],
+    origin: [f64; 3],
+    tmax: [f64; 3],
+    left: [u32; 3],
+    steps: u32,
+}
+
+impl Dda {
+    /// A walk from `o` to `e` (voxel units, finite, within the index space).
+    #[inline]
+    pub fn new(o: [f64; 3], e: [f64; 3]) -> Self {
+        let mut d = Dda {
+            v: [0; 3],
+            step: [0; 3],
+            face: [0.0; 3],
+            inv: [0.0; 3],
+            origin: o,
+            tmax: [f64::INFINITY; 3],
+            left: [0; 3],
+            steps: 0,
+        };
+        for a in 0..3 {
+            let s = o[a].floor();
+            let t = e[a].floor();
+            d.v[a] = s as i32;
+            let n = (t as i64 - s as i64).unsigned_abs() as u32;
+            d.left[a] = n;
+            d.steps += n;
+            if n > 0 {
+                // floor(o) != floor(e) implies e != o on this axis: no division by zero.
+                let up = t > s;
+                d.step[a] = if up { 1 } else { -1 };
+                d.face[a] = if up { s + 1.0 } else { s };
+                d.inv[a] = 1.0 / (e[a] - o[a]);
+                d.tmax[a] = (d.face[a] - o[a]) * d.inv[a];
+            }
+        }
+        d
+    }
+
+    /// Voxel steps left to the end voxel.
+    #[inline]
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+
+    /// Move to the next voxel; returns the axis stepped along.
+    #[inline(always)]
+    pub fn step(&mut self) -> usize {
+        let t = self.tmax;
+        // Branch-free argmin with ties to the lowest axis.
+        let c01 = t[0] <= t[1];
+        let c02 = t[0] <= t[2];
+        let c12 = t[1] <= t[2];
+        let x = (c01 & c02) as usize;
+        let y = (!c01 & c12) as usize;
+        let a = 2 - 2 * x - y;
+        self.v[a] += self.step[a];
+        self.face[a] += self.step[a] as f64;
+        self.left[a] -= 1;
+        let next = (self.face[a] - self.origin[a]) * self.inv[a];
+        self.tmax[a] = if self.left[a] == 0 { f64::INFINITY } else { next };
+        self.steps -= 1;
+        a
+    }
+
+    pub fn voxel(&self) -> VoxelCoord {
+        VoxelCoord::from_array(self.v)
+    }
+}
+
+/// Visit every voxel from `floor(o)` to `floor(e)` inclusive, in order.
+pub fn for_each_voxel(o: [f64; 3], e: [f64; 3], mut f: impl FnMut(VoxelCoord)) {
+    let mut d = Dda::new(o, e);
+    f(d.voxel());
+    while d.steps() > 0 {
+        d.step();
+        f(d.voxel());
+    }
+}
+
+/// Visit voxels from `floor(o)` towards `floor(e)` until `f` returns `Some`.
+pub fn find_voxel<T>(o: [f64; 3], e: [f64; 3], mut f: impl FnMut(VoxelCoord) -> Option<T>) -> Option<T> {
+    let mut d = Dda::new(o, e);
+    if let Some(t) = f(d.voxel()) {
+        return Some(t);
+    }
+    while d.steps() > 0 {
+        d.step();
+        if let Some(t) = f(d.voxel()) {
+            return Some(t);
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    fn walk(o: [f64; 3], e: [f64; 3]) -> Vec<VoxelCoord> {
+        let mut v = Vec::new();
+        for_each_voxel(o, e, |c| v.push(c));
+        v
+    }
+
+    /// Length of the part of segment o->e inside voxel `c` (slab clipping), or None. With
+    /// `open`, a segment lying in a face plane is outside the box.
+    fn overlap(o: [f64; 3], e: [f64; 3], c: VoxelCoord, open: bool) -> Option<f64> {
+        let (mut t0, mut t1) = (0.0f64, 1.0f64);
+        let c = c.to_array();
+        for a in 0..3 {
+            let (lo, hi) = (c[a] as f64, c[a] as f64 + 1.0);
+            let d = e[a] - o[a];
+            if d == 0.0 {
+                let outside = if open { o[a] <= lo || o[a] >= hi } else { o[a] < lo || o[a] > hi };
+                if outside {
+                    return None;
+                }
+            } else {
+                let (mut ta, mut tb) = ((lo - o[a]) / d, (hi - o[a]) / d);
+                if ta > tb {
+                    std::mem::swap(&mut ta, &mut tb);
+                }
+                t0 = t0.max(ta);
+                t1 = t1.min(tb);
+            }
+        }
+        let len = ((0..3).map(|a| (e[a] - o[a]).powi(2)).sum::<f64>()).sqrt();
+        (t1 >= t0).then(|| (t1 - t0) * len)
+    }
+
+    /// Brute force over the bounding box: voxels the segment crosses with positive length
+    /// (`strict`) or touches at all.
+    fn reference(o: [f64; 3], e: [f64; 3], min_len: f64) -> BTreeSet<VoxelCoord> {
+        let lo: Vec<i32> = (0..3).map(|a| o[a].min(e[a]).floor() as i32 - 1).collect();
+        let hi: Vec<i32> = (0..3).map(|a| o[a].max(e[a]).floor() as i32 + 1).collect();
+        let mut s = BTreeSet::new();
+        for x in lo[0]..=hi[0] {
+            for y in lo[1]..=hi[1] {
+                for z in lo[2]..=hi[2] {
+                    let c = VoxelCoord::new(x, y, z);
+                    if overlap(o, e, c, min_len > 0.0).is_some_and(|l| l > min_len) {
+                        s.insert(c);
+                    }
+                }
+            }
+        }
+        s
+    }
+
+    fn check(o: [f64; 3], e: [f64; 3]) {
+        let path = walk(o, e);
+        let start = VoxelCoord::new(o[0].floor() as i32, o[1].floor() as i32, o[2].floor() as i32);
+        let end = VoxelCoord::new(e[0].floor() as i32, e[1].floor() as i32, e[2].floor() as i32);
+        assert_eq!(path[0], start);
+        assert_eq!(*path.last().unwrap(), end);
+        let d = end - start;
+        assert_eq!(path.len() as i32, d.x.abs() + d.y.abs() + d.z.abs() + 1);
+        for w in path.windows(2) {
+            let s = w[1] - w[0];
+            assert_eq!(s.x.abs() + s.y.abs() + s.z.abs(), 1, "6-connected: {o:?} {e:?}");
+        }
+        let set: BTreeSet<_> = path.iter().copied().collect();
+        assert_eq!(set.len(), path.len(), "no voxel twice");
+        // Every voxel crossed with positive length is visited; every visited voxel is touched.
+        let strict = reference(o, e, 1e-9);
+        let touched = reference(o, e, -1e-9);
+        assert!(strict.is_subset(&set), "missed {:?} on {o:?}->{e:?}", strict.difference(&set).collect::<Vec<_>>());
+        assert!(set.is_subset(&touched), "extra {:?} on {o:?}->{e:?}", set.difference(&touched).collect::<Vec<_>>());
+    }
+
+    struct Rng(u64);
+    impl Rng {
+        fn f(&mut self) -> f64 {
+            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    #[test]
+    fn matches_brute_force_on_random_rays() {
+        let mut r = Rng(7);
+        for i in 0..4000 {
+            let scale = if i % 2 == 0 { 6.0 } else { 25.0 };
+            let o = [r.f() * 4.0 - 2.0, r.f() * 4.0 - 2.0, r.f() * 4.0 - 2.0];
+            let e = [
+                o[0] + (r.f() * 2.0 - 1.0) * scale,
+                o[1] + (r.f() * 2.0 - 1.0) * scale,
+                o[2] + (r.f() * 2.0 - 1.0) * scale,
+            ];
+            check(o, e);
+        }
+    }
+
+    #[test]
+    fn matches_brute_force_on_lattice_rays() {
+        // Origins and ends on voxel corners, faces and centres: the tie-heavy cases.
+        let mut r = Rng(99);
+        for _ in 0..3000 {
+            let q = |r: &mut Rng| ((r.f() * 24.0).floor() - 12.0) / 2.0;
+            let o = [q(&mut r), q(&mut r), q(&mut r)];
+            let e = [q(&mut r), q(&mut r), q(&mut r)];
+            check(o, e);
+        }
+    }
+
+    #[test]
+    fn degenerate_rays() {
+        assert_eq!(walk([0.5, 0.5, 0.5], [0.5, 0.5, 0.5]), vec![VoxelCoord::new(0, 0, 0)]);
+        assert_eq!(walk([0.1, 0.2, 0.3], [0.9, 0.8, 0.7]), vec![VoxelCoord::new(0, 0, 0)]);
+        // Axis-aligned, negative direction.
+        let p = walk([0.5, 0.5, 0.5], [-2.5, 0.5, 0.5]);
+        assert_eq!(p, (-3..=0).rev().map(|x| VoxelCoord::new(x, 0, 0)).collect::<Vec<_>>());
+        // Exact diagonal through corners: ties go x, then y, then z.
+        let p = walk([0.5, 0.5, 0.5], [2.5, 2.5, 2.5]);
+        assert_eq!(p.len(), 7);
+        assert_eq!(&p[..4], &[
+            VoxelCoord::new(0, 0, 0),
+            VoxelCoord::new(1, 0, 0),
+            VoxelCoord::new(1, 1, 0),
+            VoxelCoord::new(1, 1, 1)
+        ]);
+        // Entirely in negative coordinates.
+        check([-10.3, -20.7, -5.5], [-30.1, -2.2, -5.5]);
+        assert_eq!(walk([-0.5, -0.5, -0.5], [-0.5, -0.5, -0.5]), vec![VoxelCoord::new(-1, -1, -1)]);
+    }
+
+    #[test]
+    fn find_voxel_stops_early() {
+        let hit = find_voxel([0.5, 0.5, 0.5], [10.5, 0.5, 0.5], |v| (v.x == 4).then_some(v));
+        assert_eq!(hit, Some(VoxelCoord::new(4, 0, 0)));
+        assert_eq!(find_voxel([0.5, 0.5, 0.5], [3.5, 0.5, 0.5], |v| (v.x == 4).then_some(v)), None);
+    }
+}
