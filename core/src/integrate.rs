@@ -364,15 +364,15 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         let n = dda.steps();
         steps += u64::from(n) + 1;
         let mut local = [0u64; 8];
-        let mut brick = VoxelCoord::from_array(dda.v).shr(3);
+        let mut brick = dda.voxel().shr(3);
         for _ in 0..n {
-            let v = dda.v;
-            local[(v[2] & 7) as usize] |= 1u64 << ((v[0] & 7) | (v[1] & 7) << 3);
-            let a = dda.step();
-            if dda.v[a] >> 3 != v[a] >> 3 {
+            let (x, y, z) = (dda.x, dda.y, dda.z);
+            local[(z & 7) as usize] |= 1u64 << ((x & 7) | (y & 7) << 3);
+            dda.step();
+            if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
                 marks.or_free(&mut cache, brick, &local);
                 local = [0; 8];
-                brick = VoxelCoord::from_array(dda.v).shr(3);
+                brick = dda.voxel().shr(3);
             }
         }
         marks.or_free(&mut cache, brick, &local);
@@ -539,11 +539,26 @@ struct FrameMarks {
     slots: Pool<Slot, SLOT_CHUNK>,
 }
 
-/// The last block a thread looked up.
-#[derive(Default)]
-struct BrickCache {
+/// A thread's recent lookups: the last block, and a direct-mapped cache of bricks (by the
+/// low bits of their coordinates) to slots. Sorted rays revisit the same bricks near the
+/// sensor over and over; a hit here skips the table walk.
+struct BrickCache<'a> {
     cell: usize,
     block: Option<u32>,
+    bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
+}
+
+const BRICK_CACHE: usize = 512;
+
+impl Default for BrickCache<'_> {
+    fn default() -> Self {
+        Self { cell: 0, block: None, bricks: [None; BRICK_CACHE] }
+    }
+}
+
+#[inline]
+fn brick_cache_index(b: VoxelCoord) -> usize {
+    ((b.x & 7) | (b.y & 7) << 3 | (b.z & 7) << 6) as usize
 }
 
 impl FrameMarks {
@@ -576,7 +591,20 @@ impl FrameMarks {
     }
 
     #[inline]
-    fn slot_for(&self, cache: &mut BrickCache, brick: VoxelCoord) -> &Slot {
+    fn slot_for<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord) -> &'a Slot {
+        let ci = brick_cache_index(brick);
+        if let Some((b, slot)) = cache.bricks[ci] {
+            if b == brick {
+                return slot;
+            }
+        }
+        let slot = self.slot_lookup(cache, brick);
+        cache.bricks[ci] = Some((brick, slot));
+        slot
+    }
+
+    #[inline(never)]
+    fn slot_lookup<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord) -> &'a Slot {
         let r = brick - self.lo.shr(3);
         let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
         let cell = (x >> CELL_LOG2) + self.cells_dim[0] * ((y >> CELL_LOG2) + self.cells_dim[1] * (z >> CELL_LOG2));
@@ -584,7 +612,8 @@ impl FrameMarks {
             Some(b) if cache.cell == cell => b,
             _ => {
                 let b = claim(&self.cells[cell], || self.blocks.alloc(|| std::array::from_fn(|_| AtomicU32::new(0))));
-                *cache = BrickCache { cell, block: Some(b) };
+                cache.cell = cell;
+                cache.block = Some(b);
                 b
             }
         };
@@ -600,7 +629,7 @@ impl FrameMarks {
     }
 
     #[inline]
-    fn or_free(&self, cache: &mut BrickCache, brick: VoxelCoord, bits: &[u64; 8]) {
+    fn or_free<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord, bits: &[u64; 8]) {
         let slot = self.slot_for(cache, brick);
         for (w, &b) in slot.free.iter().zip(bits) {
             // Read first: most words near the sensor are already set by other rays, and a
@@ -612,7 +641,7 @@ impl FrameMarks {
     }
 
     #[inline]
-    fn set_hit(&self, cache: &mut BrickCache, v: VoxelCoord) {
+    fn set_hit<'a>(&'a self, cache: &mut BrickCache<'a>, v: VoxelCoord) {
         let slot = self.slot_for(cache, v.shr(3));
         let i = leaf_offset(v);
         let bit = 1u64 << (i & 63);

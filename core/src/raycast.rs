@@ -8,52 +8,62 @@
 
 use crate::coord::VoxelCoord;
 
+/// Fixed-point scale of the ray parameter `t` in [0, 1]: t = 1 is `1 << T_BITS`.
+/// Face crossings are kept as integers so a step is compare, select, add: a short
+/// dependency chain in registers. With 60 fractional bits the accumulated rounding over
+/// the longest allowed ray (8192 voxels) stays below 1e-13 voxel.
+const T_BITS: u32 = 60;
+const T_ONE: f64 = (1u64 << T_BITS) as f64;
+
 /// The state of one traversal. Call [`Dda::step`] exactly [`Dda::steps`] times.
 #[derive(Clone, Debug)]
 pub struct Dda {
-    /// Current voxel.
-    pub v: [i32; 3],
-    step: [i32; 3],
-    /// Next face crossed on each axis, in voxel units.
-    face: [f64; 3],
-    inv: [f64; 3],
-    origin: [f64; 3],
-    tmax: [f64; 3],
-    left: [u32; 3],
+    pub x: i32,
+    pub y: i32,
+    pub z: i32,
+    sx: i32,
+    sy: i32,
+    sz: i32,
+    /// `t` of the next face crossing per axis (u64::MAX once the axis is done).
+    tx: u64,
+    ty: u64,
+    tz: u64,
+    dx: u64,
+    dy: u64,
+    dz: u64,
+    /// `t` of the last crossing per axis.
+    lx: u64,
+    ly: u64,
+    lz: u64,
     steps: u32,
+}
+
+/// Per-axis setup: (step, first crossing, delta, last crossing, crossings).
+#[inline(always)]
+fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
+    let s = o.floor();
+    let t = e.floor();
+    let n = (t as i64 - s as i64).unsigned_abs() as u32;
+    if n == 0 {
+        return (s as i32, 0, u64::MAX, 0, u64::MAX, 0);
+    }
+    // floor(o) != floor(e) implies e != o on this axis: no division by zero.
+    let inv = 1.0 / (e - o).abs();
+    let face_dist = if t > s { s + 1.0 - o } else { o - s };
+    let t0 = (face_dist * inv * T_ONE) as u64;
+    let d = (inv * T_ONE) as u64;
+    let last = t0.saturating_add(d.saturating_mul(u64::from(n - 1)));
+    (s as i32, if t > s { 1 } else { -1 }, t0, d, last, n)
 }
 
 impl Dda {
     /// A walk from `o` to `e` (voxel units, finite, within the index space).
     #[inline]
     pub fn new(o: [f64; 3], e: [f64; 3]) -> Self {
-        let mut d = Dda {
-            v: [0; 3],
-            step: [0; 3],
-            face: [0.0; 3],
-            inv: [0.0; 3],
-            origin: o,
-            tmax: [f64::INFINITY; 3],
-            left: [0; 3],
-            steps: 0,
-        };
-        for a in 0..3 {
-            let s = o[a].floor();
-            let t = e[a].floor();
-            d.v[a] = s as i32;
-            let n = (t as i64 - s as i64).unsigned_abs() as u32;
-            d.left[a] = n;
-            d.steps += n;
-            if n > 0 {
-                // floor(o) != floor(e) implies e != o on this axis: no division by zero.
-                let up = t > s;
-                d.step[a] = if up { 1 } else { -1 };
-                d.face[a] = if up { s + 1.0 } else { s };
-                d.inv[a] = 1.0 / (e[a] - o[a]);
-                d.tmax[a] = (d.face[a] - o[a]) * d.inv[a];
-            }
-        }
-        d
+        let (x, sx, tx, dx, lx, nx) = axis(o[0], e[0]);
+        let (y, sy, ty, dy, ly, ny) = axis(o[1], e[1]);
+        let (z, sz, tz, dz, lz, nz) = axis(o[2], e[2]);
+        Dda { x, y, z, sx, sy, sz, tx, ty, tz, dx, dy, dz, lx, ly, lz, steps: nx + ny + nz }
     }
 
     /// Voxel steps left to the end voxel.
@@ -62,28 +72,29 @@ impl Dda {
         self.steps
     }
 
-    /// Move to the next voxel; returns the axis stepped along.
+    /// Move to the next voxel, along the axis whose face comes first (ties: x, y, z).
     #[inline(always)]
-    pub fn step(&mut self) -> usize {
-        let t = self.tmax;
-        // Branch-free argmin with ties to the lowest axis.
-        let c01 = t[0] <= t[1];
-        let c02 = t[0] <= t[2];
-        let c12 = t[1] <= t[2];
-        let x = (c01 & c02) as usize;
-        let y = (!c01 & c12) as usize;
-        let a = 2 - 2 * x - y;
-        self.v[a] += self.step[a];
-        self.face[a] += self.step[a] as f64;
-        self.left[a] -= 1;
-        let next = (self.face[a] - self.origin[a]) * self.inv[a];
-        self.tmax[a] = if self.left[a] == 0 { f64::INFINITY } else { next };
+    pub fn step(&mut self) {
+        let cx = self.tx <= self.ty && self.tx <= self.tz;
+        let cy = !cx && self.ty <= self.tz;
+        let cz = !cx && !cy;
+        // Next crossing per axis, computed off the critical path; an axis is done after its
+        // last crossing.
+        let nx = if self.tx == self.lx { u64::MAX } else { self.tx + self.dx };
+        let ny = if self.ty == self.ly { u64::MAX } else { self.ty + self.dy };
+        let nz = if self.tz == self.lz { u64::MAX } else { self.tz + self.dz };
+        self.tx = if cx { nx } else { self.tx };
+        self.ty = if cy { ny } else { self.ty };
+        self.tz = if cz { nz } else { self.tz };
+        self.x += self.sx & -(cx as i32);
+        self.y += self.sy & -(cy as i32);
+        self.z += self.sz & -(cz as i32);
         self.steps -= 1;
-        a
     }
 
+    #[inline]
     pub fn voxel(&self) -> VoxelCoord {
-        VoxelCoord::from_array(self.v)
+        VoxelCoord::new(self.x, self.y, self.z)
     }
 }
 

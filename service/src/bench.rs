@@ -1,0 +1,246 @@
+//! `voxmap bench`: integration speed and map quality on the paper's synthetic workloads,
+//! side by side with the paper's numbers.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use voxmap_core::integrate::PhaseTimes;
+use voxmap_core::io::pcd;
+use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// Directory of workload PCD files (default: generate the paper's workloads with
+    /// shared/bench/gen_workloads.py into a cache directory).
+    #[arg(long)]
+    workloads: Option<PathBuf>,
+    /// Timed runs per row, each into a fresh map (after one untimed warm-up run).
+    #[arg(long, default_value_t = 5)]
+    runs: usize,
+    /// Thread counts, comma separated.
+    #[arg(long, default_value = "1,2", value_delimiter = ',')]
+    threads: Vec<usize>,
+    /// Ray modes, comma separated: exact, subsample, bundle, unique_end.
+    #[arg(long, default_value = "exact,subsample,bundle,unique_end", value_delimiter = ',')]
+    modes: Vec<String>,
+    /// Only workloads whose name contains this.
+    #[arg(long)]
+    filter: Option<String>,
+    #[arg(long, default_value_t = 0.1)]
+    resolution: f64,
+    /// Sub-cells per voxel edge for the subsample mode.
+    #[arg(long, default_value_t = 2)]
+    subsample_factor: u32,
+    /// Bundle size above which one mean ray is cast.
+    #[arg(long, default_value_t = 4)]
+    bundle_threshold: u32,
+    /// One JSON object per line instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
+fn paper_vdb_par(name: &str) -> Option<f64> {
+    Some(match name {
+        "structured_50000_6m" => 10.0,
+        "random_50000_6m" => 20.0,
+        "structured_500000_6m" => 54.0,
+        "random_500000_6m" => 74.0,
+        "structured_50000_60m" => 1308.0,
+        "random_50000_60m" => 5581.0,
+        "structured_500000_60m" => 1979.0,
+        "random_500000_60m" => 10339.0,
+        _ => return None,
+    })
+}
+
+/// Max range encoded in a workload name (`..._60m`).
+fn range_of(name: &str) -> Option<f64> {
+    name.rsplit('_').next()?.strip_suffix('m')?.parse().ok()
+}
+
+/// Find `shared/bench/gen_workloads.py` beside the checkout (or `$VOXMAP_SHARED`).
+pub fn shared_dir() -> Option<PathBuf> {
+    if let Ok(d) = std::env::var("VOXMAP_SHARED") {
+        return Some(PathBuf::from(d));
+    }
+    let mut starts = vec![std::env::current_dir().ok()?];
+    if let Ok(exe) = std::env::current_exe() {
+        starts.push(exe);
+    }
+    starts.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    for s in starts {
+        for dir in s.ancestors() {
+            let c = dir.join("shared");
+            if c.join("bench/gen_workloads.py").is_file() {
+                return Some(c);
+            }
+        }
+    }
+    None
+}
+
+fn generated_workloads() -> Result<PathBuf> {
+    let out = std::env::temp_dir().join("voxmap-workloads-seed42");
+    let names = ["structured", "random"]
+        .iter()
+        .flat_map(|k| ["50000_6m", "50000_60m", "500000_6m", "500000_60m"].map(|s| format!("{k}_{s}.pcd")));
+    if names.clone().all(|n| out.join(n).is_file()) {
+        return Ok(out);
+    }
+    let script = shared_dir().context("shared/bench/gen_workloads.py not found; pass --workloads DIR or set VOXMAP_SHARED")?;
+    eprintln!("generating the paper's workloads into {} ...", out.display());
+    let st = std::process::Command::new("python3")
+        .arg(script.join("bench/gen_workloads.py"))
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .context("running python3")?;
+    if !st.success() {
+        bail!("gen_workloads.py failed: {st}");
+    }
+    Ok(out)
+}
+
+fn list_pcd(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "pcd"))
+        .collect();
+    // Small before large, 6 m before 60 m.
+    v.sort_by_key(|p| {
+        let n = p.file_stem().unwrap_or_default().to_string_lossy().to_string();
+        let pts: u64 = n.split('_').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+        (range_of(&n).unwrap_or(0.0) as u64, pts, n)
+    });
+    Ok(v)
+}
+
+fn mode_of(name: &str, a: &BenchArgs) -> Result<RayMode> {
+    Ok(match name {
+        "exact" => RayMode::Exact,
+        "subsample" => RayMode::Subsample { factor: a.subsample_factor },
+        "bundle" => RayMode::Bundle { threshold: a.bundle_threshold },
+        "unique_end" => RayMode::UniqueEnd,
+        o => bail!("unknown mode '{o}' (exact, subsample, bundle, unique_end)"),
+    })
+}
+
+fn ms(d: std::time::Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+pub fn run(a: BenchArgs) -> Result<()> {
+    let dir = match &a.workloads {
+        Some(d) => d.clone(),
+        None => generated_workloads()?,
+    };
+    let files = list_pcd(&dir)?;
+    if files.is_empty() {
+        bail!("no .pcd files in {}", dir.display());
+    }
+    if a.runs == 0 {
+        bail!("--runs must be >= 1");
+    }
+    if !a.json {
+        println!(
+            "voxmap bench: resolution {} m, {} timed runs per row (median, fresh map per run, after 1 warm-up), {} cores",
+            a.resolution,
+            a.runs,
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        );
+        println!(
+            "{:<22} {:>2} {:<10} {:>7} {:>10} {:>9} {:>8} {:>8} {:>7} {:>6} | {:>6} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} | {:>8}",
+            "workload", "th", "mode", "rays", "steps", "median", "min", "max", "Mpt/s", "ns/st",
+            "prep", "ray", "merge", "upd", "occupied", "free", "B/vox", "paper"
+        );
+    }
+    for f in files {
+        let name = f.file_stem().unwrap_or_default().to_string_lossy().to_string();
+        if a.filter.as_deref().is_some_and(|s| !name.contains(s)) {
+            continue;
+        }
+        let cloud = pcd::read(&f)?;
+        let max_range = range_of(&name).unwrap_or(30.0);
+        let mut exact_counts = None;
+        for m in &a.modes {
+            let mode = mode_of(m, &a)?;
+            for &threads in &a.threads {
+                let cfg = IntegratorConfig { threads, max_range, mode };
+                let mut integ = Integrator::new(cfg)?;
+                let frame = Frame { pose: cloud.pose, points: &cloud.points };
+                let mut times = Vec::new();
+                let mut phases = Vec::new();
+                let mut last = None;
+                for run in 0..=a.runs {
+                    let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
+                    let t = Instant::now();
+                    let r = integ.integrate(&mut map, &frame)?;
+                    let el = t.elapsed();
+                    if run > 0 {
+                        times.push(ms(el));
+                        phases.push(r.times);
+                    }
+                    if run == a.runs {
+                        last = Some((r, map));
+                    } else {
+                        drop(map);
+                    }
+                }
+                let (r, map) = last.expect("runs >= 1");
+                let counts = map.counts();
+                let mem = map.memory_bytes();
+                drop(map);
+                times.sort_by(f64::total_cmp);
+                let med = times[times.len() / 2];
+                let (min, max) = (times[0], times[times.len() - 1]);
+                let p = median_phases(&mut phases);
+                let ns_step = med * 1e6 * threads as f64 / r.voxel_steps.max(1) as f64;
+                let mpts = r.points as f64 / (med * 1e3);
+                let bpv = mem as f64 / r.touched_voxels.max(1) as f64;
+                if mode == RayMode::Exact {
+                    exact_counts = Some(counts);
+                }
+                let paper = paper_vdb_par(&name);
+                if a.json {
+                    let mut o = serde_json::json!({
+                        "workload": name, "threads": threads, "mode": mode.name(), "runs": a.runs,
+                        "median_ms": med, "min_ms": min, "max_ms": max, "points": r.points, "rays": r.rays,
+                        "voxel_steps": r.voxel_steps, "occupied": counts.occupied, "free": counts.free,
+                        "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
+                        "mpoints_per_s": mpts, "ns_per_step_per_thread": ns_step, "bytes_per_touched_voxel": bpv,
+                        "prepare_ms": ms(p.prepare), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
+                        "paper_vdb_par_12t_ms": paper,
+                    });
+                    if let (Some(e), true) = (exact_counts, mode != RayMode::Exact) {
+                        o["occupied_vs_exact"] = serde_json::json!(counts.occupied as f64 / e.occupied.max(1) as f64);
+                        o["free_vs_exact"] = serde_json::json!(counts.free as f64 / e.free.max(1) as f64);
+                    }
+                    println!("{o}");
+                } else {
+                    println!(
+                        "{:<22} {:>2} {:<10} {:>7} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
+                        name, threads, mode.name(), r.rays, r.voxel_steps, med, min, max, mpts, ns_step,
+                        ms(p.prepare), ms(p.raycast), ms(p.merge), ms(p.update),
+                        counts.occupied, counts.free, bpv, paper.map_or("-".into(), |v| format!("{v:.0}")),
+                    );
+                }
+            }
+        }
+    }
+    if !a.json {
+        println!("ns/st = median ns per voxel step per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
+    }
+    Ok(())
+}
+
+fn median_phases(p: &mut [PhaseTimes]) -> PhaseTimes {
+    let mut pick = |f: fn(&PhaseTimes) -> std::time::Duration| {
+        let mut v: Vec<_> = p.iter().map(f).collect();
+        v.sort();
+        v[v.len() / 2]
+    };
+    PhaseTimes { prepare: pick(|t| t.prepare), raycast: pick(|t| t.raycast), merge: pick(|t| t.merge), update: pick(|t| t.update) }
+}
