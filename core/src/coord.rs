@@ -80,16 +80,25 @@ pub enum ConfigError {
     /// Resolution must be finite and within [1e-4, 1e3] m.
     Resolution(f64),
     /// A parameter is out of its valid range.
-    Invalid { name: &'static str, value: f64, why: &'static str },
+    Invalid {
+        name: &'static str,
+        value: f64,
+        why: &'static str,
+    },
 }
 
 impl std::fmt::Display for ConfigError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             ConfigError::Resolution(r) => {
-                write!(f, "resolution {r} m is invalid: must be finite and within [1e-4, 1000] m")
+                write!(
+                    f,
+                    "resolution {r} m is invalid: must be finite and within [1e-4, 1000] m"
+                )
             }
-            ConfigError::Invalid { name, value, why } => write!(f, "{name} = {value} is invalid: {why}"),
+            ConfigError::Invalid { name, value, why } => {
+                write!(f, "{name} = {value} is invalid: {why}")
+            }
         }
     }
 }
@@ -111,7 +120,10 @@ impl GridTransform {
         if !(resolution.is_finite() && (1e-4..=1e3).contains(&resolution)) {
             return Err(ConfigError::Resolution(resolution));
         }
-        Ok(Self { resolution, inv: 1.0 / resolution })
+        Ok(Self {
+            resolution,
+            inv: 1.0 / resolution,
+        })
     }
 
     pub fn resolution(&self) -> f64 {
@@ -165,7 +177,13 @@ impl GridTransform {
 #[inline]
 pub fn units_to_voxel(u: [f64; 3]) -> Option<VoxelCoord> {
     let ok = u.iter().all(|c| c.is_finite() && c.abs() < MAX_VOXEL_INDEX);
-    ok.then(|| VoxelCoord::new(u[0].floor() as i32, u[1].floor() as i32, u[2].floor() as i32))
+    ok.then(|| {
+        VoxelCoord::new(
+            u[0].floor() as i32,
+            u[1].floor() as i32,
+            u[2].floor() as i32,
+        )
+    })
 }
 
 #[cfg(test)]
@@ -177,27 +195,52 @@ mod tests {
         let t = GridTransform::new(0.1).unwrap();
         let v = |x, y, z| t.voxel_of(&WorldPoint::new(x, y, z)).unwrap();
         assert_eq!(v(0.05, -0.05, -0.15), VoxelCoord::new(0, -1, -2));
-        assert_eq!(v(-1e-12, 0.0, 0.0).x, 0, "within snap distance of the face at 0");
+        assert_eq!(
+            v(-1e-12, 0.0, 0.0).x,
+            0,
+            "within snap distance of the face at 0"
+        );
         assert_eq!(v(-1e-6, 0.0, 0.0).x, -1);
     }
 
     #[test]
     fn points_on_faces_belong_to_the_voxel_above() {
         let t = GridTransform::new(0.1).unwrap();
-        for (w, want) in [(0.3, 3), (2.3, 23), (-0.3, -3), (-2.3, -23), (0.7, 7), (0.0, 0), (-0.1, -1)] {
-            assert_eq!(t.voxel_of(&WorldPoint::new(w, w, w)).unwrap(), VoxelCoord::new(want, want, want), "{w}");
+        for (w, want) in [
+            (0.3, 3),
+            (2.3, 23),
+            (-0.3, -3),
+            (-2.3, -23),
+            (0.7, 7),
+            (0.0, 0),
+            (-0.1, -1),
+        ] {
+            assert_eq!(
+                t.voxel_of(&WorldPoint::new(w, w, w)).unwrap(),
+                VoxelCoord::new(want, want, want),
+                "{w}"
+            );
         }
         // Exactly representable resolution: exact arithmetic, faces on multiples.
         let t = GridTransform::new(0.125).unwrap();
-        assert_eq!(t.voxel_of(&WorldPoint::new(0.25, -0.25, 0.125)).unwrap(), VoxelCoord::new(2, -2, 1));
-        assert_eq!(t.voxel_of(&WorldPoint::new(0.2499999, -0.2500001, 0.0)).unwrap(), VoxelCoord::new(1, -3, 0));
+        assert_eq!(
+            t.voxel_of(&WorldPoint::new(0.25, -0.25, 0.125)).unwrap(),
+            VoxelCoord::new(2, -2, 1)
+        );
+        assert_eq!(
+            t.voxel_of(&WorldPoint::new(0.2499999, -0.2500001, 0.0))
+                .unwrap(),
+            VoxelCoord::new(1, -3, 0)
+        );
     }
 
     #[test]
     fn rejects_non_finite_and_out_of_range() {
         let t = GridTransform::new(0.1).unwrap();
         assert!(t.voxel_of(&WorldPoint::new(f64::NAN, 0.0, 0.0)).is_none());
-        assert!(t.voxel_of(&WorldPoint::new(0.0, f64::INFINITY, 0.0)).is_none());
+        assert!(t
+            .voxel_of(&WorldPoint::new(0.0, f64::INFINITY, 0.0))
+            .is_none());
         assert!(t.voxel_of(&WorldPoint::new(0.0, 0.0, 1e9)).is_none());
         assert!(GridTransform::new(0.0).is_err());
         assert!(GridTransform::new(f64::NAN).is_err());
@@ -206,7 +249,11 @@ mod tests {
     #[test]
     fn voxel_center_round_trips() {
         let t = GridTransform::new(0.05).unwrap();
-        for v in [VoxelCoord::new(0, 0, 0), VoxelCoord::new(-7, 13, -1000), VoxelCoord::new(123456, -654321, 1)] {
+        for v in [
+            VoxelCoord::new(0, 0, 0),
+            VoxelCoord::new(-7, 13, -1000),
+            VoxelCoord::new(123456, -654321, 1),
+        ] {
             assert_eq!(t.voxel_of(&t.voxel_center(v)).unwrap(), v);
         }
     }

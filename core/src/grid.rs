@@ -93,12 +93,16 @@ pub struct LeafPool<V> {
 
 impl<V: GridValue> LeafPool<V> {
     fn new() -> Self {
-        Self { chunks: Vec::new(), len: 0 }
+        Self {
+            chunks: Vec::new(),
+            len: 0,
+        }
     }
 
     fn push_zeroed(&mut self) -> u32 {
         if self.len == self.chunks.len() * POOL_CHUNK {
-            self.chunks.push(bytemuck::allocation::zeroed_slice_box(POOL_CHUNK));
+            self.chunks
+                .push(bytemuck::allocation::zeroed_slice_box(POOL_CHUNK));
         }
         self.len += 1;
         (self.len - 1) as u32
@@ -127,9 +131,16 @@ impl<V: GridValue> LeafPool<V> {
     /// Apply `f` to each listed leaf, in parallel across chunks, and sum what it returns.
     /// `items` must be sorted by leaf index with no index twice; each leaf is then borrowed
     /// mutably exactly once.
-    pub fn par_update<T: Sync>(&mut self, items: &[(u32, T)], f: impl Fn(&mut Leaf<V>, &T) -> u64 + Sync) -> u64 {
+    pub fn par_update<T: Sync>(
+        &mut self,
+        items: &[(u32, T)],
+        f: impl Fn(&mut Leaf<V>, &T) -> u64 + Sync,
+    ) -> u64 {
         use rayon::prelude::*;
-        assert!(items.windows(2).all(|w| w[0].0 < w[1].0), "par_update: leaf indices must be strictly increasing");
+        assert!(
+            items.windows(2).all(|w| w[0].0 < w[1].0),
+            "par_update: leaf indices must be strictly increasing"
+        );
         // Split `items` into one run per chunk, then hand each run its chunk.
         let mut runs: Vec<(usize, &[(u32, T)])> = Vec::new();
         let mut rest = items;
@@ -139,12 +150,20 @@ impl<V: GridValue> LeafPool<V> {
             runs.push((c, &rest[..n]));
             rest = &rest[n..];
         }
-        let mut chunk_refs: Vec<Option<&mut Box<[Leaf<V>]>>> = self.chunks.iter_mut().map(Some).collect();
-        let work: Vec<(&mut Box<[Leaf<V>]>, &[(u32, T)])> =
-            runs.into_iter().map(|(c, run)| (chunk_refs[c].take().expect("one run per chunk"), run)).collect();
+        let mut chunk_refs: Vec<Option<&mut Box<[Leaf<V>]>>> =
+            self.chunks.iter_mut().map(Some).collect();
+        type Work<'w, V, T> = Vec<(&'w mut Box<[Leaf<V>]>, &'w [(u32, T)])>;
+        let work: Work<'_, V, T> = runs
+            .into_iter()
+            .map(|(c, run)| (chunk_refs[c].take().expect("one run per chunk"), run))
+            .collect();
         work.into_par_iter()
             .with_max_len(4)
-            .map(|(chunk, run)| run.iter().map(|(i, t)| f(&mut chunk[*i as usize % POOL_CHUNK], t)).sum::<u64>())
+            .map(|(chunk, run)| {
+                run.iter()
+                    .map(|(i, t)| f(&mut chunk[*i as usize % POOL_CHUNK], t))
+                    .sum::<u64>()
+            })
             .sum()
     }
 }
@@ -164,7 +183,11 @@ impl<V: GridValue> Default for Grid<V> {
 
 impl<V: GridValue> Grid<V> {
     pub fn new() -> Self {
-        Self { root: HashMap::new(), internals: Vec::new(), leaves: LeafPool::new() }
+        Self {
+            root: HashMap::new(),
+            internals: Vec::new(),
+            leaves: LeafPool::new(),
+        }
     }
 
     pub fn leaf_count(&self) -> usize {
@@ -173,7 +196,9 @@ impl<V: GridValue> Grid<V> {
 
     /// Active voxels.
     pub fn active_count(&self) -> u64 {
-        (0..self.leaves.len() as u32).map(|i| u64::from(self.leaves.get(i).active.count())).sum()
+        (0..self.leaves.len() as u32)
+            .map(|i| u64::from(self.leaves.get(i).active.count()))
+            .sum()
     }
 
     /// Bytes this grid holds on the heap: leaf chunks, internal nodes, root table.
@@ -220,7 +245,11 @@ impl<V: GridValue> Grid<V> {
 
     /// Index of the leaf at `origin`, created (all inactive) if absent. `hint` is a cached
     /// internal node (key, index) that is used when it matches and updated otherwise.
-    pub fn leaf_index_or_insert(&mut self, origin: VoxelCoord, hint: Option<&mut (VoxelCoord, u32)>) -> u32 {
+    pub fn leaf_index_or_insert(
+        &mut self,
+        origin: VoxelCoord,
+        hint: Option<&mut (VoxelCoord, u32)>,
+    ) -> u32 {
         let key = internal_key(origin);
         let ii = match hint {
             Some(h) if h.0 == key && (h.1 as usize) < self.internals.len() => h.1,
@@ -229,7 +258,8 @@ impl<V: GridValue> Grid<V> {
                     Some(&ii) => ii,
                     None => {
                         let ii = self.internals.len() as u32;
-                        self.internals.push(Internal::new(key.shl(INTERNAL_TOTAL_LOG2)));
+                        self.internals
+                            .push(Internal::new(key.shl(INTERNAL_TOTAL_LOG2)));
                         self.root.insert(key, ii);
                         ii
                     }
@@ -254,33 +284,53 @@ impl<V: GridValue> Grid<V> {
     /// Every leaf as (origin, leaf), in no particular order.
     pub fn leaves(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
         self.internals.iter().flat_map(move |node| {
-            node.child_mask.iter().enumerate().flat_map(move |(wi, &w)| {
-                BitIter(w).map(move |b| {
-                    let ci = wi * 64 + b;
-                    let m = (1 << INTERNAL_LOG2) - 1;
-                    let c = ci as i32;
-                    let o = node.origin
-                        + VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2)).shl(LEAF_LOG2);
-                    (o, self.leaves.get(node.children[ci]))
+            node.child_mask
+                .iter()
+                .enumerate()
+                .flat_map(move |(wi, &w)| {
+                    BitIter(w).map(move |b| {
+                        let ci = wi * 64 + b;
+                        let m = (1 << INTERNAL_LOG2) - 1;
+                        let c = ci as i32;
+                        let o = node.origin
+                            + VoxelCoord::new(
+                                c & m,
+                                c >> INTERNAL_LOG2 & m,
+                                c >> (2 * INTERNAL_LOG2),
+                            )
+                            .shl(LEAF_LOG2);
+                        (o, self.leaves.get(node.children[ci]))
+                    })
                 })
-            })
         })
     }
 
     /// Every active voxel as (coordinate, value), in no particular order.
     pub fn active_voxels(&self) -> impl Iterator<Item = (VoxelCoord, V)> + '_ {
-        self.leaves().flat_map(|(o, leaf)| leaf.active.iter_ones().map(move |i| (voxel_at(o, i), leaf.values[i])))
+        self.leaves().flat_map(|(o, leaf)| {
+            leaf.active
+                .iter_ones()
+                .map(move |i| (voxel_at(o, i), leaf.values[i]))
+        })
     }
 
     /// A read accessor that caches the last leaf it visited.
     pub fn accessor(&self) -> Accessor<'_, V> {
-        Accessor { grid: self, leaf_key: None, leaf: None }
+        Accessor {
+            grid: self,
+            leaf_key: None,
+            leaf: None,
+        }
     }
 }
 
 impl Internal {
     fn new(origin: VoxelCoord) -> Box<Self> {
-        Box::new(Self { origin, child_mask: [0; INTERNAL_CHILDREN / 64], children: [0; INTERNAL_CHILDREN] })
+        Box::new(Self {
+            origin,
+            child_mask: [0; INTERNAL_CHILDREN / 64],
+            children: [0; INTERNAL_CHILDREN],
+        })
     }
 
     #[inline]
@@ -349,7 +399,11 @@ mod tests {
         assert_eq!(g.leaf_count(), 5);
         let mut got: Vec<_> = g.active_voxels().collect();
         got.sort();
-        let mut want: Vec<_> = pts.iter().enumerate().map(|(i, &p)| (p, i as i8 + 1)).collect();
+        let mut want: Vec<_> = pts
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| (p, i as i8 + 1))
+            .collect();
         want.sort();
         assert_eq!(got, want);
     }
@@ -393,8 +447,14 @@ mod tests {
     #[test]
     fn par_update_touches_each_listed_leaf_once() {
         let mut g = Grid::<i8>::new();
-        let idx: Vec<u32> = (0..1000).map(|i| g.leaf_index_or_insert(VoxelCoord::new(i * 8, 0, 0), None)).collect();
-        let items: Vec<(u32, i8)> = idx.iter().step_by(3).map(|&i| (i, (i % 100) as i8)).collect();
+        let idx: Vec<u32> = (0..1000)
+            .map(|i| g.leaf_index_or_insert(VoxelCoord::new(i * 8, 0, 0), None))
+            .collect();
+        let items: Vec<(u32, i8)> = idx
+            .iter()
+            .step_by(3)
+            .map(|&i| (i, (i % 100) as i8))
+            .collect();
         let n = g.leaf_pool_mut().par_update(&items, |leaf, &v| {
             leaf.values[0] += v;
             leaf.active.set(0);
@@ -402,7 +462,11 @@ mod tests {
         });
         assert_eq!(n, items.len() as u64);
         for (k, &li) in idx.iter().enumerate() {
-            let want = if k % 3 == 0 { Some((li % 100) as i8) } else { None };
+            let want = if k % 3 == 0 {
+                Some((li % 100) as i8)
+            } else {
+                None
+            };
             assert_eq!(g.leaf(li).get(0), want);
         }
     }

@@ -75,7 +75,11 @@ pub struct IntegratorConfig {
 
 impl Default for IntegratorConfig {
     fn default() -> Self {
-        Self { threads: std::thread::available_parallelism().map_or(1, |n| n.get()), max_range: 30.0, mode: RayMode::Exact }
+        Self {
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            max_range: 30.0,
+            mode: RayMode::Exact,
+        }
     }
 }
 
@@ -101,7 +105,10 @@ impl std::fmt::Display for IntegrateError {
         match self {
             IntegrateError::NonFinitePose => write!(f, "frame rejected: sensor pose is not finite"),
             IntegrateError::OriginOutOfRange { origin } => {
-                write!(f, "frame rejected: sensor origin {origin:?} m is outside the map's index space")
+                write!(
+                    f,
+                    "frame rejected: sensor origin {origin:?} m is outside the map's index space"
+                )
             }
         }
     }
@@ -162,17 +169,33 @@ pub struct Integrator {
 impl Integrator {
     pub fn new(cfg: IntegratorConfig) -> Result<Self, ConfigError> {
         if cfg.threads == 0 || cfg.threads > 1024 {
-            return Err(ConfigError::Invalid { name: "threads", value: cfg.threads as f64, why: "must be 1..=1024" });
+            return Err(ConfigError::Invalid {
+                name: "threads",
+                value: cfg.threads as f64,
+                why: "must be 1..=1024",
+            });
         }
         if !(cfg.max_range.is_finite() && cfg.max_range > 0.0) {
-            return Err(ConfigError::Invalid { name: "max_range", value: cfg.max_range, why: "must be finite and > 0" });
+            return Err(ConfigError::Invalid {
+                name: "max_range",
+                value: cfg.max_range,
+                why: "must be finite and > 0",
+            });
         }
         match cfg.mode {
             RayMode::Subsample { factor } if !(1..=64).contains(&factor) => {
-                return Err(ConfigError::Invalid { name: "subsample_factor", value: factor as f64, why: "must be 1..=64" })
+                return Err(ConfigError::Invalid {
+                    name: "subsample_factor",
+                    value: factor as f64,
+                    why: "must be 1..=64",
+                })
             }
-            RayMode::Bundle { threshold } if threshold == 0 => {
-                return Err(ConfigError::Invalid { name: "bundle_threshold", value: 0.0, why: "must be >= 1" })
+            RayMode::Bundle { threshold: 0 } => {
+                return Err(ConfigError::Invalid {
+                    name: "bundle_threshold",
+                    value: 0.0,
+                    why: "must be >= 1",
+                })
             }
             _ => {}
         }
@@ -180,8 +203,17 @@ impl Integrator {
             .num_threads(cfg.threads)
             .thread_name(|i| format!("voxmap-int-{i}"))
             .build()
-            .map_err(|_| ConfigError::Invalid { name: "threads", value: cfg.threads as f64, why: "thread pool failed" })?;
-        Ok(Self { cfg, pool, marks: FrameMarks::default(), rays: Vec::new() })
+            .map_err(|_| ConfigError::Invalid {
+                name: "threads",
+                value: cfg.threads as f64,
+                why: "thread pool failed",
+            })?;
+        Ok(Self {
+            cfg,
+            pool,
+            marks: FrameMarks::default(),
+            rays: Vec::new(),
+        })
     }
 
     pub fn config(&self) -> &IntegratorConfig {
@@ -202,23 +234,39 @@ impl Integrator {
     }
 
     /// Integrate one frame. On error nothing has changed in the map.
-    pub fn integrate(&mut self, map: &mut OccupancyMap, frame: &Frame<'_>) -> Result<IntegrateReport, IntegrateError> {
-        let range_units = self.check_range(map.resolution()).map_err(|_| IntegrateError::OriginOutOfRange {
-            origin: frame.pose.translation.vector.into(),
-        })?;
+    pub fn integrate(
+        &mut self,
+        map: &mut OccupancyMap,
+        frame: &Frame<'_>,
+    ) -> Result<IntegrateReport, IntegrateError> {
+        let range_units =
+            self.check_range(map.resolution())
+                .map_err(|_| IntegrateError::OriginOutOfRange {
+                    origin: frame.pose.translation.vector.into(),
+                })?;
         let pose = frame.pose;
-        if !(pose.translation.vector.iter().all(|c| c.is_finite()) && pose.rotation.coords.iter().all(|c| c.is_finite())) {
+        if !(pose.translation.vector.iter().all(|c| c.is_finite())
+            && pose.rotation.coords.iter().all(|c| c.is_finite()))
+        {
             return Err(IntegrateError::NonFinitePose);
         }
         let tf = *map.transform();
         let origin = tf.point_to_units(&Point3::from(pose.translation.vector));
-        if origin.iter().any(|c| c.abs() + range_units + 16.0 >= MAX_VOXEL_INDEX) {
-            return Err(IntegrateError::OriginOutOfRange { origin: pose.translation.vector.into() });
+        if origin
+            .iter()
+            .any(|c| c.abs() + range_units + 16.0 >= MAX_VOXEL_INDEX)
+        {
+            return Err(IntegrateError::OriginOutOfRange {
+                origin: pose.translation.vector.into(),
+            });
         }
         let q = *map.quantized();
         let mode = self.cfg.mode;
         let (pool, marks, rays) = (&self.pool, &mut self.marks, &mut self.rays);
-        let mut report = IntegrateReport { points: frame.points.len() as u64, ..Default::default() };
+        let mut report = IntegrateReport {
+            points: frame.points.len() as u64,
+            ..Default::default()
+        };
         pool.install(|| {
             let t0 = Instant::now();
             report.skipped_nonfinite = prepare_rays(rays, frame, &tf, origin, range_units, mode);
@@ -227,16 +275,26 @@ impl Integrator {
             let (lo, hi) = bounds(rays, origin);
             marks.reset(lo, hi);
             let t1 = Instant::now();
-            report.voxel_steps = rays.par_chunks(512).map(|chunk| cast_chunk(marks, origin, chunk)).sum();
+            report.voxel_steps = rays
+                .par_chunks(512)
+                .map(|chunk| cast_chunk(marks, origin, chunk))
+                .sum();
             let t2 = Instant::now();
             let items = merge(marks, map);
             let t3 = Instant::now();
             report.touched_leaves = items.len() as u64;
-            report.touched_voxels =
-                map.grid_mut().leaf_pool_mut().par_update(&items, |leaf, &slot| apply(leaf, marks.slot(slot), &q));
+            report.touched_voxels = map
+                .grid_mut()
+                .leaf_pool_mut()
+                .par_update(&items, |leaf, &slot| apply(leaf, marks.slot(slot), &q));
             marks.clear_used();
             let t4 = Instant::now();
-            report.times = PhaseTimes { prepare: t1 - t0, raycast: t2 - t1, merge: t3 - t2, update: t4 - t3 };
+            report.times = PhaseTimes {
+                prepare: t1 - t0,
+                raycast: t2 - t1,
+                merge: t3 - t2,
+                update: t4 - t3,
+            };
         });
         Ok(report)
     }
@@ -290,9 +348,17 @@ fn prepare_rays(
         let hit = len <= range_units;
         if !hit {
             let s = range_units / len;
-            e = [origin[0] + d[0] * s, origin[1] + d[1] * s, origin[2] + d[2] * s];
+            e = [
+                origin[0] + d[0] * s,
+                origin[1] + d[1] * s,
+                origin[2] + d[2] * s,
+            ];
         }
-        Some(Ray { end: e, key: direction_key(d), hit })
+        Some(Ray {
+            end: e,
+            key: direction_key(d),
+            hit,
+        })
     };
     rays.clear();
     rays.par_extend(frame.points.par_iter().filter_map(make));
@@ -331,7 +397,11 @@ fn prepare_rays(
                     }
                     let end = m.map(|c| c / n as f64);
                     let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
-                    out.push(Ray { end, key: direction_key(d), hit: group[0].hit });
+                    out.push(Ray {
+                        end,
+                        key: direction_key(d),
+                        hit: group[0].hit,
+                    });
                 } else {
                     out.extend_from_slice(group);
                 }
@@ -349,7 +419,8 @@ fn bounds(rays: &[Ray], origin: [f64; 3]) -> (VoxelCoord, VoxelCoord) {
     let o = units_to_voxel(origin).expect("origin checked");
     rays.par_iter()
         .map(|r| {
-            let v = units_to_voxel(r.end).expect("ray ends lie within max range of a checked origin");
+            let v =
+                units_to_voxel(r.end).expect("ray ends lie within max range of a checked origin");
             (v, v)
         })
         .reduce(|| (o, o), |a, b| (a.0.min(b.0), a.1.max(b.1)))
@@ -406,7 +477,10 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel) -> u64 {
 /// Give every touched brick its map leaf; returns (leaf index, slot) sorted by leaf index.
 fn merge(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(u32, u32)> {
     let n = marks.used_slots();
-    let mut bricks: Vec<(VoxelCoord, u32)> = (0..n).into_par_iter().map(|s| (marks.slot_origin(s), s)).collect();
+    let mut bricks: Vec<(VoxelCoord, u32)> = (0..n)
+        .into_par_iter()
+        .map(|s| (marks.slot_origin(s), s))
+        .collect();
     // Internal-node-major order, so consecutive bricks share the cached internal node and
     // new leaves are laid out in space order.
     bricks.par_sort_unstable_by_key(|(o, _)| {
@@ -415,8 +489,10 @@ fn merge(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(u32, u32)> {
     });
     let grid = map.grid_mut();
     let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
-    let mut items: Vec<(u32, u32)> =
-        bricks.iter().map(|&(o, s)| (grid.leaf_index_or_insert(o, Some(&mut hint)), s)).collect();
+    let mut items: Vec<(u32, u32)> = bricks
+        .iter()
+        .map(|&(o, s)| (grid.leaf_index_or_insert(o, Some(&mut hint)), s))
+        .collect();
     if !items.windows(2).all(|w| w[0].0 < w[1].0) {
         items.par_sort_unstable_by_key(|&(l, _)| l);
     }
@@ -453,7 +529,10 @@ struct Pool<T, const CHUNK: usize> {
 
 impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
     fn default() -> Self {
-        Self { chunks: Vec::new(), next: AtomicU32::new(0) }
+        Self {
+            chunks: Vec::new(),
+            next: AtomicU32::new(0),
+        }
     }
 }
 
@@ -489,12 +568,15 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
 
     fn clear(&mut self, zero: impl Fn(&T) + Sync) {
         let n = self.used() as usize;
-        self.chunks[..n.div_ceil(CHUNK)].par_iter().enumerate().for_each(|(c, chunk)| {
-            if let Some(items) = chunk.get() {
-                let end = (n - c * CHUNK).min(CHUNK);
-                items[..end].iter().for_each(&zero);
-            }
-        });
+        self.chunks[..n.div_ceil(CHUNK)]
+            .par_iter()
+            .enumerate()
+            .for_each(|(c, chunk)| {
+                if let Some(items) = chunk.get() {
+                    let end = (n - c * CHUNK).min(CHUNK);
+                    items[..end].iter().for_each(&zero);
+                }
+            });
         self.next.store(0, Relaxed);
     }
 }
@@ -552,7 +634,11 @@ const BRICK_CACHE: usize = 512;
 
 impl Default for BrickCache<'_> {
     fn default() -> Self {
-        Self { cell: 0, block: None, bricks: [None; BRICK_CACHE] }
+        Self {
+            cell: 0,
+            block: None,
+            bricks: [None; BRICK_CACHE],
+        }
     }
 }
 
@@ -607,11 +693,15 @@ impl FrameMarks {
     fn slot_lookup<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord) -> &'a Slot {
         let r = brick - self.lo.shr(3);
         let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
-        let cell = (x >> CELL_LOG2) + self.cells_dim[0] * ((y >> CELL_LOG2) + self.cells_dim[1] * (z >> CELL_LOG2));
+        let cell = (x >> CELL_LOG2)
+            + self.cells_dim[0] * ((y >> CELL_LOG2) + self.cells_dim[1] * (z >> CELL_LOG2));
         let block = match cache.block {
             Some(b) if cache.cell == cell => b,
             _ => {
-                let b = claim(&self.cells[cell], || self.blocks.alloc(|| std::array::from_fn(|_| AtomicU32::new(0))));
+                let b = claim(&self.cells[cell], || {
+                    self.blocks
+                        .alloc(|| std::array::from_fn(|_| AtomicU32::new(0)))
+                });
                 cache.cell = cell;
                 cache.block = Some(b);
                 b
@@ -622,7 +712,10 @@ impl FrameMarks {
         let entry = &self.blocks.get(block)[e];
         let s = claim(entry, || {
             let s = self.slots.alloc(Slot::default);
-            self.slots.get(s).key.store(x as u64 | (y as u64) << 21 | (z as u64) << 42, Relaxed);
+            self.slots
+                .get(s)
+                .key
+                .store(x as u64 | (y as u64) << 21 | (z as u64) << 42, Relaxed);
             s
         });
         self.slots.get(s)
@@ -654,9 +747,13 @@ impl FrameMarks {
     /// Zero everything this frame used, keeping the memory for the next.
     fn clear_used(&mut self) {
         self.slots.clear(|s| {
-            s.free.iter().chain(&s.hit).for_each(|w| w.store(0, Relaxed));
+            s.free
+                .iter()
+                .chain(&s.hit)
+                .for_each(|w| w.store(0, Relaxed));
         });
-        self.blocks.clear(|b| b.iter().for_each(|e| e.store(0, Relaxed)));
+        self.blocks
+            .clear(|b| b.iter().for_each(|e| e.store(0, Relaxed)));
     }
 }
 
@@ -671,12 +768,19 @@ mod tests {
     struct Rng(u64);
     impl Rng {
         fn f(&mut self) -> f64 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (self.0 >> 11) as f64 / (1u64 << 53) as f64
         }
         fn ball(&mut self, r: f64) -> [f32; 3] {
             loop {
-                let p = [self.f() * 2.0 - 1.0, self.f() * 2.0 - 1.0, self.f() * 2.0 - 1.0];
+                let p = [
+                    self.f() * 2.0 - 1.0,
+                    self.f() * 2.0 - 1.0,
+                    self.f() * 2.0 - 1.0,
+                ];
                 if p.iter().map(|c| c * c).sum::<f64>() <= 1.0 {
                     return p.map(|c| (c * r) as f32);
                 }
@@ -685,7 +789,12 @@ mod tests {
     }
 
     fn integrator(threads: usize, max_range: f64, mode: RayMode) -> Integrator {
-        Integrator::new(IntegratorConfig { threads, max_range, mode }).unwrap()
+        Integrator::new(IntegratorConfig {
+            threads,
+            max_range,
+            mode,
+        })
+        .unwrap()
     }
 
     fn snapshot(map: &OccupancyMap) -> Vec<(VoxelCoord, i8)> {
@@ -748,7 +857,10 @@ mod tests {
             let (pose, pts) = random_frame(&mut rng, 3000, 4.0);
             let frame = Frame { pose, points: &pts };
             let r = integ.integrate(&mut map, &frame).unwrap();
-            assert!(r.cut_rays > 0 && r.cut_rays < r.rays, "both kinds of rays: {r:?}");
+            assert!(
+                r.cut_rays > 0 && r.cut_rays < r.rays,
+                "both kinds of rays: {r:?}"
+            );
             reference_integrate(&mut want, &frame, 3.0);
         }
         assert_eq!(snapshot(&map), snapshot(&want));
@@ -757,13 +869,24 @@ mod tests {
     #[test]
     fn result_is_identical_for_any_thread_count() {
         let mut rng = Rng(11);
-        let frames: Vec<_> = (0..3).map(|_| random_frame(&mut rng, 20000, 12.0)).collect();
+        let frames: Vec<_> = (0..3)
+            .map(|_| random_frame(&mut rng, 20000, 12.0))
+            .collect();
         let run = |threads| {
             let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
             let mut integ = integrator(threads, 10.0, RayMode::Exact);
             let mut steps = 0;
             for (pose, pts) in &frames {
-                steps += integ.integrate(&mut map, &Frame { pose: *pose, points: pts }).unwrap().voxel_steps;
+                steps += integ
+                    .integrate(
+                        &mut map,
+                        &Frame {
+                            pose: *pose,
+                            points: pts,
+                        },
+                    )
+                    .unwrap()
+                    .voxel_steps;
             }
             (snapshot(&map), steps, map.grid().leaf_count())
         };
@@ -791,14 +914,22 @@ mod tests {
             let t = (0..3)
                 .map(|a| {
                     let h = [hx, hy, hz][a];
-                    if d[a] > 0.0 { (h - 0.01 - sensor[a]) / d[a] } else if d[a] < 0.0 { (-h + 0.01 - sensor[a]) / d[a] } else { f64::INFINITY }
+                    if d[a] > 0.0 {
+                        (h - 0.01 - sensor[a]) / d[a]
+                    } else if d[a] < 0.0 {
+                        (-h + 0.01 - sensor[a]) / d[a]
+                    } else {
+                        f64::INFINITY
+                    }
                 })
                 .fold(f64::INFINITY, f64::min);
             pts.push([0, 1, 2].map(|a| (d[a] * t) as f32));
         }
         let pose = Isometry3::translation(sensor[0], sensor[1], sensor[2]);
         let mut map = OccupancyMap::new(0.05, SensorModel::default()).unwrap();
-        let r = integrator(2, 10.0, RayMode::Exact).integrate(&mut map, &Frame { pose, points: &pts }).unwrap();
+        let r = integrator(2, 10.0, RayMode::Exact)
+            .integrate(&mut map, &Frame { pose, points: &pts })
+            .unwrap();
         assert_eq!(r.cut_rays, 0);
         let tf = *map.transform();
         let state = |x: f64, y: f64, z: f64| map.state_at(&WorldPointT::new(x, y, z));
@@ -815,7 +946,11 @@ mod tests {
         for ix in steps(hx) {
             for iy in steps(hy) {
                 for iz in steps(hz) {
-                    let (x, y, z) = (ix as f64 * 0.1 + 0.013, iy as f64 * 0.1 + 0.013, iz as f64 * 0.1 + 0.013);
+                    let (x, y, z) = (
+                        ix as f64 * 0.1 + 0.013,
+                        iy as f64 * 0.1 + 0.013,
+                        iz as f64 * 0.1 + 0.013,
+                    );
                     assert_eq!(state(x, y, z), VoxelState::Free, "interior ({x}, {y}, {z})");
                     checked += 1;
                 }
@@ -828,10 +963,16 @@ mod tests {
         assert_eq!(state(0.0, 0.0, hz + 0.5), VoxelState::Unknown);
         for (v, _) in map.grid().active_voxels() {
             let c = tf.voxel_center(v);
-            assert!(c.x.abs() < hx + res && c.y.abs() < hy + res && c.z.abs() < hz + res, "known outside: {c:?}");
+            assert!(
+                c.x.abs() < hx + res && c.y.abs() < hy + res && c.z.abs() < hz + res,
+                "known outside: {c:?}"
+            );
         }
         let counts = map.counts();
-        assert!(counts.occupied > 1000 && counts.free > 100_000, "{counts:?}");
+        assert!(
+            counts.occupied > 1000 && counts.free > 100_000,
+            "{counts:?}"
+        );
     }
 
     type WorldPointT = crate::coord::WorldPoint;
@@ -841,14 +982,32 @@ mod tests {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let pts = [[5.0f32, 0.05, 0.05], [1.0, 0.05, 0.05]];
         let r = integrator(1, 2.0, RayMode::Exact)
-            .integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &pts[..1] })
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &pts[..1],
+                },
+            )
             .unwrap();
         assert_eq!((r.rays, r.cut_rays), (1, 1));
         assert_eq!(map.counts().occupied, 0);
         // Cut at 2 m along the ray: x = 1.9998, voxel 19 is the cut end.
         assert_eq!(map.state(VoxelCoord::new(18, 0, 0)), VoxelState::Free);
-        assert_eq!(map.state(VoxelCoord::new(19, 0, 0)), VoxelState::Unknown, "the cut end itself is not marked");
-        integrator(1, 2.0, RayMode::Exact).integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &pts[1..] }).unwrap();
+        assert_eq!(
+            map.state(VoxelCoord::new(19, 0, 0)),
+            VoxelState::Unknown,
+            "the cut end itself is not marked"
+        );
+        integrator(1, 2.0, RayMode::Exact)
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &pts[1..],
+                },
+            )
+            .unwrap();
         assert_eq!(map.state(VoxelCoord::new(10, 0, 0)), VoxelState::Occupied);
     }
 
@@ -856,8 +1015,21 @@ mod tests {
     fn hit_beats_free_within_a_frame_and_degenerate_rays() {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         // The second point's ray passes through the first point's voxel.
-        let pts = [[0.55f32, 0.05, 0.05], [1.55, 0.05, 0.05], [0.0, 0.0, 0.0], [0.01, 0.02, 0.03]];
-        integrator(2, 10.0, RayMode::Exact).integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &pts }).unwrap();
+        let pts = [
+            [0.55f32, 0.05, 0.05],
+            [1.55, 0.05, 0.05],
+            [0.0, 0.0, 0.0],
+            [0.01, 0.02, 0.03],
+        ];
+        integrator(2, 10.0, RayMode::Exact)
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &pts,
+                },
+            )
+            .unwrap();
         let q = *map.quantized();
         assert_eq!(map.value(VoxelCoord::new(5, 0, 0)), Some(q.hit));
         assert_eq!(map.value(VoxelCoord::new(15, 0, 0)), Some(q.hit));
@@ -869,8 +1041,21 @@ mod tests {
     #[test]
     fn non_finite_points_are_skipped_and_counted() {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-        let pts = [[1.0f32, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [0.0, f32::INFINITY, 0.0], [0.0, 1.0, 0.0]];
-        let r = integrator(2, 10.0, RayMode::Exact).integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &pts }).unwrap();
+        let pts = [
+            [1.0f32, 0.0, 0.0],
+            [f32::NAN, 0.0, 0.0],
+            [0.0, f32::INFINITY, 0.0],
+            [0.0, 1.0, 0.0],
+        ];
+        let r = integrator(2, 10.0, RayMode::Exact)
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &pts,
+                },
+            )
+            .unwrap();
         assert_eq!((r.points, r.skipped_nonfinite, r.rays), (4, 2, 2));
         assert_eq!(map.counts().occupied, 2);
     }
@@ -879,17 +1064,64 @@ mod tests {
     fn bad_frames_are_rejected_and_change_nothing() {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let mut integ = integrator(2, 10.0, RayMode::Exact);
-        integ.integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &[[1.0, 1.0, 1.0]] }).unwrap();
+        integ
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &[[1.0, 1.0, 1.0]],
+                },
+            )
+            .unwrap();
         let before = snapshot(&map);
         let far = Isometry3::translation(1e9, 0.0, 0.0);
-        assert!(matches!(integ.integrate(&mut map, &Frame { pose: far, points: &[[1.0, 0.0, 0.0]] }), Err(IntegrateError::OriginOutOfRange { .. })));
+        assert!(matches!(
+            integ.integrate(
+                &mut map,
+                &Frame {
+                    pose: far,
+                    points: &[[1.0, 0.0, 0.0]]
+                }
+            ),
+            Err(IntegrateError::OriginOutOfRange { .. })
+        ));
         let nan = Isometry3::translation(f64::NAN, 0.0, 0.0);
-        assert_eq!(integ.integrate(&mut map, &Frame { pose: nan, points: &[[1.0, 0.0, 0.0]] }), Err(IntegrateError::NonFinitePose));
+        assert_eq!(
+            integ.integrate(
+                &mut map,
+                &Frame {
+                    pose: nan,
+                    points: &[[1.0, 0.0, 0.0]]
+                }
+            ),
+            Err(IntegrateError::NonFinitePose)
+        );
         assert_eq!(snapshot(&map), before);
-        assert!(Integrator::new(IntegratorConfig { threads: 0, ..Default::default() }).is_err());
-        assert!(Integrator::new(IntegratorConfig { max_range: f64::NAN, ..Default::default() }).is_err());
-        let long = IntegratorConfig { max_range: 2000.0, threads: 1, mode: RayMode::Exact };
-        assert!(Integrator::new(long).unwrap().integrate(&mut map, &Frame { pose: Isometry3::identity(), points: &[] }).is_err());
+        assert!(Integrator::new(IntegratorConfig {
+            threads: 0,
+            ..Default::default()
+        })
+        .is_err());
+        assert!(Integrator::new(IntegratorConfig {
+            max_range: f64::NAN,
+            ..Default::default()
+        })
+        .is_err());
+        let long = IntegratorConfig {
+            max_range: 2000.0,
+            threads: 1,
+            mode: RayMode::Exact,
+        };
+        assert!(Integrator::new(long)
+            .unwrap()
+            .integrate(
+                &mut map,
+                &Frame {
+                    pose: Isometry3::identity(),
+                    points: &[]
+                }
+            )
+            .is_err());
     }
 
     #[test]
@@ -897,24 +1129,49 @@ mod tests {
         let mut rng = Rng(5);
         // Dense: 50k points in a 1 m ball (~4200 voxels) at 0.1 m: many share end voxels.
         let pts: Vec<_> = (0..50_000).map(|_| rng.ball(1.0)).collect();
-        let frame = Frame { pose: Isometry3::identity(), points: &pts };
+        let frame = Frame {
+            pose: Isometry3::identity(),
+            points: &pts,
+        };
         let run = |mode| {
             let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-            let r = integrator(2, 10.0, mode).integrate(&mut map, &frame).unwrap();
+            let r = integrator(2, 10.0, mode)
+                .integrate(&mut map, &frame)
+                .unwrap();
             (r, map.counts(), snapshot(&map))
         };
         let (exact, ce, se) = run(RayMode::Exact);
-        for mode in [RayMode::UniqueEnd, RayMode::Subsample { factor: 1 }, RayMode::Bundle { threshold: 2 }] {
+        for mode in [
+            RayMode::UniqueEnd,
+            RayMode::Subsample { factor: 1 },
+            RayMode::Bundle { threshold: 2 },
+        ] {
             let (r, c, _) = run(mode);
-            assert!(r.rays < exact.rays / 2, "{mode:?}: {} of {} rays", r.rays, exact.rays);
+            assert!(
+                r.rays < exact.rays / 2,
+                "{mode:?}: {} of {} rays",
+                r.rays,
+                exact.rays
+            );
             // Same end voxels: the occupied set is nearly unchanged.
             let d = (c.occupied as f64 - ce.occupied as f64).abs() / ce.occupied as f64;
-            assert!(d < 0.05, "{mode:?}: occupied {} vs {}", c.occupied, ce.occupied);
+            assert!(
+                d < 0.05,
+                "{mode:?}: occupied {} vs {}",
+                c.occupied,
+                ce.occupied
+            );
         }
         // Unique-end keeps exactly one ray per end voxel: the occupied set is the same.
         assert_eq!(run(RayMode::UniqueEnd).1.occupied, ce.occupied);
         // A bundle threshold above every group size changes nothing.
-        assert_eq!(run(RayMode::Bundle { threshold: 1_000_000 }).2, se);
+        assert_eq!(
+            run(RayMode::Bundle {
+                threshold: 1_000_000
+            })
+            .2,
+            se
+        );
         // A very fine subsample grid (1.6 mm) keeps nearly every ray.
         assert!(run(RayMode::Subsample { factor: 64 }).0.rays * 1000 > exact.rays * 999);
     }

@@ -30,6 +30,8 @@ pub mod model;
 pub mod raycast;
 
 pub use coord::{GridTransform, VoxelCoord, WorldPoint};
-pub use integrate::{Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode};
+pub use integrate::{
+    Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode,
+};
 pub use map::{MapCounts, OccupancyMap};
 pub use model::{SensorModel, VoxelState};

@@ -23,7 +23,12 @@ pub struct OccupancyMap {
 
 impl OccupancyMap {
     pub fn new(resolution: f64, model: SensorModel) -> Result<Self, ConfigError> {
-        Ok(Self { grid: Grid::new(), transform: GridTransform::new(resolution)?, q: model.quantize()?, model })
+        Ok(Self {
+            grid: Grid::new(),
+            transform: GridTransform::new(resolution)?,
+            q: model.quantize()?,
+            model,
+        })
     }
 
     pub fn resolution(&self) -> f64 {
@@ -69,20 +74,31 @@ impl OccupancyMap {
 
     /// State at a world point; points outside the index space are unknown.
     pub fn state_at(&self, p: &WorldPoint) -> VoxelState {
-        self.transform.voxel_of(p).map_or(VoxelState::Unknown, |v| self.state(v))
+        self.transform
+            .voxel_of(p)
+            .map_or(VoxelState::Unknown, |v| self.state(v))
     }
 
     /// Occupancy probability of a known voxel.
     pub fn probability(&self, v: VoxelCoord) -> Option<f64> {
-        self.grid.get(v).map(|l| crate::model::probability(self.q.to_logodds(l)))
+        self.grid
+            .get(v)
+            .map(|l| crate::model::probability(self.q.to_logodds(l)))
     }
 
     pub fn counts(&self) -> MapCounts {
         let thr = self.q.threshold;
-        let mut c = MapCounts { leaves: self.grid.leaf_count() as u64, ..Default::default() };
+        let mut c = MapCounts {
+            leaves: self.grid.leaf_count() as u64,
+            ..Default::default()
+        };
         for (_, leaf) in self.grid.leaves() {
             let known = leaf.active.count() as u64;
-            let occ = leaf.active.iter_ones().filter(|&i| leaf.values[i] >= thr).count() as u64;
+            let occ = leaf
+                .active
+                .iter_ones()
+                .filter(|&i| leaf.values[i] >= thr)
+                .count() as u64;
             c.occupied += occ;
             c.free += known - occ;
         }

@@ -35,7 +35,10 @@ impl Mask512 {
 
     /// Indices of the set bits, ascending.
     pub fn iter_ones(&self) -> impl Iterator<Item = usize> + '_ {
-        self.words.iter().enumerate().flat_map(|(wi, &w)| BitIter(w).map(move |b| wi * 64 + b))
+        self.words
+            .iter()
+            .enumerate()
+            .flat_map(|(wi, &w)| BitIter(w).map(move |b| wi * 64 + b))
     }
 }
 

@@ -34,7 +34,13 @@ pub struct SensorModel {
 impl Default for SensorModel {
     /// OctoMap's defaults.
     fn default() -> Self {
-        Self { p_hit: 0.7, p_miss: 0.4, clamp_min: 0.1192, clamp_max: 0.971, occupancy_threshold: 0.5 }
+        Self {
+            p_hit: 0.7,
+            p_miss: 0.4,
+            clamp_min: 0.1192,
+            clamp_max: 0.971,
+            occupancy_threshold: 0.5,
+        }
     }
 }
 
@@ -66,7 +72,11 @@ impl SensorModel {
             if v.is_finite() && v > 0.0 && v < 1.0 {
                 Ok(())
             } else {
-                Err(ConfigError::Invalid { name, value: v, why: "must be a probability strictly between 0 and 1" })
+                Err(ConfigError::Invalid {
+                    name,
+                    value: v,
+                    why: "must be a probability strictly between 0 and 1",
+                })
             }
         };
         open01("p_hit", self.p_hit)?;
@@ -75,21 +85,36 @@ impl SensorModel {
         open01("clamp_max", self.clamp_max)?;
         open01("occupancy_threshold", self.occupancy_threshold)?;
         if self.p_hit <= 0.5 {
-            return Err(ConfigError::Invalid { name: "p_hit", value: self.p_hit, why: "must be above 0.5" });
+            return Err(ConfigError::Invalid {
+                name: "p_hit",
+                value: self.p_hit,
+                why: "must be above 0.5",
+            });
         }
         if self.p_miss >= 0.5 {
-            return Err(ConfigError::Invalid { name: "p_miss", value: self.p_miss, why: "must be below 0.5" });
+            return Err(ConfigError::Invalid {
+                name: "p_miss",
+                value: self.p_miss,
+                why: "must be below 0.5",
+            });
         }
-        if !(self.clamp_min < self.occupancy_threshold && self.occupancy_threshold < self.clamp_max) {
+        if !(self.clamp_min < self.occupancy_threshold && self.occupancy_threshold < self.clamp_max)
+        {
             return Err(ConfigError::Invalid {
                 name: "occupancy_threshold",
                 value: self.occupancy_threshold,
                 why: "must lie strictly between clamp_min and clamp_max",
             });
         }
-        let span = logodds(self.clamp_min).abs().max(logodds(self.clamp_max).abs());
+        let span = logodds(self.clamp_min)
+            .abs()
+            .max(logodds(self.clamp_max).abs());
         if span > 127.0 {
-            return Err(ConfigError::Invalid { name: "clamp", value: span, why: "log-odds clamps beyond +-127 nats" });
+            return Err(ConfigError::Invalid {
+                name: "clamp",
+                value: span,
+                why: "log-odds clamps beyond +-127 nats",
+            });
         }
         let q = self.quantize_unchecked();
         if q.hit <= 0 || q.miss >= 0 {
@@ -109,7 +134,9 @@ impl SensorModel {
     }
 
     fn quantize_unchecked(&self) -> QuantizedModel {
-        let span = logodds(self.clamp_min).abs().max(logodds(self.clamp_max).abs());
+        let span = logodds(self.clamp_min)
+            .abs()
+            .max(logodds(self.clamp_max).abs());
         let mut frac_bits = 0u8;
         while frac_bits < 12 && span * f64::from(1u32 << (frac_bits + 1)) <= 127.0 {
             frac_bits += 1;
@@ -162,7 +189,12 @@ mod tests {
         let m = SensorModel::default();
         let q = m.quantize().unwrap();
         assert_eq!(q.frac_bits, 5);
-        for (p, v) in [(m.p_hit, q.hit), (m.p_miss, q.miss), (m.clamp_min, q.min), (m.clamp_max, q.max)] {
+        for (p, v) in [
+            (m.p_hit, q.hit),
+            (m.p_miss, q.miss),
+            (m.clamp_min, q.min),
+            (m.clamp_max, q.max),
+        ] {
             let err = (q.to_logodds(v) - logodds(p)).abs();
             assert!(err <= 0.5 / 32.0 + 1e-12, "p={p}: {err}");
         }
@@ -190,12 +222,30 @@ mod tests {
     #[test]
     fn rejects_bad_models() {
         let bad = [
-            SensorModel { p_hit: 0.4, ..Default::default() },
-            SensorModel { p_miss: 0.6, ..Default::default() },
-            SensorModel { p_hit: f64::NAN, ..Default::default() },
-            SensorModel { clamp_min: 0.6, ..Default::default() },
-            SensorModel { occupancy_threshold: 0.99, ..Default::default() },
-            SensorModel { clamp_max: 1.0, ..Default::default() },
+            SensorModel {
+                p_hit: 0.4,
+                ..Default::default()
+            },
+            SensorModel {
+                p_miss: 0.6,
+                ..Default::default()
+            },
+            SensorModel {
+                p_hit: f64::NAN,
+                ..Default::default()
+            },
+            SensorModel {
+                clamp_min: 0.6,
+                ..Default::default()
+            },
+            SensorModel {
+                occupancy_threshold: 0.99,
+                ..Default::default()
+            },
+            SensorModel {
+                clamp_max: 1.0,
+                ..Default::default()
+            },
         ];
         for m in bad {
             assert!(m.quantize().is_err(), "{m:?}");

@@ -63,7 +63,24 @@ impl Dda {
         let (x, sx, tx, dx, lx, nx) = axis(o[0], e[0]);
         let (y, sy, ty, dy, ly, ny) = axis(o[1], e[1]);
         let (z, sz, tz, dz, lz, nz) = axis(o[2], e[2]);
-        Dda { x, y, z, sx, sy, sz, tx, ty, tz, dx, dy, dz, lx, ly, lz, steps: nx + ny + nz }
+        Dda {
+            x,
+            y,
+            z,
+            sx,
+            sy,
+            sz,
+            tx,
+            ty,
+            tz,
+            dx,
+            dy,
+            dz,
+            lx,
+            ly,
+            lz,
+            steps: nx + ny + nz,
+        }
     }
 
     /// Voxel steps left to the end voxel.
@@ -80,9 +97,21 @@ impl Dda {
         let cz = !cx && !cy;
         // Next crossing per axis, computed off the critical path; an axis is done after its
         // last crossing.
-        let nx = if self.tx == self.lx { u64::MAX } else { self.tx + self.dx };
-        let ny = if self.ty == self.ly { u64::MAX } else { self.ty + self.dy };
-        let nz = if self.tz == self.lz { u64::MAX } else { self.tz + self.dz };
+        let nx = if self.tx == self.lx {
+            u64::MAX
+        } else {
+            self.tx + self.dx
+        };
+        let ny = if self.ty == self.ly {
+            u64::MAX
+        } else {
+            self.ty + self.dy
+        };
+        let nz = if self.tz == self.lz {
+            u64::MAX
+        } else {
+            self.tz + self.dz
+        };
         self.tx = if cx { nx } else { self.tx };
         self.ty = if cy { ny } else { self.ty };
         self.tz = if cz { nz } else { self.tz };
@@ -109,7 +138,11 @@ pub fn for_each_voxel(o: [f64; 3], e: [f64; 3], mut f: impl FnMut(VoxelCoord)) {
 }
 
 /// Visit voxels from `floor(o)` towards `floor(e)` until `f` returns `Some`.
-pub fn find_voxel<T>(o: [f64; 3], e: [f64; 3], mut f: impl FnMut(VoxelCoord) -> Option<T>) -> Option<T> {
+pub fn find_voxel<T>(
+    o: [f64; 3],
+    e: [f64; 3],
+    mut f: impl FnMut(VoxelCoord) -> Option<T>,
+) -> Option<T> {
     let mut d = Dda::new(o, e);
     if let Some(t) = f(d.voxel()) {
         return Some(t);
@@ -143,7 +176,11 @@ mod tests {
             let (lo, hi) = (c[a] as f64, c[a] as f64 + 1.0);
             let d = e[a] - o[a];
             if d == 0.0 {
-                let outside = if open { o[a] <= lo || o[a] >= hi } else { o[a] < lo || o[a] > hi };
+                let outside = if open {
+                    o[a] <= lo || o[a] >= hi
+                } else {
+                    o[a] < lo || o[a] > hi
+                };
                 if outside {
                     return None;
                 }
@@ -157,7 +194,7 @@ mod tests {
             }
         }
         let len = ((0..3).map(|a| (e[a] - o[a]).powi(2)).sum::<f64>()).sqrt();
-        (t1 >= t0).then(|| (t1 - t0) * len)
+        (t1 >= t0).then_some((t1 - t0) * len)
     }
 
     /// Brute force over the bounding box: voxels the segment crosses with positive length
@@ -181,29 +218,52 @@ mod tests {
 
     fn check(o: [f64; 3], e: [f64; 3]) {
         let path = walk(o, e);
-        let start = VoxelCoord::new(o[0].floor() as i32, o[1].floor() as i32, o[2].floor() as i32);
-        let end = VoxelCoord::new(e[0].floor() as i32, e[1].floor() as i32, e[2].floor() as i32);
+        let start = VoxelCoord::new(
+            o[0].floor() as i32,
+            o[1].floor() as i32,
+            o[2].floor() as i32,
+        );
+        let end = VoxelCoord::new(
+            e[0].floor() as i32,
+            e[1].floor() as i32,
+            e[2].floor() as i32,
+        );
         assert_eq!(path[0], start);
         assert_eq!(*path.last().unwrap(), end);
         let d = end - start;
         assert_eq!(path.len() as i32, d.x.abs() + d.y.abs() + d.z.abs() + 1);
         for w in path.windows(2) {
             let s = w[1] - w[0];
-            assert_eq!(s.x.abs() + s.y.abs() + s.z.abs(), 1, "6-connected: {o:?} {e:?}");
+            assert_eq!(
+                s.x.abs() + s.y.abs() + s.z.abs(),
+                1,
+                "6-connected: {o:?} {e:?}"
+            );
         }
         let set: BTreeSet<_> = path.iter().copied().collect();
         assert_eq!(set.len(), path.len(), "no voxel twice");
         // Every voxel crossed with positive length is visited; every visited voxel is touched.
         let strict = reference(o, e, 1e-9);
         let touched = reference(o, e, -1e-9);
-        assert!(strict.is_subset(&set), "missed {:?} on {o:?}->{e:?}", strict.difference(&set).collect::<Vec<_>>());
-        assert!(set.is_subset(&touched), "extra {:?} on {o:?}->{e:?}", set.difference(&touched).collect::<Vec<_>>());
+        assert!(
+            strict.is_subset(&set),
+            "missed {:?} on {o:?}->{e:?}",
+            strict.difference(&set).collect::<Vec<_>>()
+        );
+        assert!(
+            set.is_subset(&touched),
+            "extra {:?} on {o:?}->{e:?}",
+            set.difference(&touched).collect::<Vec<_>>()
+        );
     }
 
     struct Rng(u64);
     impl Rng {
         fn f(&mut self) -> f64 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (self.0 >> 11) as f64 / (1u64 << 53) as f64
         }
     }
@@ -237,29 +297,53 @@ mod tests {
 
     #[test]
     fn degenerate_rays() {
-        assert_eq!(walk([0.5, 0.5, 0.5], [0.5, 0.5, 0.5]), vec![VoxelCoord::new(0, 0, 0)]);
-        assert_eq!(walk([0.1, 0.2, 0.3], [0.9, 0.8, 0.7]), vec![VoxelCoord::new(0, 0, 0)]);
+        assert_eq!(
+            walk([0.5, 0.5, 0.5], [0.5, 0.5, 0.5]),
+            vec![VoxelCoord::new(0, 0, 0)]
+        );
+        assert_eq!(
+            walk([0.1, 0.2, 0.3], [0.9, 0.8, 0.7]),
+            vec![VoxelCoord::new(0, 0, 0)]
+        );
         // Axis-aligned, negative direction.
         let p = walk([0.5, 0.5, 0.5], [-2.5, 0.5, 0.5]);
-        assert_eq!(p, (-3..=0).rev().map(|x| VoxelCoord::new(x, 0, 0)).collect::<Vec<_>>());
+        assert_eq!(
+            p,
+            (-3..=0)
+                .rev()
+                .map(|x| VoxelCoord::new(x, 0, 0))
+                .collect::<Vec<_>>()
+        );
         // Exact diagonal through corners: ties go x, then y, then z.
         let p = walk([0.5, 0.5, 0.5], [2.5, 2.5, 2.5]);
         assert_eq!(p.len(), 7);
-        assert_eq!(&p[..4], &[
-            VoxelCoord::new(0, 0, 0),
-            VoxelCoord::new(1, 0, 0),
-            VoxelCoord::new(1, 1, 0),
-            VoxelCoord::new(1, 1, 1)
-        ]);
+        assert_eq!(
+            &p[..4],
+            &[
+                VoxelCoord::new(0, 0, 0),
+                VoxelCoord::new(1, 0, 0),
+                VoxelCoord::new(1, 1, 0),
+                VoxelCoord::new(1, 1, 1)
+            ]
+        );
         // Entirely in negative coordinates.
         check([-10.3, -20.7, -5.5], [-30.1, -2.2, -5.5]);
-        assert_eq!(walk([-0.5, -0.5, -0.5], [-0.5, -0.5, -0.5]), vec![VoxelCoord::new(-1, -1, -1)]);
+        assert_eq!(
+            walk([-0.5, -0.5, -0.5], [-0.5, -0.5, -0.5]),
+            vec![VoxelCoord::new(-1, -1, -1)]
+        );
     }
 
     #[test]
     fn find_voxel_stops_early() {
-        let hit = find_voxel([0.5, 0.5, 0.5], [10.5, 0.5, 0.5], |v| (v.x == 4).then_some(v));
+        let hit = find_voxel([0.5, 0.5, 0.5], [10.5, 0.5, 0.5], |v| {
+            (v.x == 4).then_some(v)
+        });
         assert_eq!(hit, Some(VoxelCoord::new(4, 0, 0)));
-        assert_eq!(find_voxel([0.5, 0.5, 0.5], [3.5, 0.5, 0.5], |v| (v.x == 4).then_some(v)), None);
+        assert_eq!(
+            find_voxel([0.5, 0.5, 0.5], [3.5, 0.5, 0.5], |v| (v.x == 4)
+                .then_some(v)),
+            None
+        );
     }
 }

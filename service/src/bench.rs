@@ -22,7 +22,11 @@ pub struct BenchArgs {
     #[arg(long, default_value = "1,2", value_delimiter = ',')]
     threads: Vec<usize>,
     /// Ray modes, comma separated: exact, subsample, bundle, unique_end.
-    #[arg(long, default_value = "exact,subsample,bundle,unique_end", value_delimiter = ',')]
+    #[arg(
+        long,
+        default_value = "exact,subsample,bundle,unique_end",
+        value_delimiter = ','
+    )]
     modes: Vec<String>,
     /// Only workloads whose name contains this.
     #[arg(long)]
@@ -83,14 +87,19 @@ pub fn shared_dir() -> Option<PathBuf> {
 
 fn generated_workloads() -> Result<PathBuf> {
     let out = std::env::temp_dir().join("voxmap-workloads-seed42");
-    let names = ["structured", "random"]
-        .iter()
-        .flat_map(|k| ["50000_6m", "50000_60m", "500000_6m", "500000_60m"].map(|s| format!("{k}_{s}.pcd")));
+    let names = ["structured", "random"].iter().flat_map(|k| {
+        ["50000_6m", "50000_60m", "500000_6m", "500000_60m"].map(|s| format!("{k}_{s}.pcd"))
+    });
     if names.clone().all(|n| out.join(n).is_file()) {
         return Ok(out);
     }
-    let script = shared_dir().context("shared/bench/gen_workloads.py not found; pass --workloads DIR or set VOXMAP_SHARED")?;
-    eprintln!("generating the paper's workloads into {} ...", out.display());
+    let script = shared_dir().context(
+        "shared/bench/gen_workloads.py not found; pass --workloads DIR or set VOXMAP_SHARED",
+    )?;
+    eprintln!(
+        "generating the paper's workloads into {} ...",
+        out.display()
+    );
     let st = std::process::Command::new("python3")
         .arg(script.join("bench/gen_workloads.py"))
         .arg(&out)
@@ -111,8 +120,16 @@ fn list_pcd(dir: &Path) -> Result<Vec<PathBuf>> {
         .collect();
     // Small before large, 6 m before 60 m.
     v.sort_by_key(|p| {
-        let n = p.file_stem().unwrap_or_default().to_string_lossy().to_string();
-        let pts: u64 = n.split('_').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+        let n = p
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .to_string();
+        let pts: u64 = n
+            .split('_')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0);
         (range_of(&n).unwrap_or(0.0) as u64, pts, n)
     });
     Ok(v)
@@ -121,8 +138,12 @@ fn list_pcd(dir: &Path) -> Result<Vec<PathBuf>> {
 fn mode_of(name: &str, a: &BenchArgs) -> Result<RayMode> {
     Ok(match name {
         "exact" => RayMode::Exact,
-        "subsample" => RayMode::Subsample { factor: a.subsample_factor },
-        "bundle" => RayMode::Bundle { threshold: a.bundle_threshold },
+        "subsample" => RayMode::Subsample {
+            factor: a.subsample_factor,
+        },
+        "bundle" => RayMode::Bundle {
+            threshold: a.bundle_threshold,
+        },
         "unique_end" => RayMode::UniqueEnd,
         o => bail!("unknown mode '{o}' (exact, subsample, bundle, unique_end)"),
     })
@@ -158,7 +179,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
         );
     }
     for f in files {
-        let name = f.file_stem().unwrap_or_default().to_string_lossy().to_string();
+        let name = f
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .to_string();
         if a.filter.as_deref().is_some_and(|s| !name.contains(s)) {
             continue;
         }
@@ -168,9 +193,16 @@ pub fn run(a: BenchArgs) -> Result<()> {
         for m in &a.modes {
             let mode = mode_of(m, &a)?;
             for &threads in &a.threads {
-                let cfg = IntegratorConfig { threads, max_range, mode };
+                let cfg = IntegratorConfig {
+                    threads,
+                    max_range,
+                    mode,
+                };
                 let mut integ = Integrator::new(cfg)?;
-                let frame = Frame { pose: cloud.pose, points: &cloud.points };
+                let frame = Frame {
+                    pose: cloud.pose,
+                    points: &cloud.points,
+                };
                 let mut times = Vec::new();
                 let mut phases = Vec::new();
                 let mut last = None;
@@ -215,8 +247,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         "paper_vdb_par_12t_ms": paper,
                     });
                     if let (Some(e), true) = (exact_counts, mode != RayMode::Exact) {
-                        o["occupied_vs_exact"] = serde_json::json!(counts.occupied as f64 / e.occupied.max(1) as f64);
-                        o["free_vs_exact"] = serde_json::json!(counts.free as f64 / e.free.max(1) as f64);
+                        o["occupied_vs_exact"] =
+                            serde_json::json!(counts.occupied as f64 / e.occupied.max(1) as f64);
+                        o["free_vs_exact"] =
+                            serde_json::json!(counts.free as f64 / e.free.max(1) as f64);
                     }
                     println!("{o}");
                 } else {
@@ -237,10 +271,15 @@ pub fn run(a: BenchArgs) -> Result<()> {
 }
 
 fn median_phases(p: &mut [PhaseTimes]) -> PhaseTimes {
-    let mut pick = |f: fn(&PhaseTimes) -> std::time::Duration| {
+    let pick = |f: fn(&PhaseTimes) -> std::time::Duration| {
         let mut v: Vec<_> = p.iter().map(f).collect();
         v.sort();
         v[v.len() / 2]
     };
-    PhaseTimes { prepare: pick(|t| t.prepare), raycast: pick(|t| t.raycast), merge: pick(|t| t.merge), update: pick(|t| t.update) }
+    PhaseTimes {
+        prepare: pick(|t| t.prepare),
+        raycast: pick(|t| t.raycast),
+        merge: pick(|t| t.merge),
+        update: pick(|t| t.update),
+    }
 }

@@ -5,7 +5,11 @@ mod bench;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "voxmap", version, about = "Sparse 3D occupancy mapping over shared memory")]
+#[command(
+    name = "voxmap",
+    version,
+    about = "Sparse 3D occupancy mapping over shared memory"
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
