@@ -788,6 +788,17 @@ mod tests {
         }
     }
 
+    /// Integrate `pts` seen from the origin, exact mode, 2 threads.
+    fn at_origin(map: &mut OccupancyMap, max_range: f64, pts: &[[f32; 3]]) -> IntegrateReport {
+        let frame = Frame {
+            pose: Isometry3::identity(),
+            points: pts,
+        };
+        integrator(2, max_range, RayMode::Exact)
+            .integrate(map, &frame)
+            .unwrap()
+    }
+
     fn integrator(threads: usize, max_range: f64, mode: RayMode) -> Integrator {
         Integrator::new(IntegratorConfig {
             threads,
@@ -981,15 +992,7 @@ mod tests {
     fn max_range_rays_mark_free_only() {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let pts = [[5.0f32, 0.05, 0.05], [1.0, 0.05, 0.05]];
-        let r = integrator(1, 2.0, RayMode::Exact)
-            .integrate(
-                &mut map,
-                &Frame {
-                    pose: Isometry3::identity(),
-                    points: &pts[..1],
-                },
-            )
-            .unwrap();
+        let r = at_origin(&mut map, 2.0, &pts[..1]);
         assert_eq!((r.rays, r.cut_rays), (1, 1));
         assert_eq!(map.counts().occupied, 0);
         // Cut at 2 m along the ray: x = 1.9998, voxel 19 is the cut end.
@@ -999,15 +1002,7 @@ mod tests {
             VoxelState::Unknown,
             "the cut end itself is not marked"
         );
-        integrator(1, 2.0, RayMode::Exact)
-            .integrate(
-                &mut map,
-                &Frame {
-                    pose: Isometry3::identity(),
-                    points: &pts[1..],
-                },
-            )
-            .unwrap();
+        at_origin(&mut map, 2.0, &pts[1..]);
         assert_eq!(map.state(VoxelCoord::new(10, 0, 0)), VoxelState::Occupied);
     }
 
@@ -1021,15 +1016,7 @@ mod tests {
             [0.0, 0.0, 0.0],
             [0.01, 0.02, 0.03],
         ];
-        integrator(2, 10.0, RayMode::Exact)
-            .integrate(
-                &mut map,
-                &Frame {
-                    pose: Isometry3::identity(),
-                    points: &pts,
-                },
-            )
-            .unwrap();
+        at_origin(&mut map, 10.0, &pts);
         let q = *map.quantized();
         assert_eq!(map.value(VoxelCoord::new(5, 0, 0)), Some(q.hit));
         assert_eq!(map.value(VoxelCoord::new(15, 0, 0)), Some(q.hit));
@@ -1047,15 +1034,7 @@ mod tests {
             [0.0, f32::INFINITY, 0.0],
             [0.0, 1.0, 0.0],
         ];
-        let r = integrator(2, 10.0, RayMode::Exact)
-            .integrate(
-                &mut map,
-                &Frame {
-                    pose: Isometry3::identity(),
-                    points: &pts,
-                },
-            )
-            .unwrap();
+        let r = at_origin(&mut map, 10.0, &pts);
         assert_eq!((r.points, r.skipped_nonfinite, r.rays), (4, 2, 2));
         assert_eq!(map.counts().occupied, 2);
     }
