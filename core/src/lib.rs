@@ -28,6 +28,7 @@ pub mod map;
 pub mod mask;
 pub mod model;
 pub mod raycast;
+pub mod snapshot;
 
 pub use coord::{GridTransform, VoxelCoord, WorldPoint};
 pub use integrate::{

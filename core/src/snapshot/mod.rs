@@ -1,0 +1,19 @@
+//! Compact, pointer-free occupancy snapshots and the zero-copy [`SnapshotView`].
+//!
+//! A snapshot is one contiguous little-endian buffer (the tree linearized, NanoVDB-style):
+//! a fixed [`layout::Header`], an open-addressing leaf table, leaf origins, per-leaf known
+//! and occupied masks, and optionally the per-voxel log-odds. [`writer::Plan`] sizes and
+//! writes it straight into a caller's buffer (e.g. a loaned shared-memory sample);
+//! [`SnapshotView::open`] validates every offset and count once, after which every query
+//! is bounds-safe and never panics, whatever the bytes. See `docs/snapshot-format.md`.
+
+pub mod layout;
+pub mod view;
+pub mod writer;
+
+pub use layout::{Header, SnapshotError, FORMAT_VERSION, MAGIC};
+pub use view::{InvalidSegment, SnapshotView};
+pub use writer::{Meta, Plan, Scope};
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,348 @@
+use super::*;
+use crate::coord::{VoxelCoord, WorldPoint};
+use crate::model::VoxelState;
+use crate::raycast::find_voxel;
+use crate::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use proptest::prelude::*;
+
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn i(&mut self, lo: i32, hi: i32) -> i32 {
+        lo + (self.f() * (hi - lo + 1) as f64) as i32
+    }
+}
+
+/// A map from a few random posed frames around the origin (negative coordinates too).
+fn random_map(seed: u64, frames: usize) -> OccupancyMap {
+    let mut rng = Rng(seed);
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let mut integ = Integrator::new(IntegratorConfig {
+        threads: 2,
+        max_range: 4.0,
+        mode: RayMode::Exact,
+    })
+    .unwrap();
+    for _ in 0..frames {
+        let pose = Isometry3::from_parts(
+            Translation3::new(rng.f() * 2.0 - 1.0, rng.f() * 2.0 - 1.0, rng.f() - 0.5),
+            UnitQuaternion::from_euler_angles(rng.f(), rng.f(), rng.f() * 6.0),
+        );
+        let pts: Vec<[f32; 3]> = (0..3000)
+            .map(|_| [0, 1, 2].map(|_| (rng.f() * 9.0 - 4.5) as f32))
+            .collect();
+        integ
+            .integrate(&mut map, &Frame { pose, points: &pts })
+            .unwrap();
+    }
+    map
+}
+
+fn encode(map: &OccupancyMap, scope: Scope, with_values: bool) -> Vec<u8> {
+    Plan::new(
+        map,
+        scope,
+        Meta {
+            sequence: 42,
+            timestamp_ns: 7,
+            with_values,
+        },
+    )
+    .to_vec()
+}
+
+#[test]
+fn view_agrees_with_the_map_on_every_query() {
+    for seed in 1..4 {
+        let map = random_map(seed, 3);
+        let bytes = encode(&map, Scope::Whole, true);
+        let view = SnapshotView::open_checked(&bytes).unwrap();
+        let c = map.counts();
+        assert_eq!(view.counts(), (c.occupied + c.free, c.occupied));
+        assert_eq!((view.sequence(), view.timestamp_ns()), (42, 7));
+        // Every known voxel, and random voxels around them.
+        for (v, _) in map.grid().active_voxels() {
+            assert_eq!(view.state(v), map.state(v));
+            let (p, q) = (view.probability(v).unwrap(), map.probability(v).unwrap());
+            assert!((p - q).abs() < 1e-12);
+        }
+        let mut rng = Rng(seed + 100);
+        for _ in 0..20000 {
+            let v = VoxelCoord::new(rng.i(-70, 70), rng.i(-70, 70), rng.i(-70, 70));
+            assert_eq!(view.state(v), map.state(v), "{v:?}");
+        }
+        // Occupied iteration and bounds.
+        let mut got: Vec<_> = view.occupied_voxels().collect();
+        got.sort();
+        let mut want: Vec<_> = map
+            .grid()
+            .active_voxels()
+            .filter(|&(v, _)| map.state(v) == VoxelState::Occupied)
+            .map(|(v, _)| v)
+            .collect();
+        want.sort();
+        assert_eq!(got, want);
+        let (lo, hi) = view.bounds().unwrap();
+        for (v, _) in map.grid().active_voxels() {
+            assert!(lo.min(v) == lo && hi.max(v) == hi);
+        }
+        // Line of sight against the map walked with the same DDA.
+        for _ in 0..2000 {
+            let a = WorldPoint::new(
+                rng.f() * 8.0 - 4.0,
+                rng.f() * 8.0 - 4.0,
+                rng.f() * 8.0 - 4.0,
+            );
+            let b = WorldPoint::new(
+                rng.f() * 8.0 - 4.0,
+                rng.f() * 8.0 - 4.0,
+                rng.f() * 8.0 - 4.0,
+            );
+            for unknown_blocks in [false, true] {
+                let tf = map.transform();
+                let want = find_voxel(tf.point_to_units(&a), tf.point_to_units(&b), |v| {
+                    let s = map.state(v);
+                    (s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown))
+                        .then_some(v)
+                });
+                assert_eq!(view.first_hit(&a, &b, unknown_blocks).unwrap(), want);
+            }
+        }
+        // Box queries against brute force over voxel centres.
+        for _ in 0..300 {
+            let c = [
+                rng.f() * 6.0 - 3.0,
+                rng.f() * 6.0 - 3.0,
+                rng.f() * 6.0 - 3.0,
+            ];
+            let h = [rng.f() * 0.6, rng.f() * 0.6, rng.f() * 0.6];
+            let (min, max) = (
+                WorldPoint::from([0, 1, 2].map(|k| c[k] - h[k])),
+                WorldPoint::from([0, 1, 2].map(|k| c[k] + h[k])),
+            );
+            for unknown_is_free in [false, true] {
+                let tf = map.transform();
+                let (lo, hi) = (tf.voxel_of(&min).unwrap(), tf.voxel_of(&max).unwrap());
+                let mut free = true;
+                for x in lo.x..=hi.x {
+                    for y in lo.y..=hi.y {
+                        for z in lo.z..=hi.z {
+                            let v = VoxelCoord::new(x, y, z);
+                            let cc = tf.voxel_center(v);
+                            if (0..3).all(|k| min[k] <= cc[k] && cc[k] <= max[k]) {
+                                match map.state(v) {
+                                    VoxelState::Occupied => free = false,
+                                    VoxelState::Unknown if !unknown_is_free => free = false,
+                                    _ => {}
+                                }
+                            }
+                        }
+                    }
+                }
+                assert_eq!(
+                    view.is_box_free(&min, &max, unknown_is_free),
+                    free,
+                    "{min:?} {max:?} {unknown_is_free}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn box_scope_keeps_exactly_the_voxels_inside() {
+    let map = random_map(9, 2);
+    let (min, max) = ([-1.0, -0.5, -0.3], [1.2, 0.7, 0.4]);
+    let bytes = encode(&map, Scope::Box { min, max }, false);
+    let whole = encode(&map, Scope::Whole, false);
+    assert!(bytes.len() < whole.len());
+    let view = SnapshotView::open_checked(&bytes).unwrap();
+    assert!(!view.has_values());
+    let tf = map.transform();
+    let mut inside = 0;
+    for (v, _) in map.grid().active_voxels() {
+        let c = tf.voxel_center(v);
+        let is_in = (0..3).all(|k| min[k] <= c[k] && c[k] <= max[k]);
+        inside += is_in as u32;
+        assert_eq!(
+            view.state(v),
+            if is_in {
+                map.state(v)
+            } else {
+                VoxelState::Unknown
+            }
+        );
+        assert_eq!(view.probability(v), None);
+    }
+    assert!(inside > 1000);
+}
+
+#[test]
+fn empty_map_and_exact_buffer_sizes() {
+    let map = OccupancyMap::new(0.2, SensorModel::default()).unwrap();
+    let plan = Plan::new(&map, Scope::Whole, Meta::default());
+    let bytes = plan.to_vec();
+    assert_eq!(bytes.len(), plan.encoded_len());
+    let view = SnapshotView::open_checked(&bytes).unwrap();
+    assert_eq!(
+        (view.leaf_count(), view.counts(), view.bounds()),
+        (0, (0, 0), None)
+    );
+    assert_eq!(view.state(VoxelCoord::default()), VoxelState::Unknown);
+    assert!(view.is_box_free(
+        &WorldPoint::new(0.0, 0.0, 0.0),
+        &WorldPoint::new(1.0, 1.0, 1.0),
+        true
+    ));
+    assert!(!view.is_box_free(
+        &WorldPoint::new(0.0, 0.0, 0.0),
+        &WorldPoint::new(1.0, 1.0, 1.0),
+        false
+    ));
+    let mut small = vec![0u8; plan.encoded_len() - 1];
+    assert!(matches!(
+        plan.write(&mut small),
+        Err(SnapshotError::BufferTooSmall { .. })
+    ));
+    // Writing into a larger buffer (a loaned sample) gives the same bytes.
+    let map = random_map(5, 1);
+    let plan = Plan::new(&map, Scope::Whole, Meta::default());
+    let mut big = vec![0xAAu8; plan.encoded_len() + 100];
+    let n = plan.write(&mut big).unwrap();
+    assert_eq!(&big[..n], &plan.to_vec()[..]);
+    assert_eq!(
+        SnapshotView::open_checked(&big).unwrap().as_bytes().len(),
+        n
+    );
+}
+
+#[test]
+fn corrupt_bytes_get_clear_errors() {
+    let map = random_map(3, 1);
+    let good = encode(&map, Scope::Whole, true);
+    let h = *SnapshotView::open(&good).unwrap().header();
+    let with = |f: &dyn Fn(&mut Header)| {
+        let mut b = good.clone();
+        let mut hh = h;
+        f(&mut hh);
+        b[..layout::HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&hh));
+        b
+    };
+    assert_eq!(
+        SnapshotView::open(&good[..10]).unwrap_err(),
+        SnapshotError::Truncated {
+            needed: 152,
+            got: 10
+        }
+    );
+    assert!(matches!(
+        SnapshotView::open(&good[..good.len() - 1]),
+        Err(SnapshotError::Truncated { .. })
+    ));
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.magic[0] = b'X')).unwrap_err(),
+        SnapshotError::BadMagic
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.version = 9)).unwrap_err(),
+        SnapshotError::UnsupportedVersion(9)
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.resolution = f64::NAN)).unwrap_err(),
+        SnapshotError::BadHeader("resolution")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.masks_offset += 8 * 1_000_000)).unwrap_err(),
+        SnapshotError::SectionOutOfBounds("masks")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.origins_offset = u64::MAX - 3)).unwrap_err(),
+        SnapshotError::SectionOutOfBounds("origins")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.leaf_count = u64::MAX)).unwrap_err(),
+        SnapshotError::BadHeader("leaf_count")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.table_capacity = 3)).unwrap_err(),
+        SnapshotError::BadHeader("table_capacity")
+    );
+    let mut flipped = good.clone();
+    let last = flipped.len() - 1;
+    flipped[last] ^= 1;
+    assert!(
+        SnapshotView::open(&flipped).is_ok(),
+        "structure still valid"
+    );
+    assert!(matches!(
+        SnapshotView::open_checked(&flipped),
+        Err(SnapshotError::ChecksumMismatch { .. })
+    ));
+    let msg = SnapshotError::UnsupportedVersion(9).to_string();
+    assert!(msg.contains("version 9"), "{msg}");
+}
+
+/// Every query on whatever `open` accepts: must not panic.
+fn exercise(bytes: &[u8]) {
+    if let Ok(v) = SnapshotView::open(bytes) {
+        let _ = SnapshotView::open_checked(bytes);
+        for x in -20..20 {
+            let p = VoxelCoord::new(x * 3, -x, x * 7);
+            let _ = v.state(p);
+            let _ = v.probability(p);
+        }
+        let _ = v.first_hit(
+            &WorldPoint::new(-3.0, -2.0, -1.0),
+            &WorldPoint::new(3.0, 2.0, 1.0),
+            true,
+        );
+        let _ = v.first_hit(
+            &WorldPoint::new(f64::NAN, 0.0, 0.0),
+            &WorldPoint::new(3.0, 2.0, 1.0),
+            true,
+        );
+        let _ = v.is_box_free(
+            &WorldPoint::new(-1.0, -1.0, -1.0),
+            &WorldPoint::new(1.0, 1.0, 1.0),
+            false,
+        );
+        let _ = v.is_box_free(
+            &WorldPoint::new(-1e6, -1e6, -1e6),
+            &WorldPoint::new(1e6, 1e6, 1e6),
+            true,
+        );
+        let _ = v.occupied_voxels().take(100_000).count();
+        let _ = (v.bounds(), v.counts(), v.header());
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+
+    #[test]
+    fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..2048)) {
+        exercise(&bytes);
+    }
+
+    #[test]
+    fn mutated_snapshots_never_panic(flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..8), cut in any::<usize>()) {
+        thread_local!(static GOOD: Vec<u8> = encode(&random_map(4, 1), Scope::Whole, true));
+        let mut b = GOOD.with(|g| g.clone());
+        for (at, x) in flips {
+            // Bias half the flips into the header, where the offsets live.
+            let i = if at % 2 == 0 { at % 152 } else { at % b.len() };
+            b[i] ^= x;
+        }
+        if cut % 4 == 0 {
+            b.truncate(cut % (b.len() + 1));
+        }
+        exercise(&b);
+    }
+}

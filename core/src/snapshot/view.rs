@@ -1,0 +1,428 @@
+//! [`SnapshotView`]: queries on a snapshot read in place.
+
+use super::layout::*;
+use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
+use crate::grid::{leaf_offset, leaf_origin, voxel_at};
+use crate::model::{QuantizedModel, VoxelState};
+
+/// Longest segment [`SnapshotView::first_hit`] walks, per axis, in voxels.
+pub const MAX_SEGMENT_VOXELS: f64 = 65536.0;
+
+/// A segment [`SnapshotView::first_hit`] cannot walk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InvalidSegment {
+    /// An end point is not finite or lies outside the voxel index space.
+    OutsideIndexSpace,
+    /// Longer than [`MAX_SEGMENT_VOXELS`] on some axis.
+    TooLong,
+}
+
+impl std::fmt::Display for InvalidSegment {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::OutsideIndexSpace => write!(
+                f,
+                "segment end point is not finite or outside the index space"
+            ),
+            Self::TooLong => write!(f, "segment longer than {MAX_SEGMENT_VOXELS} voxels"),
+        }
+    }
+}
+
+impl std::error::Error for InvalidSegment {}
+
+#[cfg(not(target_endian = "little"))]
+compile_error!(
+    "snapshots are little-endian and read in place; big-endian targets are not supported"
+);
+
+/// A validated snapshot over borrowed bytes (e.g. a shared-memory sample): no copy, no
+/// deserialization. Construction checks every offset, length and count; afterwards each
+/// query is O(1) per voxel and cannot panic, whatever the bytes held.
+///
+/// ```
+/// use voxmap_core::{OccupancyMap, SensorModel, VoxelCoord, VoxelState};
+/// use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
+/// let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+/// map.set_value(VoxelCoord::new(3, -2, 7), 100);
+/// let bytes = Plan::new(&map, Scope::Whole, Meta::default()).to_vec();
+/// let view = SnapshotView::open(&bytes).unwrap();
+/// assert_eq!(view.state(VoxelCoord::new(3, -2, 7)), VoxelState::Occupied);
+/// assert_eq!(view.state(VoxelCoord::new(0, 0, 0)), VoxelState::Unknown);
+/// ```
+#[derive(Clone, Copy, Debug)]
+pub struct SnapshotView<'a> {
+    bytes: &'a [u8],
+    header: Header,
+    tf: GridTransform,
+    q: QuantizedModel,
+}
+
+impl<'a> SnapshotView<'a> {
+    /// Validate structure (not the checksum; see [`Self::open_checked`]).
+    pub fn open(bytes: &'a [u8]) -> Result<Self, SnapshotError> {
+        let got = bytes.len() as u64;
+        let hb = bytes.get(..HEADER_SIZE).ok_or(SnapshotError::Truncated {
+            needed: HEADER_SIZE as u64,
+            got,
+        })?;
+        let h: Header = bytemuck::pod_read_unaligned(hb);
+        if h.magic != MAGIC {
+            return Err(SnapshotError::BadMagic);
+        }
+        if h.version != FORMAT_VERSION {
+            return Err(SnapshotError::UnsupportedVersion(h.version));
+        }
+        if h.header_size as usize != HEADER_SIZE {
+            return Err(SnapshotError::BadHeader("header_size"));
+        }
+        if h.flags & !FLAG_VALUES != 0 {
+            return Err(SnapshotError::BadHeader("unknown flags"));
+        }
+        if h.total_len > got {
+            return Err(SnapshotError::Truncated {
+                needed: h.total_len,
+                got,
+            });
+        }
+        let tf =
+            GridTransform::new(h.resolution).map_err(|_| SnapshotError::BadHeader("resolution"))?;
+        if h.frac_bits > 12 || !(h.clamp_min <= h.threshold && h.threshold <= h.clamp_max) {
+            return Err(SnapshotError::BadHeader("log-odds parameters"));
+        }
+        let n = h.leaf_count;
+        if n > u64::from(u32::MAX - 1) {
+            return Err(SnapshotError::BadHeader("leaf_count"));
+        }
+        let cap = h.table_capacity;
+        if !cap.is_power_of_two() || cap < n.saturating_mul(2).max(1) || cap > 1 << 33 {
+            return Err(SnapshotError::BadHeader("table_capacity"));
+        }
+        if h.known_count > n * 512 || h.occupied_count > h.known_count {
+            return Err(SnapshotError::BadHeader("voxel counts"));
+        }
+        let section = |name, off: u64, len: Option<u64>| -> Result<(), SnapshotError> {
+            let end = len
+                .and_then(|l| off.checked_add(l))
+                .ok_or(SnapshotError::SectionOutOfBounds(name))?;
+            if !off.is_multiple_of(8) || off < HEADER_SIZE as u64 || end > h.total_len {
+                return Err(SnapshotError::SectionOutOfBounds(name));
+            }
+            Ok(())
+        };
+        section("table", h.table_offset, cap.checked_mul(4))?;
+        section(
+            "origins",
+            h.origins_offset,
+            n.checked_mul(ORIGIN_SIZE as u64),
+        )?;
+        section(
+            "masks",
+            h.masks_offset,
+            n.checked_mul(MASKS_PER_LEAF as u64),
+        )?;
+        if h.flags & FLAG_VALUES != 0 {
+            section(
+                "values",
+                h.values_offset,
+                n.checked_mul(VALUES_PER_LEAF as u64),
+            )?;
+        }
+        let q = QuantizedModel {
+            frac_bits: h.frac_bits,
+            hit: 0,
+            miss: 0,
+            min: h.clamp_min,
+            max: h.clamp_max,
+            threshold: h.threshold,
+        };
+        let v = SnapshotView {
+            bytes: &bytes[..h.total_len as usize],
+            header: h,
+            tf,
+            q,
+        };
+        // Every table entry names an existing leaf; every origin is leaf-aligned; and at
+        // least one slot is empty, so probing always terminates.
+        let mut empty = 0u64;
+        for s in 0..cap {
+            match v.u32_at(h.table_offset + 4 * s) {
+                0 => empty += 1,
+                e if u64::from(e) > n => {
+                    return Err(SnapshotError::BadIndex("table entry beyond leaf_count"))
+                }
+                _ => {}
+            }
+        }
+        if empty == 0 {
+            return Err(SnapshotError::BadIndex("leaf table has no empty slot"));
+        }
+        for i in 0..n {
+            let o = v.origin(i);
+            if o.iter().any(|c| c & 7 != 0) {
+                return Err(SnapshotError::BadIndex("leaf origin not a multiple of 8"));
+            }
+        }
+        Ok(v)
+    }
+
+    /// [`Self::open`] plus the CRC-32 over everything after the header.
+    pub fn open_checked(bytes: &'a [u8]) -> Result<Self, SnapshotError> {
+        let v = Self::open(bytes)?;
+        let computed = crc32fast::hash(&v.bytes[HEADER_SIZE..]);
+        if computed != v.header.checksum {
+            return Err(SnapshotError::ChecksumMismatch {
+                stored: v.header.checksum,
+                computed,
+            });
+        }
+        Ok(v)
+    }
+
+    /// The bytes this view reads (exactly `total_len` of them).
+    pub fn as_bytes(&self) -> &'a [u8] {
+        self.bytes
+    }
+
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    pub fn transform(&self) -> &GridTransform {
+        &self.tf
+    }
+
+    pub fn resolution(&self) -> f64 {
+        self.tf.resolution()
+    }
+
+    pub fn sequence(&self) -> u64 {
+        self.header.sequence
+    }
+
+    pub fn timestamp_ns(&self) -> u64 {
+        self.header.timestamp_ns
+    }
+
+    pub fn leaf_count(&self) -> u64 {
+        self.header.leaf_count
+    }
+
+    /// Known and occupied voxels.
+    pub fn counts(&self) -> (u64, u64) {
+        (self.header.known_count, self.header.occupied_count)
+    }
+
+    /// Inclusive voxel bounds of the known voxels, `None` when empty.
+    pub fn bounds(&self) -> Option<(VoxelCoord, VoxelCoord)> {
+        let (lo, hi) = (self.header.bounds_min, self.header.bounds_max);
+        (lo[0] <= hi[0]).then(|| (VoxelCoord::from_array(lo), VoxelCoord::from_array(hi)))
+    }
+
+    pub fn has_values(&self) -> bool {
+        self.header.flags & FLAG_VALUES != 0
+    }
+
+    #[inline]
+    fn u32_at(&self, off: u64) -> u32 {
+        let o = off as usize;
+        self.bytes
+            .get(o..o + 4)
+            .map_or(0, |b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+
+    #[inline]
+    fn u64_at(&self, off: u64) -> u64 {
+        let o = off as usize;
+        self.bytes
+            .get(o..o + 8)
+            .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+    }
+
+    #[inline]
+    fn origin(&self, i: u64) -> [i32; 3] {
+        let at = self.header.origins_offset + ORIGIN_SIZE as u64 * i;
+        [0, 1, 2].map(|k| self.u32_at(at + 4 * k) as i32)
+    }
+
+    /// Index of the leaf with origin `o`.
+    #[inline]
+    fn find_leaf(&self, o: [i32; 3]) -> Option<u64> {
+        let mask = self.header.table_capacity - 1;
+        let mut s = table_hash(o, mask);
+        // Bounded: validated tables have an empty slot; the bound guards nothing else.
+        for _ in 0..=mask {
+            let e = self.u32_at(self.header.table_offset + 4 * s);
+            if e == 0 {
+                return None;
+            }
+            let i = u64::from(e - 1);
+            if self.origin(i) == o {
+                return Some(i);
+            }
+            s = (s + 1) & mask;
+        }
+        None
+    }
+
+    #[inline]
+    fn mask_bit(&self, leaf: u64, which: u64, i: usize) -> bool {
+        let at = self.header.masks_offset
+            + MASKS_PER_LEAF as u64 * leaf
+            + 64 * which
+            + 8 * (i as u64 >> 6);
+        self.u64_at(at) >> (i & 63) & 1 != 0
+    }
+
+    #[inline]
+    fn leaf_state(&self, leaf: u64, i: usize) -> VoxelState {
+        if !self.mask_bit(leaf, 0, i) {
+            VoxelState::Unknown
+        } else if self.mask_bit(leaf, 1, i) {
+            VoxelState::Occupied
+        } else {
+            VoxelState::Free
+        }
+    }
+
+    /// State of a voxel.
+    #[inline]
+    pub fn state(&self, v: VoxelCoord) -> VoxelState {
+        match self.find_leaf(leaf_origin(v).to_array()) {
+            Some(l) => self.leaf_state(l, leaf_offset(v)),
+            None => VoxelState::Unknown,
+        }
+    }
+
+    /// State at a world point; points outside the index space are unknown.
+    pub fn state_at(&self, p: &WorldPoint) -> VoxelState {
+        self.tf
+            .voxel_of(p)
+            .map_or(VoxelState::Unknown, |v| self.state(v))
+    }
+
+    /// Occupancy probability of a known voxel, when the snapshot stores values.
+    pub fn probability(&self, v: VoxelCoord) -> Option<f64> {
+        if !self.has_values() {
+            return None;
+        }
+        let l = self.find_leaf(leaf_origin(v).to_array())?;
+        let i = leaf_offset(v);
+        if !self.mask_bit(l, 0, i) {
+            return None;
+        }
+        let at = (self.header.values_offset + VALUES_PER_LEAF as u64 * l) as usize + i;
+        let raw = *self.bytes.get(at)? as i8;
+        Some(crate::model::probability(self.q.to_logodds(raw)))
+    }
+
+    /// The first voxel along the segment `from` -> `to` (world metres) that is occupied,
+    /// or also unknown when `unknown_blocks`; `Ok(None)` when the line of sight is clear.
+    pub fn first_hit(
+        &self,
+        from: &WorldPoint,
+        to: &WorldPoint,
+        unknown_blocks: bool,
+    ) -> Result<Option<VoxelCoord>, InvalidSegment> {
+        if self.tf.voxel_of(from).is_none() || self.tf.voxel_of(to).is_none() {
+            return Err(InvalidSegment::OutsideIndexSpace);
+        }
+        let o = self.tf.point_to_units(from);
+        let e = self.tf.point_to_units(to);
+        if (0..3).any(|k| (o[k] - e[k]).abs() > MAX_SEGMENT_VOXELS) {
+            return Err(InvalidSegment::TooLong);
+        }
+        let mut leaf_key = None;
+        let mut leaf = None;
+        Ok(crate::raycast::find_voxel(o, e, |v| {
+            let lo = leaf_origin(v);
+            if leaf_key != Some(lo) {
+                leaf_key = Some(lo);
+                leaf = self.find_leaf(lo.to_array());
+            }
+            let s = leaf.map_or(VoxelState::Unknown, |l| self.leaf_state(l, leaf_offset(v)));
+            let blocked = s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown);
+            blocked.then_some(v)
+        }))
+    }
+
+    /// Whether no voxel with its centre in the box [min, max] (world metres) is occupied,
+    /// nor unknown unless `unknown_is_free`.
+    pub fn is_box_free(&self, min: &WorldPoint, max: &WorldPoint, unknown_is_free: bool) -> bool {
+        let half = self.tf.resolution() * 0.5;
+        let lo = self
+            .tf
+            .voxel_of(&WorldPoint::new(min.x - half, min.y - half, min.z - half));
+        let hi = self
+            .tf
+            .voxel_of(&WorldPoint::new(max.x - half, max.y - half, max.z - half));
+        let (Some(lo), Some(hi)) = (lo, hi) else {
+            return false;
+        };
+        let lo = lo + VoxelCoord::new(1, 1, 1);
+        if lo.x > hi.x || lo.y > hi.y || lo.z > hi.z {
+            return true; // no voxel centre inside
+        }
+        let inside = |v: VoxelCoord| {
+            lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
+        };
+        let (llo, lhi) = (leaf_origin(lo), leaf_origin(hi));
+        let leaves_in_box = ((lhi.x - llo.x) as u64 / 8 + 1)
+            * ((lhi.y - llo.y) as u64 / 8 + 1)
+            * ((lhi.z - llo.z) as u64 / 8 + 1);
+        if unknown_is_free && leaves_in_box > self.leaf_count() {
+            // Cheaper to scan the stored leaves than the box.
+            return (0..self.leaf_count()).all(|l| {
+                let o = VoxelCoord::from_array(self.origin(l));
+                (0..512).all(|i| !(self.mask_bit(l, 1, i) && inside(voxel_at(o, i))))
+            });
+        }
+        let mut z = llo.z;
+        while z <= lhi.z {
+            let mut y = llo.y;
+            while y <= lhi.y {
+                let mut x = llo.x;
+                while x <= lhi.x {
+                    let o = VoxelCoord::new(x, y, z);
+                    match self.find_leaf(o.to_array()) {
+                        None if !unknown_is_free => return false,
+                        None => {}
+                        Some(l) => {
+                            for i in 0..512 {
+                                let v = voxel_at(o, i);
+                                if inside(v) {
+                                    match self.leaf_state(l, i) {
+                                        VoxelState::Occupied => return false,
+                                        VoxelState::Unknown if !unknown_is_free => return false,
+                                        _ => {}
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    x += 8;
+                }
+                y += 8;
+            }
+            z += 8;
+        }
+        true
+    }
+
+    /// Occupied voxels, in leaf order.
+    pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
+        (0..self.leaf_count()).flat_map(move |l| {
+            let o = VoxelCoord::from_array(self.origin(l));
+            (0..8u64).flat_map(move |w| {
+                let at = self.header.masks_offset + MASKS_PER_LEAF as u64 * l;
+                let bits = self.u64_at(at + 64 + 8 * w) & self.u64_at(at + 8 * w);
+                crate::mask::BitIter(bits).map(move |b| voxel_at(o, (w as usize) * 64 + b))
+            })
+        })
+    }
+
+    /// World centres of the occupied voxels.
+    pub fn occupied_centers(&self) -> impl Iterator<Item = WorldPoint> + '_ {
+        self.occupied_voxels().map(|v| self.tf.voxel_center(v))
+    }
+}
