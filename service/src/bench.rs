@@ -42,6 +42,9 @@ pub struct BenchArgs {
     /// One JSON object per line instead of a table.
     #[arg(long)]
     json: bool,
+    /// Skip the snapshot measurements (run on the exact map at the last thread count).
+    #[arg(long)]
+    no_snapshot: bool,
 }
 
 /// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
@@ -178,6 +181,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             "prep", "ray", "merge", "upd", "occupied", "free", "B/vox", "paper"
         );
     }
+    let mut snapshots = Vec::new();
     for f in files {
         let name = f
             .file_stem()
@@ -224,9 +228,12 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let (r, map) = last.expect("runs >= 1");
                 let counts = map.counts();
                 let mem = map.memory_bytes();
-                drop(map);
                 times.sort_by(f64::total_cmp);
                 let med = times[times.len() / 2];
+                if mode == RayMode::Exact && Some(&threads) == a.threads.last() && !a.no_snapshot {
+                    snapshots.push((name.clone(), snapshot_bench(&map, med)));
+                }
+                drop(map);
                 let (min, max) = (times[0], times[times.len() - 1]);
                 let p = median_phases(&mut phases);
                 let ns_step = med * 1e6 * threads as f64 / r.voxel_steps.max(1) as f64;
@@ -266,8 +273,130 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     if !a.json {
         println!("ns/st = median ns per voxel step per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
+        if !snapshots.is_empty() {
+            println!();
+            println!(
+                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9}",
+                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "open ms", "ms chk", "query ns", "los10m ns"
+            );
+        }
+    }
+    for (name, s) in &snapshots {
+        if a.json {
+            println!(
+                "{}",
+                serde_json::json!({
+                    "section": "snapshot", "workload": name, "bytes": s.bytes, "leaves": s.leaves, "known": s.known,
+                    "bytes_per_known_voxel": s.bytes as f64 / s.known.max(1) as f64,
+                    "bytes_per_leaf": s.bytes as f64 / s.leaves.max(1) as f64,
+                    "map_memory_bytes": s.map_bytes, "encode_ms": s.encode_ms, "integrate_ms": s.integrate_ms,
+                    "open_ms": s.open_ms, "open_checked_ms": s.open_checked_ms,
+                    "point_query_ns": s.query_ns, "first_hit_10m_ns": s.los_ns,
+                })
+            );
+        } else {
+            println!(
+                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.3} {:>8.3} {:>9.1} {:>9.0}",
+                name, s.bytes, s.leaves, s.bytes as f64 / s.known.max(1) as f64, s.bytes as f64 / s.leaves.max(1) as f64,
+                s.encode_ms, s.integrate_ms / s.encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.los_ns
+            );
+        }
+    }
+    if !a.json && !snapshots.is_empty() {
+        println!("xfaster = integrate median / encode; query = state at random known voxels; los10m = first_hit on a 10 m segment");
     }
     Ok(())
+}
+
+struct SnapshotBench {
+    bytes: usize,
+    leaves: u64,
+    known: u64,
+    map_bytes: usize,
+    encode_ms: f64,
+    integrate_ms: f64,
+    open_ms: f64,
+    open_checked_ms: f64,
+    query_ns: f64,
+    los_ns: f64,
+}
+
+fn snapshot_bench(map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
+    use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
+    use voxmap_core::{VoxelCoord, WorldPoint};
+    let meta = Meta::default();
+    let mut buf = vec![0u8; Plan::new(map, Scope::Whole, meta).encoded_len()];
+    buf.iter_mut().step_by(4096).for_each(|b| *b = 1); // touch pages outside the timing
+    let mut enc = Vec::new();
+    for _ in 0..3 {
+        let t = Instant::now();
+        let plan = Plan::new(map, Scope::Whole, meta);
+        plan.write(&mut buf).expect("sized");
+        enc.push(ms(t.elapsed()));
+    }
+    enc.sort_by(f64::total_cmp);
+    let t = Instant::now();
+    let view = SnapshotView::open(&buf).expect("fresh snapshot opens");
+    let open_ms = ms(t.elapsed());
+    let t = Instant::now();
+    SnapshotView::open_checked(&buf).expect("checksum");
+    let open_checked_ms = ms(t.elapsed());
+    // Random known voxels (a strided sample), queried in shuffled order.
+    let n = map.grid().active_count().max(1);
+    let stride = (n / 200_000).max(1) as usize;
+    let mut pts: Vec<VoxelCoord> = map
+        .grid()
+        .active_voxels()
+        .step_by(stride)
+        .map(|(v, _)| v)
+        .collect();
+    let mut s = 0x2545F4914F6CDD1Du64;
+    for i in (1..pts.len()).rev() {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        pts.swap(i, (s % (i as u64 + 1)) as usize);
+    }
+    let t = Instant::now();
+    let occ = pts
+        .iter()
+        .filter(|&&v| view.state(v) == voxmap_core::VoxelState::Occupied)
+        .count();
+    let query_ns = t.elapsed().as_secs_f64() * 1e9 / pts.len().max(1) as f64;
+    std::hint::black_box(occ);
+    // 10 m segments from near the sensor in random directions.
+    let mut segs = Vec::new();
+    for _ in 0..20_000 {
+        let mut r = || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let d = nalgebra::Vector3::new(r(), r(), r()).normalize() * 10.0;
+        let a = WorldPoint::new(r() * 0.5, r() * 0.5, r() * 0.2);
+        segs.push((a, a + d));
+    }
+    let t = Instant::now();
+    let hits = segs
+        .iter()
+        .filter(|(a, b)| matches!(view.first_hit(a, b, false), Ok(Some(_))))
+        .count();
+    let los_ns = t.elapsed().as_secs_f64() * 1e9 / segs.len() as f64;
+    std::hint::black_box(hits);
+    let (known, _) = view.counts();
+    SnapshotBench {
+        bytes: buf.len(),
+        leaves: view.leaf_count(),
+        known,
+        map_bytes: map.memory_bytes(),
+        encode_ms: enc[1],
+        integrate_ms,
+        open_ms,
+        open_checked_ms,
+        query_ns,
+        los_ns,
+    }
 }
 
 fn median_phases(p: &mut [PhaseTimes]) -> PhaseTimes {

@@ -33,6 +33,50 @@ struct PlannedLeaf<'a> {
     keep: Mask512,
 }
 
+/// Voxels of `keep` whose value is at or above the threshold, a word at a time.
+fn occupied_mask(leaf: &Leaf<i8>, keep: &Mask512, threshold: i8) -> Mask512 {
+    let mut occ = Mask512::EMPTY;
+    for (w, out) in occ.words.iter_mut().enumerate() {
+        if keep.words[w] == 0 {
+            continue;
+        }
+        let vals = &leaf.values[w * 64..w * 64 + 64];
+        let mut bits = 0u64;
+        for (b, &v) in vals.iter().enumerate() {
+            bits |= u64::from(v >= threshold) << b;
+        }
+        *out = bits & keep.words[w];
+    }
+    occ
+}
+
+/// Grow inclusive bounds by the voxels of `keep` in the leaf at `origin`, using the mask's
+/// extent per axis rather than visiting voxels.
+fn extend_bounds(lo: &mut [i32; 3], hi: &mut [i32; 3], origin: VoxelCoord, keep: &Mask512) {
+    // Bit x|y<<3 of a word; word index z.
+    let (mut xs, mut ys, mut zs) = (0u8, 0u8, 0u8);
+    for (z, &w) in keep.words.iter().enumerate() {
+        if w != 0 {
+            zs |= 1 << z;
+            for y in 0..8 {
+                let row = (w >> (8 * y)) as u8;
+                if row != 0 {
+                    ys |= 1 << y;
+                    xs |= row;
+                }
+            }
+        }
+    }
+    if zs == 0 {
+        return;
+    }
+    let o = origin.to_array();
+    for (a, m) in [xs, ys, zs].into_iter().enumerate() {
+        lo[a] = lo[a].min(o[a] + m.trailing_zeros() as i32);
+        hi[a] = hi[a].max(o[a] + 7 - m.leading_zeros() as i32);
+    }
+}
+
 /// A snapshot laid out but not yet written: size it with [`Plan::encoded_len`], then
 /// [`Plan::write`] it into a buffer of at least that many bytes.
 pub struct Plan<'a> {
@@ -159,17 +203,8 @@ impl<'a> Plan<'a> {
             for (k, c) in o.iter().enumerate() {
                 buf[at + 4 * k..at + 4 * k + 4].copy_from_slice(&c.to_le_bytes());
             }
-            let mut occ = Mask512::EMPTY;
-            for v in p.keep.iter_ones() {
-                if p.leaf.values[v] >= q.threshold {
-                    occ.set(v);
-                }
-                let c = crate::grid::voxel_at(p.origin, v).to_array();
-                for a in 0..3 {
-                    lo[a] = lo[a].min(c[a]);
-                    hi[a] = hi[a].max(c[a]);
-                }
-            }
+            let occ = occupied_mask(p.leaf, &p.keep, q.threshold);
+            extend_bounds(&mut lo, &mut hi, p.origin, &p.keep);
             known += u64::from(p.keep.count());
             occupied += u64::from(occ.count());
             let at = masks as usize + MASKS_PER_LEAF * i;
