@@ -21,6 +21,16 @@ pub struct OccupancyMap {
     q: QuantizedModel,
 }
 
+impl std::fmt::Debug for OccupancyMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OccupancyMap")
+            .field("resolution", &self.resolution())
+            .field("leaves", &self.grid.leaf_count())
+            .field("model", &self.model)
+            .finish()
+    }
+}
+
 impl OccupancyMap {
     pub fn new(resolution: f64, model: SensorModel) -> Result<Self, ConfigError> {
         Ok(Self {

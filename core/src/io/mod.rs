@@ -1,2 +1,3 @@
-//! File formats: PCD point clouds.
+//! File formats: PCD point clouds, map files and snapshot files.
+pub mod mapfile;
 pub mod pcd;

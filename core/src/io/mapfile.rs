@@ -1,0 +1,386 @@
+//! Map files: the full map (log-odds, sensor model, resolution) in a versioned,
+//! checksummed file, written atomically; and snapshot files.
+//!
+//! ```text
+//! magic "VXMMAP\0\0" | version u32 | header length u32 | header (bincode) | header crc32 u32
+//! body: leaf_count records of { origin [i32; 3], known mask [u64; 8], values [i8; 512] }
+//! ```
+//! All integers little-endian. The header holds the body's CRC-32; a file is loaded
+//! completely and verified before a map is built, so a bad file changes nothing.
+
+use crate::coord::VoxelCoord;
+use crate::grid::LEAF_VOXELS;
+use crate::map::OccupancyMap;
+use crate::model::SensorModel;
+use crate::snapshot::{SnapshotError, SnapshotView};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+pub const MAP_MAGIC: [u8; 8] = *b"VXMMAP\0\0";
+pub const MAP_VERSION: u32 = 1;
+const RECORD: usize = 12 + 64 + LEAF_VOXELS;
+const MAX_HEADER: usize = 4096;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct FileHeader {
+    resolution: f64,
+    model: SensorModel,
+    frac_bits: u8,
+    leaf_count: u64,
+    body_crc32: u32,
+}
+
+/// A map or snapshot file could not be written or read.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum MapFileError {
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The file is not what it claims: names the file and the problem.
+    Corrupt {
+        path: PathBuf,
+        problem: String,
+    },
+    UnsupportedVersion {
+        path: PathBuf,
+        version: u32,
+    },
+    Snapshot {
+        path: PathBuf,
+        source: SnapshotError,
+    },
+}
+
+impl std::fmt::Display for MapFileError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            Self::Corrupt { path, problem } => {
+                write!(f, "{}: corrupt map file: {problem}", path.display())
+            }
+            Self::UnsupportedVersion { path, version } => {
+                write!(
+                    f,
+                    "{}: unsupported map file version {version} (this build reads {MAP_VERSION})",
+                    path.display()
+                )
+            }
+            Self::Snapshot { path, source } => write!(f, "{}: {source}", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for MapFileError {}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapFileError + '_ {
+    move |source| MapFileError::Io {
+        path: path.into(),
+        source,
+    }
+}
+
+/// Write `bytes` to `path` atomically: a temporary file in the same directory, fsync,
+/// rename over `path`, fsync the directory. A crash leaves the old file or the new one.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path.file_name().ok_or_else(|| MapFileError::Io {
+        path: path.into(),
+        source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path"),
+    })?;
+    let tmp = dir.join(format!(
+        ".{}.tmp.{}",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
+        f.write_all(bytes).map_err(io_err(&tmp))?;
+        f.sync_all().map_err(io_err(&tmp))?;
+        std::fs::rename(&tmp, path).map_err(io_err(path))?;
+        if let Ok(d) = std::fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Encode a map file in memory.
+pub fn encode_map(map: &OccupancyMap) -> Vec<u8> {
+    let mut leaves: Vec<_> = map
+        .grid()
+        .leaves()
+        .filter(|(_, l)| !l.active.is_empty())
+        .collect();
+    leaves.sort_unstable_by_key(|(o, _)| (o.z, o.y, o.x));
+    let mut body = Vec::with_capacity(leaves.len() * RECORD);
+    for (o, leaf) in &leaves {
+        for c in o.to_array() {
+            body.extend_from_slice(&c.to_le_bytes());
+        }
+        for w in leaf.active.words {
+            body.extend_from_slice(&w.to_le_bytes());
+        }
+        body.extend(
+            leaf.values
+                .iter()
+                .zip(0..)
+                .map(|(&v, i)| if leaf.active.get(i) { v as u8 } else { 0 }),
+        );
+    }
+    let header = FileHeader {
+        resolution: map.resolution(),
+        model: *map.model(),
+        frac_bits: map.quantized().frac_bits,
+        leaf_count: leaves.len() as u64,
+        body_crc32: crc32fast::hash(&body),
+    };
+    let hb = bincode::serde::encode_to_vec(&header, bincode::config::standard())
+        .expect("plain struct encodes");
+    let mut out = Vec::with_capacity(20 + hb.len() + body.len());
+    out.extend_from_slice(&MAP_MAGIC);
+    out.extend_from_slice(&MAP_VERSION.to_le_bytes());
+    out.extend_from_slice(&(hb.len() as u32).to_le_bytes());
+    out.extend_from_slice(&hb);
+    out.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+/// Save a map atomically.
+pub fn save_map(map: &OccupancyMap, path: &Path) -> Result<(), MapFileError> {
+    write_atomic(path, &encode_map(map))
+}
+
+/// Load a map file into a new map. Nothing is returned unless the whole file verified.
+pub fn load_map(path: &Path) -> Result<OccupancyMap, MapFileError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    decode_map(&bytes).map_err(|e| match e {
+        Decode::Version(version) => MapFileError::UnsupportedVersion {
+            path: path.into(),
+            version,
+        },
+        Decode::Corrupt(problem) => MapFileError::Corrupt {
+            path: path.into(),
+            problem,
+        },
+    })
+}
+
+/// Why map bytes did not decode.
+#[derive(Debug, PartialEq)]
+pub enum Decode {
+    Version(u32),
+    Corrupt(String),
+}
+
+/// Decode map-file bytes into a new map.
+pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
+    let bad = |s: &str| Decode::Corrupt(s.to_string());
+    if bytes.len() < 16 || bytes[..8] != MAP_MAGIC {
+        return Err(bad("not a voxmap map file (bad magic)"));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if version != MAP_VERSION {
+        return Err(Decode::Version(version));
+    }
+    let hlen = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes")) as usize;
+    if hlen > MAX_HEADER || bytes.len() < 16 + hlen + 4 {
+        return Err(bad("header length out of range or file truncated"));
+    }
+    let hb = &bytes[16..16 + hlen];
+    let hcrc = u32::from_le_bytes(bytes[16 + hlen..20 + hlen].try_into().expect("4 bytes"));
+    if crc32fast::hash(hb) != hcrc {
+        return Err(bad("header checksum mismatch"));
+    }
+    let cfg = bincode::config::standard().with_limit::<MAX_HEADER>();
+    let (h, _): (FileHeader, usize) = bincode::serde::decode_from_slice(hb, cfg)
+        .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
+    let body = &bytes[20 + hlen..];
+    let want = h
+        .leaf_count
+        .checked_mul(RECORD as u64)
+        .ok_or_else(|| bad("leaf count overflows"))?;
+    if body.len() as u64 != want {
+        return Err(Decode::Corrupt(format!(
+            "body is {} bytes, header says {} leaves ({want} bytes)",
+            body.len(),
+            h.leaf_count
+        )));
+    }
+    if crc32fast::hash(body) != h.body_crc32 {
+        return Err(bad("body checksum mismatch"));
+    }
+    let mut map = OccupancyMap::new(h.resolution, h.model)
+        .map_err(|e| Decode::Corrupt(format!("parameters: {e}")))?;
+    let q = *map.quantized();
+    if q.frac_bits != h.frac_bits {
+        return Err(bad("fixed-point scale disagrees with the sensor model"));
+    }
+    let mut seen = hashbrown::HashSet::with_capacity(h.leaf_count as usize);
+    for rec in body.chunks_exact(RECORD) {
+        let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+        let o = VoxelCoord::new(c(0), c(1), c(2));
+        if o.to_array()
+            .iter()
+            .any(|v| v & 7 != 0 || v.unsigned_abs() >= 1 << 30)
+        {
+            return Err(bad("leaf origin not leaf-aligned or out of range"));
+        }
+        if !seen.insert(o) {
+            return Err(bad("leaf stored twice"));
+        }
+        let li = map.grid_mut().leaf_index_or_insert(o, None);
+        let leaf = map.grid_mut().leaf_mut(li);
+        for w in 0..8 {
+            leaf.active.words[w] =
+                u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
+        }
+        for i in 0..LEAF_VOXELS {
+            let v = rec[76 + i] as i8;
+            if leaf.active.get(i) && !(q.min..=q.max).contains(&v) {
+                return Err(bad("log-odds value outside the clamping range"));
+            }
+            leaf.values[i] = if leaf.active.get(i) { v } else { 0 };
+        }
+    }
+    Ok(map)
+}
+
+/// Write snapshot bytes to a file atomically (after checking they open).
+pub fn save_snapshot(bytes: &[u8], path: &Path) -> Result<(), MapFileError> {
+    let v = SnapshotView::open_checked(bytes).map_err(|source| MapFileError::Snapshot {
+        path: path.into(),
+        source,
+    })?;
+    write_atomic(path, v.as_bytes())
+}
+
+/// Read a snapshot file and verify it (structure and checksum); open it with
+/// [`SnapshotView::open`] afterwards.
+pub fn read_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    SnapshotView::open_checked(&bytes).map_err(|source| MapFileError::Snapshot {
+        path: path.into(),
+        source,
+    })?;
+    Ok(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::snapshot::{Meta, Plan, Scope};
+
+    fn sample_map() -> OccupancyMap {
+        let model = SensorModel {
+            p_hit: 0.8,
+            ..Default::default()
+        };
+        let mut map = OccupancyMap::new(0.05, model).unwrap();
+        let mut s = 99u64;
+        for _ in 0..20000 {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let v = VoxelCoord::new(
+                (s >> 20) as i32 % 300 - 150,
+                (s >> 30) as i32 % 300 - 150,
+                (s >> 40) as i32 % 40 - 20,
+            );
+            map.set_value(v, (s >> 50) as i8);
+        }
+        map
+    }
+
+    fn voxels(map: &OccupancyMap) -> Vec<(VoxelCoord, i8)> {
+        let mut v: Vec<_> = map.grid().active_voxels().collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn save_load_round_trip() {
+        let dir = std::env::temp_dir().join(format!("voxmap-mapfile-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("m.vxm");
+        let map = sample_map();
+        save_map(&map, &path).unwrap();
+        let back = load_map(&path).unwrap();
+        assert_eq!(voxels(&back), voxels(&map));
+        assert_eq!(back.model(), map.model());
+        assert_eq!(back.resolution(), 0.05);
+        // No temporary file is left behind.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        // Snapshot files.
+        let snap = Plan::new(
+            &map,
+            Scope::Whole,
+            Meta {
+                with_values: true,
+                ..Default::default()
+            },
+        )
+        .to_vec();
+        let sp = dir.join("s.vxs");
+        save_snapshot(&snap, &sp).unwrap();
+        assert_eq!(read_snapshot(&sp).unwrap(), snap);
+        std::fs::write(&sp, &snap[..snap.len() / 2]).unwrap();
+        assert!(matches!(
+            read_snapshot(&sp),
+            Err(MapFileError::Snapshot { .. })
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn corrupt_files_are_clear_errors() {
+        let good = encode_map(&sample_map());
+        assert!(decode_map(&good).is_ok());
+        let mut v = good.clone();
+        v[8] = 7;
+        assert_eq!(decode_map(&v).err(), Some(Decode::Version(7)));
+        let mut v = good.clone();
+        v[0] = b'X';
+        assert!(matches!(decode_map(&v), Err(Decode::Corrupt(m)) if m.contains("magic")));
+        let cut = &good[..good.len() - 100];
+        assert!(matches!(decode_map(cut), Err(Decode::Corrupt(m)) if m.contains("body is")));
+        let mut v = good.clone();
+        let n = v.len();
+        v[n - 3] ^= 0x40;
+        assert!(matches!(decode_map(&v), Err(Decode::Corrupt(m)) if m.contains("body checksum")));
+        let mut v = good.clone();
+        v[17] ^= 1;
+        assert!(matches!(decode_map(&v), Err(Decode::Corrupt(m)) if m.contains("header checksum")));
+        let mut v = good.clone();
+        v[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(matches!(decode_map(&v), Err(Decode::Corrupt(_))));
+        for len in [0, 5, 16, 30] {
+            assert!(decode_map(&good[..len.min(good.len())]).is_err());
+        }
+        let e = load_map(Path::new("/nonexistent/m.vxm")).unwrap_err();
+        assert!(e.to_string().contains("/nonexistent/m.vxm"));
+    }
+
+    #[test]
+    fn failed_save_leaves_the_old_file() {
+        let dir = std::env::temp_dir().join(format!("voxmap-mapfile-old-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("m.vxm");
+        save_map(&sample_map(), &path).unwrap();
+        let before = std::fs::read(&path).unwrap();
+        // Saving to a path whose directory does not exist fails without touching anything.
+        assert!(save_map(&sample_map(), &dir.join("missing/m.vxm")).is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), before);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
