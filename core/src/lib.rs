@@ -29,6 +29,7 @@ pub mod mask;
 pub mod model;
 pub mod raycast;
 pub mod snapshot;
+pub mod wire;
 
 pub use coord::{GridTransform, VoxelCoord, WorldPoint};
 pub use integrate::{

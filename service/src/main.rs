@@ -1,6 +1,7 @@
 //! `voxmap`: the mapping service and its tools.
 
 mod bench;
+mod serve;
 
 use clap::{Parser, Subcommand};
 
@@ -17,6 +18,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// Run the mapping service: frames in, snapshots out, over iceoryx2.
+    Serve(serve::ServeArgs),
     /// Time frame integration on the paper's synthetic workloads.
     Bench(bench::BenchArgs),
 }
@@ -24,5 +27,6 @@ enum Cmd {
 fn main() -> anyhow::Result<()> {
     match Cli::parse().cmd {
         Cmd::Bench(a) => bench::run(a),
+        Cmd::Serve(a) => serve::run(a),
     }
 }

@@ -1,0 +1,252 @@
+//! `voxmap serve`: the mapping daemon. Frames in over iceoryx2, integrated on a thread
+//! pool, snapshots out, encoded straight into loaned shared-memory samples.
+
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use iceoryx2::waitset::WaitSetRunResult;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use voxmap_client::{open_event, open_frames, open_snapshots};
+use voxmap_core::io::mapfile;
+use voxmap_core::snapshot::{Meta, Plan, Scope};
+use voxmap_core::wire::{ServiceNames, SnapshotHeader};
+use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+
+#[derive(Args, Debug, Clone)]
+pub struct ServeArgs {
+    /// Service-name prefix: isolates one deployment (or test) from another.
+    #[arg(long, default_value = "voxmap")]
+    pub prefix: String,
+    /// Map name under the prefix.
+    #[arg(long, default_value = "default")]
+    pub map: String,
+    /// Voxel edge, metres.
+    #[arg(long, default_value_t = 0.1)]
+    pub resolution: f64,
+    /// Rays are cut here (metres) and mark free space only.
+    #[arg(long, default_value_t = 30.0)]
+    pub max_range: f64,
+    /// Integration threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Resume from this map file.
+    #[arg(long)]
+    pub load: Option<PathBuf>,
+    /// Save the map here on SIGINT/SIGTERM.
+    #[arg(long)]
+    pub save_on_exit: Option<PathBuf>,
+    /// Include per-voxel log-odds in snapshots (512 bytes per leaf).
+    #[arg(long)]
+    pub snapshot_values: bool,
+    /// Exit after this many seconds (for demos and tests); 0 = run until a signal.
+    #[arg(long, default_value_t = 0.0)]
+    pub exit_after: f64,
+}
+
+/// Counters reported in the periodic log line.
+#[derive(Default, Debug)]
+struct Stats {
+    received: u64,
+    integrated: u64,
+    dropped: u64,
+    rejected: u64,
+    points: u64,
+    skipped_points: u64,
+    last_integrate_ms: f64,
+    last_snapshot_bytes: usize,
+    last_encode_ms: f64,
+}
+
+pub fn run(a: ServeArgs) -> Result<()> {
+    let names = ServiceNames::new(&a.prefix, &a.map);
+    let node = NodeBuilder::new()
+        .name(&NodeName::new("voxmap-serve").map_err(|e| anyhow!("{e:?}"))?)
+        .config(&Config::default())
+        .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("creating iceoryx2 node: {e:?}"))?;
+    let cleanup = node.try_cleanup_dead_nodes();
+    eprintln!("voxmap serve: dead iceoryx2 nodes cleaned up: {cleanup:?}");
+    let frames = open_frames(&node, &names)?
+        .subscriber_builder()
+        .create()
+        .map_err(|e| anyhow!("frame subscriber: {e:?}"))?;
+    let frame_events = open_event(&node, &names.frames_event)?
+        .listener_builder()
+        .create()
+        .map_err(|e| anyhow!("frame listener: {e:?}"))?;
+    let snapshots = open_snapshots(&node, &names)?
+        .publisher_builder()
+        .initial_max_slice_len(1 << 20)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create()
+        .map_err(|e| anyhow!("snapshot publisher: {e:?}"))?;
+    let snapshot_events = open_event(&node, &names.snapshot_event)?
+        .notifier_builder()
+        .create()
+        .map_err(|e| anyhow!("snapshot notifier: {e:?}"))?;
+
+    let mut map = match &a.load {
+        Some(p) => mapfile::load_map(p)?,
+        None => OccupancyMap::new(a.resolution, SensorModel::default())?,
+    };
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let mut integ = Integrator::new(IntegratorConfig {
+        threads,
+        max_range: a.max_range,
+        mode: RayMode::Exact,
+    })?;
+    let mut stats = Stats::default();
+    let mut sequence = 0u64;
+
+    let publish = |map: &OccupancyMap, sequence: u64, stats: &mut Stats| -> Result<()> {
+        let t = Instant::now();
+        let plan = Plan::new(
+            map,
+            Scope::Whole,
+            Meta {
+                sequence,
+                timestamp_ns: now_ns(),
+                with_values: a.snapshot_values,
+            },
+        );
+        let n = plan.encoded_len();
+        let mut sample = snapshots
+            .loan_slice(n)
+            .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
+        plan.write(sample.payload_mut())?;
+        *sample.user_header_mut() = SnapshotHeader {
+            version: 1,
+            reserved: 0,
+            sequence,
+            len: n as u64,
+        };
+        sample
+            .send()
+            .map_err(|e| anyhow!("sending snapshot: {e:?}"))?;
+        snapshot_events
+            .notify()
+            .map_err(|e| anyhow!("notify: {e:?}"))?;
+        stats.last_snapshot_bytes = n;
+        stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok(())
+    };
+    publish(&map, sequence, &mut stats)?;
+    eprintln!(
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, {threads} threads; frames on '{}'",
+        a.prefix, a.map, map.resolution(), a.max_range, names.frames
+    );
+
+    let waitset = WaitSetBuilder::new()
+        .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("waitset: {e:?}"))?;
+    let frame_guard = waitset
+        .attach_notification(&frame_events)
+        .map_err(|e| anyhow!("attach: {e:?}"))?;
+    let tick = waitset
+        .attach_interval(Duration::from_millis(200))
+        .map_err(|e| anyhow!("attach: {e:?}"))?;
+    let started = Instant::now();
+    let mut last_log = Instant::now();
+    loop {
+        let (mut frames_ready, mut ticked) = (false, false);
+        let r = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    if id.has_event_from(&frame_guard) {
+                        frames_ready = true;
+                    }
+                    if id.has_event_from(&tick) {
+                        ticked = true;
+                    }
+                    CallbackProgression::Continue
+                },
+                Duration::from_secs(1),
+            )
+            .map_err(|e| anyhow!("waitset: {e:?}"))?;
+        if matches!(
+            r,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            break;
+        }
+        if frames_ready {
+            frame_events
+                .try_wait(|_| {})
+                .map_err(|e| anyhow!("listener: {e:?}"))?;
+        }
+        // Latest wins: take everything waiting, integrate the newest.
+        let mut newest = None;
+        while let Some(s) = frames
+            .receive()
+            .map_err(|e| anyhow!("receive frame: {e:?}"))?
+        {
+            stats.received += 1;
+            if newest.replace(s).is_some() {
+                stats.dropped += 1;
+            }
+        }
+        if let Some(s) = newest {
+            let h = *s.user_header();
+            match h.validate(s.payload().len()) {
+                Err(why) => {
+                    stats.rejected += 1;
+                    eprintln!("voxmap serve: frame {} rejected: {why}", h.sequence);
+                }
+                Ok(pose) => match integ.integrate(
+                    &mut map,
+                    &Frame {
+                        pose,
+                        points: s.payload(),
+                    },
+                ) {
+                    Err(why) => {
+                        stats.rejected += 1;
+                        eprintln!("voxmap serve: frame {} rejected: {why}", h.sequence);
+                    }
+                    Ok(rep) => {
+                        stats.integrated += 1;
+                        stats.points += rep.points;
+                        stats.skipped_points += rep.skipped_nonfinite;
+                        stats.last_integrate_ms = rep.times.total().as_secs_f64() * 1e3;
+                        sequence = h.sequence;
+                        drop(s);
+                        publish(&map, sequence, &mut stats)?;
+                    }
+                },
+            }
+        }
+        if ticked {
+            // Late joiners get the history sample only when the publisher updates.
+            let _ = snapshots.update_connections();
+        }
+        if last_log.elapsed() >= Duration::from_secs(5) {
+            last_log = Instant::now();
+            eprintln!(
+                "voxmap serve: stats {stats:?}, map {} bytes",
+                map.memory_bytes()
+            );
+        }
+        if a.exit_after > 0.0 && started.elapsed().as_secs_f64() >= a.exit_after {
+            break;
+        }
+    }
+    publish(&map, sequence, &mut stats)?;
+    if let Some(p) = &a.save_on_exit {
+        mapfile::save_map(&map, p).with_context(|| format!("saving map to {}", p.display()))?;
+        eprintln!("voxmap serve: map saved to {}", p.display());
+    }
+    eprintln!("voxmap serve: exiting; stats {stats:?}");
+    Ok(())
+}
+
+fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}

@@ -1,0 +1,150 @@
+//! Cross-process tests: the real `voxmap serve` binary, real iceoryx2 shared memory.
+
+use nalgebra::Isometry3;
+use std::time::{Duration, Instant};
+use voxmap_client::{FramePublisher, SnapshotSubscriber, VoxelState, WorldPoint};
+use voxmap_tests::{room_scan, unique_prefix, Service};
+
+const H: [f64; 3] = [2.0, 1.5, 1.2];
+const SENSOR: [f64; 3] = [0.3, -0.2, 0.1];
+
+/// Wait until the planner holds a snapshot with `sequence >= seq` and `known > 0`.
+fn wait_for_seq(sub: &mut SnapshotSubscriber, seq: u64, min_known: u64) -> bool {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while Instant::now() < deadline {
+        sub.wait_for_update(Duration::from_millis(200)).unwrap();
+        if let Some(v) = sub.latest().unwrap() {
+            if v.sequence() >= seq && v.counts().0 >= min_known {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+fn connect_with_retry<T>(f: impl Fn() -> Result<T, voxmap_client::ClientError>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        match f() {
+            Ok(t) => return t,
+            Err(e) if Instant::now() > deadline => panic!("connect: {e}"),
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    }
+}
+
+#[test]
+fn closed_room_scan_becomes_a_snapshot_read_in_place() {
+    let prefix = unique_prefix("room");
+    let svc = Service::start(&prefix, &["--resolution", "0.05"]);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    // The service publishes an empty snapshot at start.
+    assert!(wait_for_seq(&mut sub, 0, 0), "no initial snapshot");
+
+    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
+    let pts = room_scan(H, SENSOR, 100_000);
+    // Zero-copy publish: fill the loaned shared-memory slice in place.
+    let mut loan = pubr.loan(pts.len()).unwrap();
+    loan.points_mut().copy_from_slice(&pts);
+    // The first frame is sequence 0; send a second to get a distinct sequence.
+    loan.send(&pose, 1).unwrap();
+    pubr.publish(&pose, 2, &pts).unwrap();
+    assert!(wait_for_seq(&mut sub, 1, 1000), "no snapshot with the room");
+
+    let sample = sub.sample_bytes().unwrap().as_ptr_range();
+    let view = sub.latest().unwrap().unwrap();
+    // The view reads the shared-memory sample itself: no copy.
+    let bytes = view.as_bytes().as_ptr_range();
+    assert!(
+        sample.start <= bytes.start && bytes.end <= sample.end,
+        "view is not over the sample"
+    );
+    assert_eq!(view.resolution(), 0.05);
+    // Walls occupied where points hit, interior free, outside unknown.
+    for p in pts.iter().step_by(997) {
+        let w = pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        assert_eq!(view.state_at(&w), VoxelState::Occupied, "{w:?}");
+    }
+    for x in [-1.5, -0.5, 0.0, 0.7, 1.6] {
+        for y in [-1.1, 0.0, 1.1] {
+            assert_eq!(
+                view.state_at(&WorldPoint::new(x, y, 0.013)),
+                VoxelState::Free,
+                "({x}, {y})"
+            );
+        }
+    }
+    assert_eq!(
+        view.state_at(&WorldPoint::new(H[0] + 0.5, 0.0, 0.0)),
+        VoxelState::Unknown
+    );
+    // Planner queries: the line of sight across the room is clear; through a wall it hits.
+    let c = WorldPoint::new(0.0, 0.0, 0.0);
+    assert_eq!(
+        view.first_hit(&c, &WorldPoint::new(1.5, 0.5, 0.2), true)
+            .unwrap(),
+        None
+    );
+    assert!(view
+        .first_hit(&c, &WorldPoint::new(H[0] + 0.3, 0.0, 0.0), false)
+        .unwrap()
+        .is_some());
+    assert!(view.is_box_free(
+        &WorldPoint::new(-0.5, -0.5, -0.3),
+        &WorldPoint::new(0.5, 0.5, 0.3),
+        false
+    ));
+    let known = view.counts().0;
+
+    // A late-joining planner gets the current snapshot at once.
+    let mut late = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    assert!(wait_for_seq(&mut late, 1, 1000), "late joiner got nothing");
+    assert_eq!(late.latest().unwrap().unwrap().counts().0, known);
+
+    // A frame whose header lies about its payload is rejected and changes nothing.
+    let mut bad = pubr.loan(10).unwrap();
+    *bad.header_mut() = voxmap_client::FrameHeader {
+        sequence: 99,
+        point_count: 11,
+        ..Default::default()
+    };
+    bad.send_raw().unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    assert!(
+        !sub.wait_for_update(Duration::from_millis(300)).unwrap(),
+        "a rejected frame must not publish"
+    );
+    assert_eq!(sub.latest().unwrap().unwrap().counts().0, known);
+
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "exit status {st:?}: {err}");
+    assert!(
+        err.contains("rejected: header says 11 points, payload holds 10"),
+        "{err}"
+    );
+    assert!(
+        err.contains("rejected: 1"),
+        "stats count the rejection: {err}"
+    );
+}
+
+#[test]
+fn sigterm_saves_a_loadable_map() {
+    let prefix = unique_prefix("save");
+    let path = std::env::temp_dir().join(format!("{prefix}.vxm"));
+    let svc = Service::start(&prefix, &["--save-on-exit", path.to_str().unwrap()]);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
+    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
+        .unwrap();
+    assert!(wait_for_seq(&mut sub, 0, 1000));
+    let known = sub.latest().unwrap().unwrap().counts().0;
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "{err}");
+    let map = voxmap_core::io::mapfile::load_map(&path).unwrap();
+    let c = map.counts();
+    assert_eq!(c.occupied + c.free, known);
+    std::fs::remove_file(&path).unwrap();
+}
