@@ -1,0 +1,22 @@
+//! Arbitrary bytes into `SnapshotView::open` and then every query: must never panic.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use voxmap_core::snapshot::SnapshotView;
+use voxmap_core::{VoxelCoord, WorldPoint};
+
+fuzz_target!(|data: &[u8]| {
+    let _ = SnapshotView::open_checked(data);
+    if let Ok(v) = SnapshotView::open(data) {
+        for i in -16..16 {
+            let p = VoxelCoord::new(i * 5, -i * 3, i);
+            let _ = v.state(p);
+            let _ = v.probability(p);
+        }
+        let _ = v.first_hit(&WorldPoint::new(-2.0, -1.0, 0.5), &WorldPoint::new(3.0, 2.0, -1.0), true);
+        let _ = v.is_box_free(&WorldPoint::new(-1.0, -1.0, -1.0), &WorldPoint::new(1.0, 1.0, 1.0), false);
+        let _ = v.is_box_free(&WorldPoint::new(-1e5, -1e5, -1e5), &WorldPoint::new(1e5, 1e5, 1e5), true);
+        let _ = v.occupied_voxels().take(10_000).count();
+        let _ = (v.bounds(), v.counts());
+    }
+});
