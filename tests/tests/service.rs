@@ -148,3 +148,47 @@ fn sigterm_saves_a_loadable_map() {
     assert_eq!(c.occupied + c.free, known);
     std::fs::remove_file(&path).unwrap();
 }
+
+#[test]
+fn kill_9_then_restart_while_the_planner_keeps_its_snapshot() {
+    let prefix = unique_prefix("kill");
+    let svc = Service::start(&prefix, &[]);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
+    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
+        .unwrap();
+    assert!(wait_for_seq(&mut sub, 0, 1000));
+    let known = sub.latest().unwrap().unwrap().counts().0;
+
+    let (st, _) = svc.signal_and_wait("KILL");
+    assert!(!st.success());
+    // The planner still reads the snapshot it holds.
+    let view = sub.latest().unwrap().unwrap();
+    assert_eq!(view.counts().0, known);
+    assert_eq!(
+        view.state_at(&WorldPoint::new(0.0, 0.0, 0.013)),
+        VoxelState::Free
+    );
+
+    // A restart comes up despite the dead node's leftovers and serves the same planner.
+    let t = Instant::now();
+    let svc = Service::start(&prefix, &[]);
+    pubr.publish(&pose, 1, &room_scan(H, SENSOR, 20_000))
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let mut got = false;
+    while Instant::now() < deadline && !got {
+        // Frames sent before the new service subscribed are lost: keep sending.
+        if sub.wait_for_update(Duration::from_millis(300)).unwrap() {
+            got = sub.latest().unwrap().unwrap().counts().0 > 0;
+        } else {
+            pubr.publish(&pose, 2, &room_scan(H, SENSOR, 20_000))
+                .unwrap();
+        }
+    }
+    assert!(got, "restarted service never reached the planner");
+    eprintln!("restart to first snapshot: {:?}", t.elapsed());
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "{err}");
+}
