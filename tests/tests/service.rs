@@ -192,3 +192,60 @@ fn kill_9_then_restart_while_the_planner_keeps_its_snapshot() {
     let (st, err) = svc.signal_and_wait("TERM");
     assert!(st.success(), "{err}");
 }
+
+/// Random points in a ball of radius `r` (deterministic).
+fn ball(n: usize, r: f64, seed: u64) -> Vec<[f32; 3]> {
+    let mut s = seed;
+    let mut f = move || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    let mut v = Vec::with_capacity(n);
+    while v.len() < n {
+        let p = [f(), f(), f()];
+        if p.iter().map(|c| c * c).sum::<f64>() <= 1.0 {
+            v.push(p.map(|c| (c * r) as f32));
+        }
+    }
+    v
+}
+
+#[test]
+fn snapshots_grow_from_a_kilobyte_past_64_megabytes_without_failing() {
+    let prefix = unique_prefix("grow");
+    let svc = Service::start(&prefix, &["--snapshot-values", "--max-range", "30"]);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    assert!(wait_for_seq(&mut sub, 0, 0));
+    let first = sub.latest().unwrap().unwrap().as_bytes().len();
+    assert!(first <= 1024, "empty map snapshot is {first} bytes");
+    let mut sizes = vec![first];
+    for (seq, n) in [(1u64, 200usize), (2, 2_000), (3, 20_000), (4, 40_000)] {
+        let mut l = pubr.loan(n).unwrap();
+        l.points_mut().copy_from_slice(&ball(n, 35.0, seq));
+        *l.header_mut() = voxmap_client::FrameHeader {
+            sequence: seq,
+            point_count: n as u64,
+            ..Default::default()
+        };
+        l.send_raw().unwrap();
+        assert!(
+            wait_for_seq(&mut sub, seq, 1),
+            "no snapshot for frame {seq}"
+        );
+        let v = sub.latest().unwrap().unwrap();
+        assert_eq!(v.sequence(), seq);
+        sizes.push(v.as_bytes().len());
+    }
+    eprintln!("snapshot sizes: {sizes:?}");
+    assert!(sizes.windows(2).all(|w| w[0] < w[1]), "{sizes:?}");
+    assert!(
+        *sizes.last().unwrap() > 64 << 20,
+        "largest snapshot {sizes:?}"
+    );
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "{err}");
+    assert!(err.contains("rejected: 0"), "{err}");
+}
