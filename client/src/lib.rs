@@ -29,7 +29,9 @@ use std::time::Duration;
 
 pub use nalgebra::Isometry3;
 pub use voxmap_core::snapshot::{InvalidSegment, SnapshotError, SnapshotView};
-pub use voxmap_core::wire::{FrameHeader, ServiceNames};
+pub use voxmap_core::wire::{
+    ControlKind, ControlRequest, ControlResponse, FrameHeader, ServiceNames, StatsWire,
+};
 pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
 
 /// Something went wrong talking to iceoryx2 or reading a snapshot.
@@ -44,6 +46,8 @@ pub enum ClientError {
     Receive(String),
     /// The received snapshot did not validate.
     Snapshot(SnapshotError),
+    /// The service answered a control request with an error.
+    Rejected(String),
 }
 
 impl std::fmt::Display for ClientError {
@@ -53,6 +57,7 @@ impl std::fmt::Display for ClientError {
             Self::Send(s) => write!(f, "send: {s}"),
             Self::Receive(s) => write!(f, "receive: {s}"),
             Self::Snapshot(e) => write!(f, "snapshot: {e}"),
+            Self::Rejected(m) => write!(f, "rejected by the service: {m}"),
         }
     }
 }
@@ -146,6 +151,152 @@ pub fn open_event(
         .max_nodes(qos::MAX_NODES)
         .open_or_create()
         .map_err(|e| connect_err("event service")(&e))
+}
+
+/// The control service.
+pub fn open_control(
+    node: &Node<ipc::Service>,
+    names: &ServiceNames,
+) -> Result<
+    iceoryx2::service::port_factory::request_response::PortFactory<
+        ipc::Service,
+        ControlRequest,
+        (),
+        ControlResponse,
+        (),
+    >,
+    ClientError,
+> {
+    node.service_builder(&service_name(&names.control)?)
+        .request_response::<ControlRequest, ControlResponse>()
+        .max_nodes(qos::MAX_NODES)
+        .open_or_create()
+        .map_err(|e| connect_err("control service")(&e))
+}
+
+/// Where snapshots cover the map.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SnapshotScope {
+    Whole,
+    /// A box of these half extents (metres) around the latest sensor pose.
+    AroundSensor {
+        half_extents: [f64; 3],
+    },
+    /// A fixed box in the map frame.
+    Fixed {
+        min: [f64; 3],
+        max: [f64; 3],
+    },
+}
+
+/// Requests to a running service: stats, save, load, clear, snapshot scope.
+pub struct MapControl {
+    client: iceoryx2::port::client::Client<ipc::Service, ControlRequest, (), ControlResponse, ()>,
+    wake: Notifier<ipc::Service>,
+    timeout: Duration,
+    _node: Node<ipc::Service>,
+}
+
+impl MapControl {
+    pub fn connect(prefix: &str, map: &str) -> Result<Self, ClientError> {
+        let names = ServiceNames::new(prefix, map);
+        let node = node("voxmap-control")?;
+        let client = open_control(&node, &names)?
+            .client_builder()
+            .create()
+            .map_err(|e| connect_err("control client")(&e))?;
+        // Requests are served when the service wakes; frames and requests share its wake-up.
+        let wake = open_event(&node, &names.frames_event)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| connect_err("control notifier")(&e))?;
+        Ok(Self {
+            client,
+            wake,
+            timeout: Duration::from_secs(30),
+            _node: node,
+        })
+    }
+
+    /// How long to wait for each response (default 30 s: `load` and `save` do file I/O).
+    pub fn set_timeout(&mut self, t: Duration) {
+        self.timeout = t;
+    }
+
+    /// Send a raw request and wait for the answer.
+    pub fn request(&self, req: ControlRequest) -> Result<ControlResponse, ClientError> {
+        let pending = self
+            .client
+            .send_copy(req)
+            .map_err(|e| ClientError::Send(format!("control request: {e:?}")))?;
+        self.wake
+            .notify()
+            .map_err(|e| ClientError::Send(format!("notify: {e:?}")))?;
+        let deadline = std::time::Instant::now() + self.timeout;
+        loop {
+            if let Some(r) = pending
+                .receive()
+                .map_err(|e| ClientError::Receive(format!("{e:?}")))?
+            {
+                return Ok(*r.payload());
+            }
+            if std::time::Instant::now() > deadline {
+                return Err(ClientError::Receive(
+                    "no control response before the timeout (is the service running?)".into(),
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    fn checked(&self, req: ControlRequest) -> Result<ControlResponse, ClientError> {
+        let r = self.request(req)?;
+        if r.ok == 1 {
+            Ok(r)
+        } else {
+            Err(ClientError::Rejected(r.message().to_string()))
+        }
+    }
+
+    pub fn stats(&self) -> Result<StatsWire, ClientError> {
+        Ok(self.checked(ControlRequest::new(ControlKind::Stats))?.stats)
+    }
+
+    /// Save the map to `path` on the service's machine.
+    pub fn save(&self, path: &str) -> Result<(), ClientError> {
+        let req = ControlRequest::with_path(ControlKind::Save, path)
+            .ok_or(ClientError::Rejected("path too long".into()))?;
+        self.checked(req).map(|_| ())
+    }
+
+    /// Replace the service's map with the file at `path`.
+    pub fn load(&self, path: &str) -> Result<(), ClientError> {
+        let req = ControlRequest::with_path(ControlKind::Load, path)
+            .ok_or(ClientError::Rejected("path too long".into()))?;
+        self.checked(req).map(|_| ())
+    }
+
+    pub fn clear(&self) -> Result<(), ClientError> {
+        self.checked(ControlRequest::new(ControlKind::Clear))
+            .map(|_| ())
+    }
+
+    pub fn set_scope(&self, scope: SnapshotScope) -> Result<(), ClientError> {
+        let mut r = ControlRequest::new(ControlKind::SetScope);
+        match scope {
+            SnapshotScope::Whole => {}
+            SnapshotScope::AroundSensor { half_extents } => {
+                r.scope_kind = 1;
+                r.scope[..3].copy_from_slice(&half_extents);
+            }
+            SnapshotScope::Fixed { min, max } => {
+                r.scope_kind = 2;
+                r.scope[..3].copy_from_slice(&min);
+                r.scope[3..].copy_from_slice(&max);
+            }
+        }
+        self.checked(r).map(|_| ())
+    }
 }
 
 /// Publishes point-cloud frames to a map.

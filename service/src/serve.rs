@@ -8,10 +8,12 @@ use iceoryx2::prelude::*;
 use iceoryx2::waitset::WaitSetRunResult;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use voxmap_client::{open_event, open_frames, open_snapshots};
+use voxmap_client::{open_control, open_event, open_frames, open_snapshots};
 use voxmap_core::io::mapfile;
 use voxmap_core::snapshot::{Meta, Plan, Scope};
-use voxmap_core::wire::{ServiceNames, SnapshotHeader};
+use voxmap_core::wire::{
+    ControlKind, ControlRequest, ControlResponse, ServiceNames, SnapshotHeader, StatsWire,
+};
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 
 #[derive(Args, Debug, Clone)]
@@ -45,7 +47,7 @@ pub struct ServeArgs {
     pub exit_after: f64,
 }
 
-/// Counters reported in the periodic log line.
+/// Counters for the periodic log line and the `stats` request.
 #[derive(Default, Debug)]
 struct Stats {
     received: u64,
@@ -54,9 +56,94 @@ struct Stats {
     rejected: u64,
     points: u64,
     skipped_points: u64,
-    last_integrate_ms: f64,
+    /// Integration times (ms) of the last frames, oldest first.
+    integrate_ms: std::collections::VecDeque<f64>,
     last_snapshot_bytes: usize,
     last_encode_ms: f64,
+    sequence: u64,
+}
+
+impl Stats {
+    fn record_integration(&mut self, ms: f64) {
+        if self.integrate_ms.len() == 1024 {
+            self.integrate_ms.pop_front();
+        }
+        self.integrate_ms.push_back(ms);
+    }
+
+    fn wire(&self, map: &OccupancyMap) -> StatsWire {
+        let mut t: Vec<f64> = self.integrate_ms.iter().copied().collect();
+        t.sort_by(f64::total_cmp);
+        let pct = |p: f64| {
+            t.get(((t.len() as f64 - 1.0) * p).round() as usize)
+                .copied()
+                .unwrap_or(0.0)
+        };
+        StatsWire {
+            frames_received: self.received,
+            frames_integrated: self.integrated,
+            frames_dropped: self.dropped,
+            frames_rejected: self.rejected,
+            points_integrated: self.points,
+            points_skipped: self.skipped_points,
+            map_leaves: map.grid().leaf_count() as u64,
+            map_memory_bytes: map.memory_bytes() as u64,
+            snapshot_bytes: self.last_snapshot_bytes as u64,
+            snapshot_sequence: self.sequence,
+            integrate_ms_p50: pct(0.5),
+            integrate_ms_p99: pct(0.99),
+            integrate_ms_max: t.last().copied().unwrap_or(0.0),
+            encode_ms_last: self.last_encode_ms,
+        }
+    }
+
+    fn log_line(&self, map: &OccupancyMap) -> String {
+        let w = self.wire(map);
+        format!(
+            "frames received {} integrated {} dropped {} rejected {}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
+             snapshot {} bytes, encode {:.2} ms; map {} leaves, {} bytes",
+            w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
+            w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, w.map_leaves, w.map_memory_bytes
+        )
+    }
+}
+
+/// Where snapshots cover the map.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum ScopeSetting {
+    Whole,
+    AroundSensor([f64; 3]),
+    Fixed([f64; 3], [f64; 3]),
+}
+
+impl ScopeSetting {
+    fn from_request(r: &ControlRequest) -> Result<Self, String> {
+        let s = r.scope;
+        if !s.iter().all(|c| c.is_finite()) {
+            return Err("scope values must be finite".into());
+        }
+        match r.scope_kind {
+            0 => Ok(Self::Whole),
+            1 if s[..3].iter().all(|&h| h > 0.0) => Ok(Self::AroundSensor([s[0], s[1], s[2]])),
+            1 => Err("half extents must be > 0".into()),
+            2 if (0..3).all(|k| s[k] <= s[k + 3]) => {
+                Ok(Self::Fixed([s[0], s[1], s[2]], [s[3], s[4], s[5]]))
+            }
+            2 => Err("box min must not exceed max".into()),
+            k => Err(format!("unknown scope kind {k}")),
+        }
+    }
+
+    fn scope(&self, sensor: [f64; 3]) -> Scope {
+        match *self {
+            Self::Whole => Scope::Whole,
+            Self::AroundSensor(h) => Scope::Box {
+                min: [0, 1, 2].map(|k| sensor[k] - h[k]),
+                max: [0, 1, 2].map(|k| sensor[k] + h[k]),
+            },
+            Self::Fixed(min, max) => Scope::Box { min, max },
+        }
+    }
 }
 
 pub fn run(a: ServeArgs) -> Result<()> {
@@ -87,6 +174,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
         .notifier_builder()
         .create()
         .map_err(|e| anyhow!("snapshot notifier: {e:?}"))?;
+    let control = open_control(&node, &names)?
+        .server_builder()
+        .create()
+        .map_err(|e| anyhow!("control server: {e:?}"))?;
 
     let mut map = match &a.load {
         Some(p) => mapfile::load_map(p)?,
@@ -103,39 +194,43 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let mut stats = Stats::default();
     let mut sequence = 0u64;
 
-    let publish = |map: &OccupancyMap, sequence: u64, stats: &mut Stats| -> Result<()> {
-        let t = Instant::now();
-        let plan = Plan::new(
-            map,
-            Scope::Whole,
-            Meta {
+    let mut scope = ScopeSetting::Whole;
+    let mut sensor = [0.0f64; 3];
+    let publish =
+        |map: &OccupancyMap, sequence: u64, stats: &mut Stats, scope: Scope| -> Result<()> {
+            let t = Instant::now();
+            let plan = Plan::new(
+                map,
+                scope,
+                Meta {
+                    sequence,
+                    timestamp_ns: now_ns(),
+                    with_values: a.snapshot_values,
+                },
+            );
+            let n = plan.encoded_len();
+            let mut sample = snapshots
+                .loan_slice(n)
+                .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
+            plan.write(sample.payload_mut())?;
+            *sample.user_header_mut() = SnapshotHeader {
+                version: 1,
+                reserved: 0,
                 sequence,
-                timestamp_ns: now_ns(),
-                with_values: a.snapshot_values,
-            },
-        );
-        let n = plan.encoded_len();
-        let mut sample = snapshots
-            .loan_slice(n)
-            .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
-        plan.write(sample.payload_mut())?;
-        *sample.user_header_mut() = SnapshotHeader {
-            version: 1,
-            reserved: 0,
-            sequence,
-            len: n as u64,
+                len: n as u64,
+            };
+            sample
+                .send()
+                .map_err(|e| anyhow!("sending snapshot: {e:?}"))?;
+            snapshot_events
+                .notify()
+                .map_err(|e| anyhow!("notify: {e:?}"))?;
+            stats.last_snapshot_bytes = n;
+            stats.sequence = sequence;
+            stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
+            Ok(())
         };
-        sample
-            .send()
-            .map_err(|e| anyhow!("sending snapshot: {e:?}"))?;
-        snapshot_events
-            .notify()
-            .map_err(|e| anyhow!("notify: {e:?}"))?;
-        stats.last_snapshot_bytes = n;
-        stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
-        Ok(())
-    };
-    publish(&map, sequence, &mut stats)?;
+    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
     eprintln!(
         "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, {threads} threads; frames on '{}'",
         a.prefix, a.map, map.resolution(), a.max_range, names.frames
@@ -213,13 +308,60 @@ pub fn run(a: ServeArgs) -> Result<()> {
                         stats.integrated += 1;
                         stats.points += rep.points;
                         stats.skipped_points += rep.skipped_nonfinite;
-                        stats.last_integrate_ms = rep.times.total().as_secs_f64() * 1e3;
+                        stats.record_integration(rep.times.total().as_secs_f64() * 1e3);
                         sequence = h.sequence;
+                        sensor = pose.translation.vector.into();
                         drop(s);
-                        publish(&map, sequence, &mut stats)?;
+                        publish(&map, sequence, &mut stats, scope.scope(sensor))?;
                     }
                 },
             }
+        }
+        // Control requests: answered here, between frames; a bad request gets an error.
+        while let Some(req) = control
+            .receive()
+            .map_err(|e| anyhow!("control receive: {e:?}"))?
+        {
+            let r = *req.payload();
+            let (ok, msg, republish) = match r.kind {
+                k if k == ControlKind::Stats as u32 => (true, String::new(), false),
+                k if k == ControlKind::Save as u32 => match r.path() {
+                    None => (false, "bad path".to_string(), false),
+                    Some(p) => match mapfile::save_map(&map, std::path::Path::new(p)) {
+                        Ok(()) => (true, format!("saved to {p}"), false),
+                        Err(e) => (false, e.to_string(), false),
+                    },
+                },
+                k if k == ControlKind::Load as u32 => match r.path() {
+                    None => (false, "bad path".to_string(), false),
+                    Some(p) => match mapfile::load_map(std::path::Path::new(p)) {
+                        Ok(m) => {
+                            map = m;
+                            (true, format!("loaded {p}"), true)
+                        }
+                        Err(e) => (false, e.to_string(), false),
+                    },
+                },
+                k if k == ControlKind::Clear as u32 => {
+                    map.clear();
+                    (true, "cleared".to_string(), true)
+                }
+                k if k == ControlKind::SetScope as u32 => match ScopeSetting::from_request(&r) {
+                    Ok(s) => {
+                        scope = s;
+                        (true, format!("scope {s:?}"), true)
+                    }
+                    Err(e) => (false, e, false),
+                },
+                k => (false, format!("unknown request kind {k}"), false),
+            };
+            if !ok {
+                eprintln!("voxmap serve: control request failed: {msg}");
+            }
+            if republish {
+                publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+            }
+            let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
         }
         if ticked {
             // Late joiners get the history sample only when the publisher updates.
@@ -236,12 +378,12 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    publish(&map, sequence, &mut stats)?;
+    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
     if let Some(p) = &a.save_on_exit {
         mapfile::save_map(&map, p).with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
-    eprintln!("voxmap serve: exiting; stats {stats:?}");
+    eprintln!("voxmap serve: exiting; {}", stats.log_line(&map));
     Ok(())
 }
 

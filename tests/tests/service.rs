@@ -124,7 +124,7 @@ fn closed_room_scan_becomes_a_snapshot_read_in_place() {
         "{err}"
     );
     assert!(
-        err.contains("rejected: 1"),
+        err.contains("rejected 1;"),
         "stats count the rejection: {err}"
     );
 }
@@ -247,5 +247,102 @@ fn snapshots_grow_from_a_kilobyte_past_64_megabytes_without_failing() {
     );
     let (st, err) = svc.signal_and_wait("TERM");
     assert!(st.success(), "{err}");
-    assert!(err.contains("rejected: 0"), "{err}");
+    assert!(err.contains("rejected 0;"), "{err}");
+}
+
+#[test]
+fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
+    use voxmap_client::{ControlKind, ControlRequest, MapControl, SnapshotScope};
+    let prefix = unique_prefix("ctl");
+    let svc = Service::start(&prefix, &[]);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
+    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
+        .unwrap();
+    assert!(wait_for_seq(&mut sub, 0, 1000));
+    let known = sub.latest().unwrap().unwrap().counts().0;
+
+    let st = ctl.stats().unwrap();
+    assert_eq!(
+        (
+            st.frames_received,
+            st.frames_integrated,
+            st.points_integrated
+        ),
+        (1, 1, 20_000)
+    );
+    assert!(st.integrate_ms_p50 > 0.0 && st.map_leaves > 0 && st.snapshot_bytes > 0);
+
+    let dir = std::env::temp_dir();
+    let saved = dir.join(format!("{prefix}.vxm"));
+    ctl.save(saved.to_str().unwrap()).unwrap();
+    ctl.clear().unwrap();
+    assert!(wait_for_seq(&mut sub, 0, 0));
+    assert_eq!(
+        sub.latest().unwrap().unwrap().counts().0,
+        0,
+        "cleared map publishes an empty snapshot"
+    );
+
+    // A corrupt file is refused and the (empty) map stays as it is.
+    let bad = dir.join(format!("{prefix}.bad.vxm"));
+    std::fs::write(&bad, b"VXMMAP\0\0garbage").unwrap();
+    let e = ctl.load(bad.to_str().unwrap()).unwrap_err().to_string();
+    assert!(
+        e.contains("unsupported map file version") || e.contains("corrupt"),
+        "{e}"
+    );
+    assert_eq!(ctl.stats().unwrap().map_leaves, 0);
+
+    ctl.load(saved.to_str().unwrap()).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while sub.latest().unwrap().unwrap().counts().0 != known && Instant::now() < deadline {
+        sub.wait_for_update(Duration::from_millis(100)).unwrap();
+    }
+    assert_eq!(
+        sub.latest().unwrap().unwrap().counts().0,
+        known,
+        "loaded map is published"
+    );
+
+    // Scope: a 1 m box around the sensor holds fewer voxels than the whole room.
+    ctl.set_scope(SnapshotScope::AroundSensor {
+        half_extents: [0.5, 0.5, 0.5],
+    })
+    .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while sub.latest().unwrap().unwrap().counts().0 == known && Instant::now() < deadline {
+        sub.wait_for_update(Duration::from_millis(100)).unwrap();
+    }
+    let boxed = sub.latest().unwrap().unwrap().counts().0;
+    assert!(boxed > 0 && boxed < known / 4, "{boxed} of {known}");
+    assert!(ctl
+        .set_scope(SnapshotScope::AroundSensor {
+            half_extents: [-1.0, 1.0, 1.0]
+        })
+        .is_err());
+
+    // Unknown and malformed requests get errors; the service carries on.
+    let r = ctl
+        .request(ControlRequest {
+            kind: 99,
+            ..ControlRequest::new(ControlKind::Stats)
+        })
+        .unwrap();
+    assert_eq!((r.ok, r.message()), (0, "unknown request kind 99"));
+    let r = ctl
+        .request(ControlRequest {
+            path_len: 9999,
+            ..ControlRequest::new(ControlKind::Save)
+        })
+        .unwrap();
+    assert_eq!(r.ok, 0);
+    assert_eq!(ctl.stats().unwrap().frames_integrated, 1);
+
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "{err}");
+    let _ = std::fs::remove_file(&saved);
+    let _ = std::fs::remove_file(&bad);
 }
