@@ -762,31 +762,9 @@ mod tests {
     use super::*;
     use crate::model::{SensorModel, VoxelState};
     use crate::raycast::for_each_voxel;
+    use crate::test_rng::Rng;
     use hashbrown::HashMap;
     use nalgebra::{Translation3, UnitQuaternion};
-
-    struct Rng(u64);
-    impl Rng {
-        fn f(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn ball(&mut self, r: f64) -> [f32; 3] {
-            loop {
-                let p = [
-                    self.f() * 2.0 - 1.0,
-                    self.f() * 2.0 - 1.0,
-                    self.f() * 2.0 - 1.0,
-                ];
-                if p.iter().map(|c| c * c).sum::<f64>() <= 1.0 {
-                    return p.map(|c| (c * r) as f32);
-                }
-            }
-        }
-    }
 
     /// Integrate `pts` seen from the origin, exact mode, 2 threads.
     fn at_origin(map: &mut OccupancyMap, max_range: f64, pts: &[[f32; 3]]) -> IntegrateReport {

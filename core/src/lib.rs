@@ -31,6 +31,9 @@ pub mod raycast;
 pub mod snapshot;
 pub mod wire;
 
+#[cfg(test)]
+mod test_rng;
+
 pub use coord::{GridTransform, VoxelCoord, WorldPoint};
 pub use integrate::{
     Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode,

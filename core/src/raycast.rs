@@ -159,6 +159,7 @@ pub fn find_voxel<T>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_rng::Rng;
     use std::collections::BTreeSet;
 
     fn walk(o: [f64; 3], e: [f64; 3]) -> Vec<VoxelCoord> {
@@ -255,17 +256,6 @@ mod tests {
             "extra {:?} on {o:?}->{e:?}",
             set.difference(&touched).collect::<Vec<_>>()
         );
-    }
-
-    struct Rng(u64);
-    impl Rng {
-        fn f(&mut self) -> f64 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
-        }
     }
 
     #[test]

@@ -33,6 +33,34 @@ fn connect_with_retry<T>(f: impl Fn() -> Result<T, voxmap_client::ClientError>) 
     }
 }
 
+/// A service with one 20k-point room scan integrated and published.
+struct Scanned {
+    svc: Service,
+    sub: SnapshotSubscriber,
+    pubr: FramePublisher,
+    pose: Isometry3<f64>,
+    /// Known voxels in the snapshot of the scan.
+    known: u64,
+}
+
+fn start_and_scan(prefix: &str, extra: &[&str]) -> Scanned {
+    let svc = Service::start(prefix, extra);
+    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(prefix, "default"));
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(prefix, "default"));
+    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
+    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
+        .unwrap();
+    assert!(wait_for_seq(&mut sub, 0, 1000), "no snapshot of the scan");
+    let known = sub.latest().unwrap().unwrap().counts().0;
+    Scanned {
+        svc,
+        sub,
+        pubr,
+        pose,
+        known,
+    }
+}
+
 #[test]
 fn closed_room_scan_becomes_a_snapshot_read_in_place() {
     let prefix = unique_prefix("room");
@@ -133,14 +161,8 @@ fn closed_room_scan_becomes_a_snapshot_read_in_place() {
 fn sigterm_saves_a_loadable_map() {
     let prefix = unique_prefix("save");
     let path = std::env::temp_dir().join(format!("{prefix}.vxm"));
-    let svc = Service::start(&prefix, &["--save-on-exit", path.to_str().unwrap()]);
-    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
-    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
-    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
-    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
-        .unwrap();
-    assert!(wait_for_seq(&mut sub, 0, 1000));
-    let known = sub.latest().unwrap().unwrap().counts().0;
+    let Scanned { svc, known, .. } =
+        start_and_scan(&prefix, &["--save-on-exit", path.to_str().unwrap()]);
     let (st, err) = svc.signal_and_wait("TERM");
     assert!(st.success(), "{err}");
     let map = voxmap_core::io::mapfile::load_map(&path).unwrap();
@@ -152,14 +174,13 @@ fn sigterm_saves_a_loadable_map() {
 #[test]
 fn kill_9_then_restart_while_the_planner_keeps_its_snapshot() {
     let prefix = unique_prefix("kill");
-    let svc = Service::start(&prefix, &[]);
-    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
-    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
-    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
-    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
-        .unwrap();
-    assert!(wait_for_seq(&mut sub, 0, 1000));
-    let known = sub.latest().unwrap().unwrap().counts().0;
+    let Scanned {
+        svc,
+        mut sub,
+        mut pubr,
+        pose,
+        known,
+    } = start_and_scan(&prefix, &[]);
 
     let (st, _) = svc.signal_and_wait("KILL");
     assert!(!st.success());
@@ -254,15 +275,14 @@ fn snapshots_grow_from_a_kilobyte_past_64_megabytes_without_failing() {
 fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     use voxmap_client::{ControlKind, ControlRequest, MapControl, SnapshotScope};
     let prefix = unique_prefix("ctl");
-    let svc = Service::start(&prefix, &[]);
-    let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(&prefix, "default"));
-    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    let Scanned {
+        svc,
+        mut sub,
+        mut pubr,
+        pose,
+        known,
+    } = start_and_scan(&prefix, &[]);
     let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
-    let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
-    pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
-        .unwrap();
-    assert!(wait_for_seq(&mut sub, 0, 1000));
-    let known = sub.latest().unwrap().unwrap().counts().0;
 
     let st = ctl.stats().unwrap();
     assert_eq!(

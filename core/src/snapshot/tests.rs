@@ -2,23 +2,10 @@ use super::*;
 use crate::coord::{VoxelCoord, WorldPoint};
 use crate::model::VoxelState;
 use crate::raycast::find_voxel;
+use crate::test_rng::Rng;
 use crate::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use proptest::prelude::*;
-
-struct Rng(u64);
-impl Rng {
-    fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn i(&mut self, lo: i32, hi: i32) -> i32 {
-        lo + (self.f() * (hi - lo + 1) as f64) as i32
-    }
-}
 
 /// A map from a few random posed frames around the origin (negative coordinates too).
 fn random_map(seed: u64, frames: usize) -> OccupancyMap {
