@@ -278,9 +278,8 @@ fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     let Scanned {
         svc,
         mut sub,
-        mut pubr,
-        pose,
         known,
+        ..
     } = start_and_scan(&prefix, &[]);
     let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
 
