@@ -47,6 +47,12 @@ fn start_and_scan(prefix: &str, extra: &[&str]) -> Scanned {
     let svc = Service::start(prefix, extra);
     let mut sub = connect_with_retry(|| SnapshotSubscriber::connect(prefix, "default"));
     let mut pubr = connect_with_retry(|| FramePublisher::connect(prefix, "default"));
+    // The service subscribes to frames before it publishes its first (empty) snapshot:
+    // frames sent before that would be lost.
+    assert!(
+        wait_for_seq(&mut sub, 0, 0),
+        "service never published its initial snapshot"
+    );
     let pose = Isometry3::translation(SENSOR[0], SENSOR[1], SENSOR[2]);
     pubr.publish(&pose, 0, &room_scan(H, SENSOR, 20_000))
         .unwrap();
