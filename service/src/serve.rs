@@ -13,6 +13,7 @@ use voxmap_core::io::mapfile;
 use voxmap_core::snapshot::{Meta, Plan, Scope};
 use voxmap_core::wire::{
     ControlKind, ControlRequest, ControlResponse, ServiceNames, SnapshotHeader, StatsWire,
+    SNAPSHOT_WIRE_VERSION,
 };
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 
@@ -214,7 +215,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
             plan.write(sample.payload_mut())?;
             *sample.user_header_mut() = SnapshotHeader {
-                version: 1,
+                version: SNAPSHOT_WIRE_VERSION,
                 reserved: 0,
                 sequence,
                 len: n as u64,
@@ -288,33 +289,34 @@ pub fn run(a: ServeArgs) -> Result<()> {
         }
         if let Some(s) = newest {
             let h = *s.user_header();
-            match h.validate(s.payload().len()) {
+            let outcome = h
+                .validate(s.payload().len())
+                .map_err(|e| e.to_string())
+                .and_then(|pose| {
+                    let frame = Frame {
+                        pose,
+                        points: s.payload(),
+                    };
+                    integ
+                        .integrate(&mut map, &frame)
+                        .map(|rep| (pose, rep))
+                        .map_err(|e| e.to_string())
+                });
+            drop(s);
+            match outcome {
                 Err(why) => {
                     stats.rejected += 1;
                     eprintln!("voxmap serve: frame {} rejected: {why}", h.sequence);
                 }
-                Ok(pose) => match integ.integrate(
-                    &mut map,
-                    &Frame {
-                        pose,
-                        points: s.payload(),
-                    },
-                ) {
-                    Err(why) => {
-                        stats.rejected += 1;
-                        eprintln!("voxmap serve: frame {} rejected: {why}", h.sequence);
-                    }
-                    Ok(rep) => {
-                        stats.integrated += 1;
-                        stats.points += rep.points;
-                        stats.skipped_points += rep.skipped_nonfinite;
-                        stats.record_integration(rep.times.total().as_secs_f64() * 1e3);
-                        sequence = h.sequence;
-                        sensor = pose.translation.vector.into();
-                        drop(s);
-                        publish(&map, sequence, &mut stats, scope.scope(sensor))?;
-                    }
-                },
+                Ok((pose, rep)) => {
+                    stats.integrated += 1;
+                    stats.points += rep.points;
+                    stats.skipped_points += rep.skipped_nonfinite;
+                    stats.record_integration(rep.times.total().as_secs_f64() * 1e3);
+                    sequence = h.sequence;
+                    sensor = pose.translation.vector.into();
+                    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+                }
             }
         }
         // Control requests: answered here, between frames; a bad request gets an error.
@@ -369,10 +371,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         }
         if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
-            eprintln!(
-                "voxmap serve: stats {stats:?}, map {} bytes",
-                map.memory_bytes()
-            );
+            eprintln!("voxmap serve: {}", stats.log_line(&map));
         }
         if a.exit_after > 0.0 && started.elapsed().as_secs_f64() >= a.exit_after {
             break;
