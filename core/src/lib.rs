@@ -38,5 +38,5 @@ pub use coord::{GridTransform, VoxelCoord, WorldPoint};
 pub use integrate::{
     Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode,
 };
-pub use map::{MapCounts, OccupancyMap};
+pub use map::{LeafOccupancy, MapCounts, OccupancyMap};
 pub use model::{SensorModel, VoxelState};

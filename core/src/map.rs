@@ -2,6 +2,7 @@
 
 use crate::coord::{ConfigError, GridTransform, VoxelCoord, WorldPoint};
 use crate::grid::Grid;
+use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel, VoxelState};
 
 /// Counts of known voxels by state.
@@ -10,6 +11,16 @@ pub struct MapCounts {
     pub occupied: u64,
     pub free: u64,
     pub leaves: u64,
+}
+
+/// The occupancy of one 8x8x8 leaf as two masks: which voxels are known, and which of
+/// those are occupied. What exporters and renderers read, from a map or a snapshot alike.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LeafOccupancy {
+    pub origin: VoxelCoord,
+    pub known: Mask512,
+    /// A subset of `known`.
+    pub occupied: Mask512,
 }
 
 /// A 3D log-odds occupancy map. Voxels never observed are inactive (unknown); observed
@@ -113,6 +124,24 @@ impl OccupancyMap {
             c.free += known - occ;
         }
         c
+    }
+
+    /// Every non-empty leaf's occupancy, in no particular order.
+    pub fn leaf_occupancy(&self) -> impl Iterator<Item = LeafOccupancy> + '_ {
+        let thr = self.q.threshold;
+        self.grid.leaves().filter_map(move |(origin, leaf)| {
+            let mut occupied = Mask512::EMPTY;
+            for i in leaf.active.iter_ones() {
+                if leaf.values[i] >= thr {
+                    occupied.set(i);
+                }
+            }
+            (!leaf.active.is_empty()).then_some(LeafOccupancy {
+                origin,
+                known: leaf.active,
+                occupied,
+            })
+        })
     }
 
     /// Heap bytes held by the map.

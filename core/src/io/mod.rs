@@ -1,3 +1,7 @@
-//! File formats: PCD point clouds, map files and snapshot files.
+//! File formats: PCD, PLY and KITTI point clouds with pose files, map files, snapshot
+//! files and OctoMap `.bt`.
 pub mod mapfile;
+pub mod octomap;
 pub mod pcd;
+pub mod ply;
+pub mod scans;

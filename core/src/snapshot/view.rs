@@ -409,6 +409,27 @@ impl<'a> SnapshotView<'a> {
         true
     }
 
+    /// Every leaf's occupancy masks, in leaf order. Occupied bits outside the known mask
+    /// (possible only in corrupt bytes) are dropped.
+    pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::map::LeafOccupancy> + '_ {
+        (0..self.leaf_count()).map(move |l| {
+            let at = self.header.masks_offset + MASKS_PER_LEAF as u64 * l;
+            let known = crate::mask::Mask512 {
+                words: std::array::from_fn(|w| self.u64_at(at + 8 * w as u64)),
+            };
+            let occupied = crate::mask::Mask512 {
+                words: std::array::from_fn(|w| {
+                    self.u64_at(at + 64 + 8 * w as u64) & known.words[w]
+                }),
+            };
+            crate::map::LeafOccupancy {
+                origin: VoxelCoord::from_array(self.origin(l)),
+                known,
+                occupied,
+            }
+        })
+    }
+
     /// Occupied voxels, in leaf order.
     pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
         (0..self.leaf_count()).flat_map(move |l| {
