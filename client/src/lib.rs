@@ -340,7 +340,8 @@ impl FramePublisher {
         Ok(Self {
             publisher,
             notifier,
-            sequence: 0,
+            // Sequences start at 1: a snapshot with sequence 0 holds no frame yet.
+            sequence: 1,
             _node: node,
         })
     }

@@ -350,15 +350,9 @@ fn snapshot_bench(map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
         .step_by(stride)
         .map(|(v, _)| v)
         .collect();
-    let mut s = 0x2545F4914F6CDD1Du64;
-    let mut next = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        s
-    };
+    let mut rng = crate::rng::XorShift::new(0x2545F4914F6CDD1D);
     for i in (1..pts.len()).rev() {
-        pts.swap(i, (next() % (i as u64 + 1)) as usize);
+        pts.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }
     let t = Instant::now();
     let occ = pts
@@ -370,7 +364,7 @@ fn snapshot_bench(map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
     // 10 m segments from near the sensor in random directions.
     let mut segs = Vec::new();
     for _ in 0..20_000 {
-        let mut r = || (next() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
+        let mut r = || rng.uniform() * 2.0 - 1.0;
         let d = nalgebra::Vector3::new(r(), r(), r()).normalize() * 10.0;
         let a = WorldPoint::new(r() * 0.5, r() * 0.5, r() * 0.2);
         segs.push((a, a + d));

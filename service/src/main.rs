@@ -1,7 +1,14 @@
 //! `voxmap`: the mapping service and its tools.
 
 mod bench;
+mod config;
+mod demo;
+mod files;
+mod render;
+mod replay;
+mod rng;
 mod serve;
+mod sim;
 
 use clap::{Parser, Subcommand};
 
@@ -18,15 +25,44 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// Run the whole system for a while with a simulated sensor and planner; write pictures.
+    Demo(demo::DemoArgs),
     /// Run the mapping service: frames in, snapshots out, over iceoryx2.
     Serve(serve::ServeArgs),
+    /// Feed recorded scans to a running service, or offline into a map file.
+    Replay(replay::ReplayArgs),
+    /// Export a map or snapshot file to OctoMap .bt and/or PLY.
+    Export(files::ExportArgs),
+    /// Draw a map, snapshot or .bt file as a PNG (top-down or a slice).
+    Render(render::RenderArgs),
+    /// Show what a map, snapshot or .bt file holds, or why it is invalid.
+    Inspect(files::InspectArgs),
+    /// Print the embedded default configuration (a starting point for --config).
+    Config,
     /// Time frame integration on the paper's synthetic workloads.
     Bench(bench::BenchArgs),
+    /// The demo's simulated LiDAR (a separate process).
+    #[command(hide = true)]
+    SimSensor(demo::SimArgs),
+    /// The demo's planner (a separate process).
+    #[command(hide = true)]
+    SimPlanner(demo::SimArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().cmd {
-        Cmd::Bench(a) => bench::run(a),
+        Cmd::Demo(a) => demo::run(a),
         Cmd::Serve(a) => serve::run(a),
+        Cmd::Replay(a) => replay::run(a),
+        Cmd::Export(a) => files::export(a),
+        Cmd::Render(a) => render::run(a),
+        Cmd::Inspect(a) => files::inspect(a),
+        Cmd::Config => {
+            print!("{}", config::DEFAULT_TOML);
+            Ok(())
+        }
+        Cmd::Bench(a) => bench::run(a),
+        Cmd::SimSensor(a) => demo::sensor(a),
+        Cmd::SimPlanner(a) => demo::planner(a),
     }
 }

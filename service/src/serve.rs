@@ -1,6 +1,7 @@
 //! `voxmap serve`: the mapping daemon. Frames in over iceoryx2, integrated on a thread
 //! pool, snapshots out, encoded straight into loaned shared-memory samples.
 
+use crate::config::MappingArgs;
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use iceoryx2::port::update_connections::UpdateConnections;
@@ -8,33 +9,26 @@ use iceoryx2::prelude::*;
 use iceoryx2::waitset::WaitSetRunResult;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use voxmap_client::{open_control, open_event, open_frames, open_snapshots};
+use voxmap_client::{open_control, open_event, open_frames, open_snapshots, qos};
 use voxmap_core::io::mapfile;
 use voxmap_core::snapshot::{Meta, Plan, Scope};
 use voxmap_core::wire::{
     ControlKind, ControlRequest, ControlResponse, ServiceNames, SnapshotHeader, StatsWire,
     SNAPSHOT_WIRE_VERSION,
 };
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+use voxmap_core::{Frame, OccupancyMap};
 
 #[derive(Args, Debug, Clone)]
 pub struct ServeArgs {
+    #[command(flatten)]
+    pub mapping: MappingArgs,
     /// Service-name prefix: isolates one deployment (or test) from another.
-    #[arg(long, default_value = "voxmap")]
-    pub prefix: String,
-    /// Map name under the prefix.
-    #[arg(long, default_value = "default")]
-    pub map: String,
-    /// Voxel edge, metres.
-    #[arg(long, default_value_t = 0.1)]
-    pub resolution: f64,
-    /// Rays are cut here (metres) and mark free space only.
-    #[arg(long, default_value_t = 30.0)]
-    pub max_range: f64,
-    /// Integration threads (default: all cores).
     #[arg(long)]
-    pub threads: Option<usize>,
-    /// Resume from this map file.
+    pub prefix: Option<String>,
+    /// Map name under the prefix.
+    #[arg(long)]
+    pub map: Option<String>,
+    /// Resume from this map file (its resolution and sensor model replace the configured).
     #[arg(long)]
     pub load: Option<PathBuf>,
     /// Save the map here on SIGINT/SIGTERM.
@@ -43,9 +37,43 @@ pub struct ServeArgs {
     /// Include per-voxel log-odds in snapshots (512 bytes per leaf).
     #[arg(long)]
     pub snapshot_values: bool,
+    /// Publish at most one snapshot per this many milliseconds (0 = after every frame).
+    #[arg(long)]
+    pub snapshot_interval_ms: Option<f64>,
+    /// Frames arriving faster than they integrate: latest or queue.
+    #[arg(long)]
+    pub intake: Option<String>,
+    /// Frames kept waiting under --intake queue (1..=4).
+    #[arg(long)]
+    pub queue_depth: Option<usize>,
     /// Exit after this many seconds (for demos and tests); 0 = run until a signal.
     #[arg(long, default_value_t = 0.0)]
     pub exit_after: f64,
+}
+
+impl ServeArgs {
+    /// The configuration with this command's own flags applied.
+    pub fn resolve(&self) -> Result<crate::config::Config> {
+        let mut c = self.mapping.resolve()?;
+        if let Some(p) = &self.prefix {
+            c.prefix = p.clone();
+        }
+        if let Some(m) = &self.map {
+            c.map = m.clone();
+        }
+        c.snapshot_values |= self.snapshot_values;
+        if let Some(v) = self.snapshot_interval_ms {
+            c.snapshot_interval_ms = v;
+        }
+        if let Some(v) = &self.intake {
+            c.intake = v.clone();
+        }
+        if let Some(v) = self.queue_depth {
+            c.queue_depth = v;
+        }
+        c.check()?;
+        Ok(c)
+    }
 }
 
 /// Counters for the periodic log line and the `stats` request.
@@ -148,7 +176,8 @@ impl ScopeSetting {
 }
 
 pub fn run(a: ServeArgs) -> Result<()> {
-    let names = ServiceNames::new(&a.prefix, &a.map);
+    let cfg = a.resolve()?;
+    let names = ServiceNames::new(&cfg.prefix, &cfg.map);
     let node = NodeBuilder::new()
         .name(&NodeName::new("voxmap-serve").map_err(|e| anyhow!("{e:?}"))?)
         .config(&Config::default())
@@ -157,8 +186,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
         .map_err(|e| anyhow!("creating iceoryx2 node: {e:?}"))?;
     let cleanup = node.try_cleanup_dead_nodes();
     eprintln!("voxmap serve: dead iceoryx2 nodes cleaned up: {cleanup:?}");
+    let queue = cfg.intake == "queue";
     let frames = open_frames(&node, &names)?
         .subscriber_builder()
+        .buffer_size(if queue {
+            cfg.queue_depth
+        } else {
+            qos::FRAME_SUBSCRIBER_BUFFER
+        })
         .create()
         .map_err(|e| anyhow!("frame subscriber: {e:?}"))?;
     let frame_events = open_event(&node, &names.frames_event)?
@@ -182,59 +217,59 @@ pub fn run(a: ServeArgs) -> Result<()> {
 
     let mut map = match &a.load {
         Some(p) => mapfile::load_map(p)?,
-        None => OccupancyMap::new(a.resolution, SensorModel::default())?,
+        None => cfg.new_map()?,
     };
-    let threads = a
-        .threads
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let mut integ = Integrator::new(IntegratorConfig {
-        threads,
-        max_range: a.max_range,
-        mode: RayMode::Exact,
-    })?;
+    let threads = cfg.threads();
+    let mut integ = cfg.integrator()?;
     let mut stats = Stats::default();
     let mut sequence = 0u64;
+    // Time stamp of the data in the map: the last integrated frame's (or now, before any).
+    let mut stamp_ns = now_ns();
 
     let mut scope = ScopeSetting::Whole;
     let mut sensor = [0.0f64; 3];
-    let publish =
-        |map: &OccupancyMap, sequence: u64, stats: &mut Stats, scope: Scope| -> Result<()> {
-            let t = Instant::now();
-            let plan = Plan::new(
-                map,
-                scope,
-                Meta {
-                    sequence,
-                    timestamp_ns: now_ns(),
-                    with_values: a.snapshot_values,
-                },
-            );
-            let n = plan.encoded_len();
-            let mut sample = snapshots
-                .loan_slice(n)
-                .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
-            plan.write(sample.payload_mut())?;
-            *sample.user_header_mut() = SnapshotHeader {
-                version: SNAPSHOT_WIRE_VERSION,
-                reserved: 0,
+    let publish = |map: &OccupancyMap,
+                   sequence: u64,
+                   stamp_ns: u64,
+                   stats: &mut Stats,
+                   scope: Scope|
+     -> Result<()> {
+        let t = Instant::now();
+        let plan = Plan::new(
+            map,
+            scope,
+            Meta {
                 sequence,
-                len: n as u64,
-            };
-            sample
-                .send()
-                .map_err(|e| anyhow!("sending snapshot: {e:?}"))?;
-            snapshot_events
-                .notify()
-                .map_err(|e| anyhow!("notify: {e:?}"))?;
-            stats.last_snapshot_bytes = n;
-            stats.sequence = sequence;
-            stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
-            Ok(())
+                timestamp_ns: stamp_ns,
+                with_values: cfg.snapshot_values,
+            },
+        );
+        let n = plan.encoded_len();
+        let mut sample = snapshots
+            .loan_slice(n)
+            .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
+        plan.write(sample.payload_mut())?;
+        *sample.user_header_mut() = SnapshotHeader {
+            version: SNAPSHOT_WIRE_VERSION,
+            reserved: 0,
+            sequence,
+            len: n as u64,
         };
-    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+        sample
+            .send()
+            .map_err(|e| anyhow!("sending snapshot: {e:?}"))?;
+        snapshot_events
+            .notify()
+            .map_err(|e| anyhow!("notify: {e:?}"))?;
+        stats.last_snapshot_bytes = n;
+        stats.sequence = sequence;
+        stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok(())
+    };
+    publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
     eprintln!(
-        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, {threads} threads; frames on '{}'",
-        a.prefix, a.map, map.resolution(), a.max_range, names.frames
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {threads} threads, intake {}; frames on '{}'",
+        cfg.prefix, cfg.map, map.resolution(), cfg.max_range, cfg.mode, cfg.intake, names.frames
     );
 
     let waitset = WaitSetBuilder::new()
@@ -249,8 +284,19 @@ pub fn run(a: ServeArgs) -> Result<()> {
         .map_err(|e| anyhow!("attach: {e:?}"))?;
     let started = Instant::now();
     let mut last_log = Instant::now();
+    let interval = Duration::from_secs_f64(cfg.snapshot_interval_ms / 1e3);
+    let mut last_publish = Instant::now();
+    // Integrated frames not yet in a published snapshot (under snapshot_interval_ms).
+    let mut unpublished = false;
+    // Last sequence seen per publisher, to count frames the queue dropped.
+    let mut last_seq: std::collections::HashMap<_, u64> = std::collections::HashMap::new();
     loop {
         let (mut frames_ready, mut ticked) = (false, false);
+        let timeout = if unpublished {
+            interval.saturating_sub(last_publish.elapsed())
+        } else {
+            Duration::from_secs(1)
+        };
         let r = waitset
             .wait_and_process_once_with_timeout(
                 |id| {
@@ -262,7 +308,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
                     }
                     CallbackProgression::Continue
                 },
-                Duration::from_secs(1),
+                timeout,
             )
             .map_err(|e| anyhow!("waitset: {e:?}"))?;
         if matches!(
@@ -276,18 +322,30 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 .try_wait(|_| {})
                 .map_err(|e| anyhow!("listener: {e:?}"))?;
         }
-        // Latest wins: take everything waiting, integrate the newest.
-        let mut newest = None;
-        while let Some(s) = frames
-            .receive()
-            .map_err(|e| anyhow!("receive frame: {e:?}"))?
-        {
-            stats.received += 1;
-            if newest.replace(s).is_some() {
-                stats.dropped += 1;
+        loop {
+            // Latest wins: take everything waiting, integrate the newest. Queue: integrate
+            // waiting frames one by one, in order; the subscriber's buffer of queue_depth
+            // drops the oldest on overflow, which shows as a gap in a publisher's sequence.
+            let mut next = None;
+            while let Some(s) = frames
+                .receive()
+                .map_err(|e| anyhow!("receive frame: {e:?}"))?
+            {
+                stats.received += 1;
+                let seq = s.user_header().sequence;
+                if let Some(prev) = last_seq.insert(s.header().publisher_id(), seq) {
+                    if queue && seq > prev + 1 {
+                        stats.dropped += seq - prev - 1;
+                    }
+                }
+                if next.replace(s).is_some() {
+                    stats.dropped += 1;
+                }
+                if queue {
+                    break;
+                }
             }
-        }
-        if let Some(s) = newest {
+            let Some(s) = next else { break };
             let h = *s.user_header();
             let outcome = h
                 .validate(s.payload().len())
@@ -314,10 +372,23 @@ pub fn run(a: ServeArgs) -> Result<()> {
                     stats.skipped_points += rep.skipped_nonfinite;
                     stats.record_integration(rep.times.total().as_secs_f64() * 1e3);
                     sequence = h.sequence;
+                    stamp_ns = if h.timestamp_ns != 0 {
+                        h.timestamp_ns
+                    } else {
+                        now_ns()
+                    };
                     sensor = pose.translation.vector.into();
-                    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+                    unpublished = true;
                 }
             }
+            if !queue {
+                break;
+            }
+        }
+        if unpublished && last_publish.elapsed() >= interval {
+            publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+            last_publish = Instant::now();
+            unpublished = false;
         }
         // Control requests: answered here, between frames; a bad request gets an error.
         while let Some(req) = control
@@ -361,7 +432,9 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 eprintln!("voxmap serve: control request failed: {msg}");
             }
             if republish {
-                publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+                publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+                last_publish = Instant::now();
+                unpublished = false;
             }
             let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
         }
@@ -377,7 +450,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    publish(&map, sequence, &mut stats, scope.scope(sensor))?;
+    publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
     if let Some(p) = &a.save_on_exit {
         mapfile::save_map(&map, p).with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());

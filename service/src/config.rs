@@ -1,0 +1,220 @@
+//! Settings shared by `serve` and `replay`: the embedded defaults (`default.toml`), then
+//! an optional TOML file (`--config`), then command-line flags, each overriding the last.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use voxmap_core::{Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+
+/// The embedded defaults: `voxmap serve` with no file and no flags runs on these.
+pub const DEFAULT_TOML: &str = include_str!("../default.toml");
+
+/// Every setting, as the TOML file spells it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub prefix: String,
+    pub map: String,
+    pub resolution: f64,
+    pub max_range: f64,
+    /// 0 = one per core.
+    pub threads: usize,
+    /// exact | subsample | bundle | unique_end
+    pub mode: String,
+    pub subsample_factor: u32,
+    pub bundle_threshold: u32,
+    pub sensor_model: SensorModel,
+    pub snapshot_values: bool,
+    /// Publish at most one snapshot per this many milliseconds (0 = after every frame).
+    pub snapshot_interval_ms: f64,
+    /// latest | queue
+    pub intake: String,
+    /// Frames kept waiting under `intake = "queue"` (1..=4).
+    pub queue_depth: usize,
+}
+
+/// Flags that override the configuration, for `serve` and `replay` alike.
+#[derive(Args, Debug, Clone, Default)]
+pub struct MappingArgs {
+    /// TOML file with any of the settings in `voxmap config` (flags override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Voxel edge, metres.
+    #[arg(long)]
+    pub resolution: Option<f64>,
+    /// Rays are cut here (metres) and mark free space only.
+    #[arg(long)]
+    pub max_range: Option<f64>,
+    /// Integration threads (0 = one per core).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Ray selection: exact, subsample, bundle or unique_end.
+    #[arg(long)]
+    pub mode: Option<String>,
+    /// For --mode subsample: sub-cells per voxel edge.
+    #[arg(long)]
+    pub subsample_factor: Option<u32>,
+    /// For --mode bundle: points per bundle above which one ray is cast.
+    #[arg(long)]
+    pub bundle_threshold: Option<u32>,
+    /// Sensor model: P(occupied | hit).
+    #[arg(long)]
+    pub p_hit: Option<f64>,
+    /// Sensor model: P(occupied | ray passed).
+    #[arg(long)]
+    pub p_miss: Option<f64>,
+    /// Sensor model: lower clamping probability.
+    #[arg(long)]
+    pub clamp_min: Option<f64>,
+    /// Sensor model: upper clamping probability.
+    #[arg(long)]
+    pub clamp_max: Option<f64>,
+    /// Sensor model: occupancy threshold.
+    #[arg(long)]
+    pub occupancy_threshold: Option<f64>,
+}
+
+impl MappingArgs {
+    /// Defaults, then the file, then these flags.
+    pub fn resolve(&self) -> Result<Config> {
+        let mut c: Config = toml::from_str(DEFAULT_TOML).context("embedded default.toml")?;
+        if let Some(p) = &self.config {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            c = merge_toml(&c, &text).with_context(|| format!("config file {}", p.display()))?;
+        }
+        macro_rules! set {
+            ($($flag:ident => $($field:ident).+),* $(,)?) => {
+                $(if let Some(v) = self.$flag.clone() { c.$($field).+ = v; })*
+            };
+        }
+        set!(resolution => resolution, max_range => max_range, threads => threads, mode => mode,
+             subsample_factor => subsample_factor, bundle_threshold => bundle_threshold,
+             p_hit => sensor_model.p_hit, p_miss => sensor_model.p_miss,
+             clamp_min => sensor_model.clamp_min, clamp_max => sensor_model.clamp_max,
+             occupancy_threshold => sensor_model.occupancy_threshold);
+        c.check()?;
+        Ok(c)
+    }
+}
+
+/// Apply a (possibly partial) TOML document over `base`: keys it names replace base's.
+fn merge_toml(base: &Config, text: &str) -> Result<Config> {
+    let mut doc = toml::Table::try_from(base)?;
+    let over: toml::Table = toml::from_str(text)?;
+    for (k, v) in over {
+        match (doc.get_mut(&k), v) {
+            (Some(toml::Value::Table(t)), toml::Value::Table(o)) => t.extend(o),
+            (Some(slot), v) => *slot = v,
+            (None, _) => bail!("unknown setting '{k}'"),
+        }
+    }
+    Ok(doc.try_into()?)
+}
+
+impl Config {
+    pub fn ray_mode(&self) -> Result<RayMode> {
+        Ok(match self.mode.as_str() {
+            "exact" => RayMode::Exact,
+            "subsample" => RayMode::Subsample {
+                factor: self.subsample_factor,
+            },
+            "bundle" => RayMode::Bundle {
+                threshold: self.bundle_threshold,
+            },
+            "unique_end" => RayMode::UniqueEnd,
+            m => bail!("unknown mode '{m}' (exact, subsample, bundle, unique_end)"),
+        })
+    }
+
+    pub fn threads(&self) -> usize {
+        match self.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        }
+    }
+
+    pub fn check(&self) -> Result<()> {
+        self.ray_mode()?;
+        if !matches!(self.intake.as_str(), "latest" | "queue") {
+            bail!("intake must be 'latest' or 'queue', not '{}'", self.intake);
+        }
+        if !(1..=voxmap_client::qos::FRAME_SUBSCRIBER_BUFFER).contains(&self.queue_depth) {
+            bail!(
+                "queue_depth must be 1..={}",
+                voxmap_client::qos::FRAME_SUBSCRIBER_BUFFER
+            );
+        }
+        if !(self.snapshot_interval_ms.is_finite() && self.snapshot_interval_ms >= 0.0) {
+            bail!("snapshot_interval_ms must be finite and >= 0");
+        }
+        // The map and integrator check the rest with their own messages.
+        self.new_map()?;
+        self.integrator()?;
+        Ok(())
+    }
+
+    pub fn new_map(&self) -> Result<OccupancyMap> {
+        Ok(OccupancyMap::new(self.resolution, self.sensor_model)?)
+    }
+
+    pub fn integrator(&self) -> Result<Integrator> {
+        Ok(Integrator::new(IntegratorConfig {
+            threads: self.threads(),
+            max_range: self.max_range,
+            mode: self.ray_mode()?,
+        })?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_file_then_flags() {
+        let c = MappingArgs::default().resolve().unwrap();
+        assert_eq!(c.resolution, 0.1);
+        assert_eq!(c.sensor_model, SensorModel::default());
+        assert_eq!(c.ray_mode().unwrap(), RayMode::Exact);
+        let dir = std::env::temp_dir().join(format!("voxmap-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("c.toml");
+        std::fs::write(
+            &f,
+            "resolution = 0.05\nmode = \"bundle\"\n[sensor_model]\np_hit = 0.8\n",
+        )
+        .unwrap();
+        let a = MappingArgs {
+            config: Some(f.clone()),
+            resolution: Some(0.2),
+            ..Default::default()
+        };
+        let c = a.resolve().unwrap();
+        assert_eq!(c.resolution, 0.2, "flag beats file");
+        assert_eq!(c.sensor_model.p_hit, 0.8, "file beats default");
+        assert_eq!(c.sensor_model.p_miss, 0.4, "untouched keys keep defaults");
+        assert_eq!(c.ray_mode().unwrap(), RayMode::Bundle { threshold: 8 });
+        for (bad, why) in [
+            ("resolutoin = 0.1\n", "unknown setting"),
+            ("resolution = -1.0\n", "resolution"),
+            ("mode = \"fast\"\n", "unknown mode"),
+            ("[sensor_model]\np_hit = 0.3\n", "p_hit"),
+            ("resolution = \"x\"\n", "invalid type"),
+        ] {
+            std::fs::write(&f, bad).unwrap();
+            let e = format!(
+                "{:#}",
+                MappingArgs {
+                    config: Some(f.clone()),
+                    ..Default::default()
+                }
+                .resolve()
+                .unwrap_err()
+            );
+            assert!(e.contains(why), "{bad}: {e}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

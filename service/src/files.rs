@@ -1,0 +1,239 @@
+//! Reading any voxmap-readable map file (map file, snapshot file, OctoMap `.bt`), and the
+//! `inspect` and `export` subcommands built on it.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::path::{Path, PathBuf};
+use voxmap_core::io::{mapfile, octomap, ply};
+use voxmap_core::snapshot::{SnapshotView, MAGIC as SNAPSHOT_MAGIC};
+use voxmap_core::LeafOccupancy;
+
+/// Most known voxels a `.bt` file may expand to (8 GB of leaves would follow).
+const MAX_BT_VOXELS: u64 = 1 << 32;
+
+/// A file's occupancy and what it says about itself.
+pub struct Loaded {
+    pub resolution: f64,
+    pub leaves: Vec<LeafOccupancy>,
+    /// (name, value) lines for `inspect`.
+    pub details: Vec<(&'static str, String)>,
+}
+
+impl Loaded {
+    /// Read and validate a map, snapshot or `.bt` file, told apart by their first bytes.
+    pub fn read(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let name = path.display();
+        let mut d: Vec<(&'static str, String)> = Vec::new();
+        if bytes.starts_with(&mapfile::MAP_MAGIC) {
+            let map = mapfile::decode_map(&bytes).map_err(|e| match e {
+                mapfile::Decode::Version(v) => anyhow::anyhow!(
+                    "{name}: map file version {v} is not supported (this build reads {})",
+                    mapfile::MAP_VERSION
+                ),
+                mapfile::Decode::Corrupt(why) => anyhow::anyhow!("{name}: corrupt map file: {why}"),
+            })?;
+            let c = map.counts();
+            let m = map.model();
+            d.push((
+                "format",
+                format!("voxmap map file, version {}", mapfile::MAP_VERSION),
+            ));
+            d.push(("resolution", format!("{} m", map.resolution())));
+            d.push((
+                "sensor model",
+                format!(
+                    "p_hit {} p_miss {} clamp {}..{} threshold {}",
+                    m.p_hit, m.p_miss, m.clamp_min, m.clamp_max, m.occupancy_threshold
+                ),
+            ));
+            d.push(("leaves", c.leaves.to_string()));
+            d.push(("occupied voxels", c.occupied.to_string()));
+            d.push(("free voxels", c.free.to_string()));
+            d.push((
+                "memory when loaded",
+                format!("{} bytes", map.memory_bytes()),
+            ));
+            let leaves: Vec<_> = map.leaf_occupancy().collect();
+            push_bounds(&mut d, &leaves, map.resolution());
+            return Ok(Self {
+                resolution: map.resolution(),
+                leaves,
+                details: d,
+            });
+        }
+        if bytes.starts_with(&SNAPSHOT_MAGIC) {
+            let v =
+                SnapshotView::open_checked(&bytes).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+            let (known, occ) = v.counts();
+            d.push((
+                "format",
+                format!("voxmap snapshot, version {}", v.header().version),
+            ));
+            d.push(("resolution", format!("{} m", v.resolution())));
+            d.push(("sequence", v.sequence().to_string()));
+            d.push(("timestamp", format!("{} ns", v.timestamp_ns())));
+            d.push(("leaves", v.leaf_count().to_string()));
+            d.push(("occupied voxels", occ.to_string()));
+            d.push(("free voxels", (known - occ).to_string()));
+            d.push((
+                "log-odds values",
+                if v.has_values() {
+                    "stored"
+                } else {
+                    "not stored"
+                }
+                .into(),
+            ));
+            d.push(("size", format!("{} bytes (checksum verified)", bytes.len())));
+            let leaves: Vec<_> = v.leaf_occupancy().collect();
+            push_bounds(&mut d, &leaves, v.resolution());
+            return Ok(Self {
+                resolution: v.resolution(),
+                leaves,
+                details: d,
+            });
+        }
+        if bytes.starts_with(b"# Octomap OcTree binary file") {
+            let s = octomap::read_bt(&bytes).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+            let (res, leaves) = octomap::decode_bt(&bytes, MAX_BT_VOXELS)
+                .map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+            d.push(("format", "OctoMap binary tree (.bt)".into()));
+            d.push(("resolution", format!("{res} m")));
+            d.push(("tree nodes", s.nodes.to_string()));
+            d.push(("occupied voxels", s.occupied_voxels.to_string()));
+            d.push(("free voxels", s.free_voxels.to_string()));
+            push_bounds(&mut d, &leaves, res);
+            return Ok(Self {
+                resolution: res,
+                leaves,
+                details: d,
+            });
+        }
+        let head: String = bytes.iter().take(8).map(|b| format!("{b:02x}")).collect();
+        bail!(
+            "{name}: not a voxmap map file, snapshot file or OctoMap .bt file (first bytes {head})"
+        )
+    }
+}
+
+fn push_bounds(d: &mut Vec<(&'static str, String)>, leaves: &[LeafOccupancy], res: f64) {
+    let mut lo = [i32::MAX; 3];
+    let mut hi = [i32::MIN; 3];
+    for l in leaves {
+        let o = l.origin.to_array();
+        for i in l.known.iter_ones() {
+            let v = [
+                o[0] + (i & 7) as i32,
+                o[1] + (i >> 3 & 7) as i32,
+                o[2] + (i >> 6) as i32,
+            ];
+            for k in 0..3 {
+                lo[k] = lo[k].min(v[k]);
+                hi[k] = hi[k].max(v[k]);
+            }
+        }
+    }
+    let b = if lo[0] > hi[0] {
+        "empty".to_string()
+    } else {
+        let m = |v: i32| format!("{:.2}", v as f64 * res);
+        format!(
+            "x {}..{} y {}..{} z {}..{} m",
+            m(lo[0]),
+            m(hi[0] + 1),
+            m(lo[1]),
+            m(hi[1] + 1),
+            m(lo[2]),
+            m(hi[2] + 1)
+        )
+    };
+    d.push(("bounds (known)", b));
+}
+
+#[derive(Args, Debug)]
+pub struct InspectArgs {
+    /// Map file, snapshot file or OctoMap .bt file.
+    pub file: PathBuf,
+}
+
+pub fn inspect(a: InspectArgs) -> Result<()> {
+    let l = Loaded::read(&a.file)?;
+    println!("{}", a.file.display());
+    for (k, v) in &l.details {
+        println!("  {k:<20} {v}");
+    }
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct ExportArgs {
+    /// Map file or snapshot file (or a .bt, to convert to PLY).
+    pub input: PathBuf,
+    /// Write OctoMap's binary tree format here.
+    #[arg(long)]
+    pub bt: Option<PathBuf>,
+    /// Write occupied voxel centres, coloured by height, as PLY here.
+    #[arg(long)]
+    pub ply: Option<PathBuf>,
+}
+
+pub fn export(a: ExportArgs) -> Result<()> {
+    if a.bt.is_none() && a.ply.is_none() {
+        bail!("nothing to do: pass --bt OUT.bt and/or --ply OUT.ply");
+    }
+    let l = Loaded::read(&a.input)?;
+    if let Some(out) = &a.bt {
+        let bytes = octomap::encode_bt(l.leaves.iter().copied(), l.resolution)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", a.input.display()))?;
+        mapfile::write_atomic(out, &bytes)?;
+        let s = octomap::read_bt(&bytes)?;
+        println!(
+            "wrote {}: {} nodes, {} occupied and {} free voxels at {} m",
+            out.display(),
+            s.nodes,
+            s.occupied_voxels,
+            s.free_voxels,
+            l.resolution
+        );
+    }
+    if let Some(out) = &a.ply {
+        let bytes = ply::encode_colored(&occupied_colored(&l.leaves, l.resolution));
+        mapfile::write_atomic(out, &bytes)?;
+        println!(
+            "wrote {}: {} occupied voxel centres",
+            out.display(),
+            occupied_count(&l.leaves)
+        );
+    }
+    Ok(())
+}
+
+fn occupied_count(leaves: &[LeafOccupancy]) -> u64 {
+    leaves.iter().map(|l| l.occupied.count() as u64).sum()
+}
+
+/// Occupied voxel centres with colours by height across the occupied range.
+fn occupied_colored(leaves: &[LeafOccupancy], res: f64) -> Vec<([f32; 3], [u8; 3])> {
+    let mut pts: Vec<[f64; 3]> = Vec::new();
+    for l in leaves {
+        let o = l.origin.to_array();
+        for i in l.occupied.iter_ones() {
+            let v = [
+                o[0] + (i & 7) as i32,
+                o[1] + (i >> 3 & 7) as i32,
+                o[2] + (i >> 6) as i32,
+            ];
+            pts.push(v.map(|c| (c as f64 + 0.5) * res));
+        }
+    }
+    let (lo, hi) = pts.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+        (lo.min(p[2]), hi.max(p[2]))
+    });
+    pts.iter()
+        .map(|p| {
+            let t = (p[2] - lo) / (hi - lo).max(1e-9);
+            (p.map(|c| c as f32), ply::height_color(t))
+        })
+        .collect()
+}

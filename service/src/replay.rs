@@ -1,0 +1,405 @@
+//! `voxmap replay`: feed recorded scans (PCD, KITTI `.bin`, PLY) to a running service or
+//! straight into the core offline, writing a map file.
+
+use crate::config::MappingArgs;
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use nalgebra::Isometry3;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use voxmap_client::{FramePublisher, MapControl, SnapshotSubscriber};
+use voxmap_core::io::scans::StampedPose;
+use voxmap_core::io::{mapfile, pcd, ply, scans};
+use voxmap_core::wire::FrameHeader;
+use voxmap_core::Frame;
+
+#[derive(Args, Debug)]
+pub struct ReplayArgs {
+    /// PCD files (pose from VIEWPOINT), KITTI .bin or PLY files (pose from --poses), or
+    /// directories of them, read in name order.
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+    /// Pose file for .bin and .ply scans: KITTI (12 numbers per line) or TUM
+    /// (t tx ty tz qx qy qz qw). Matched by time stamp when the scans are named by time
+    /// stamps and the file has them, otherwise line i is the pose of scan i.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// Integrate here instead of sending to a service; needs --out.
+    #[arg(long, requires = "out")]
+    pub offline: bool,
+    /// Offline: write the map file here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Service-name prefix of the running service.
+    #[arg(long, default_value = "voxmap")]
+    pub prefix: String,
+    #[arg(long, default_value = "default")]
+    pub map: String,
+    /// To a service: `fast` (each frame once the last is integrated), `recorded` (at the
+    /// time stamps' pace) or a rate in Hz.
+    #[arg(long, default_value = "fast")]
+    pub rate: String,
+    /// To a service: ask it to save its map here after the last frame.
+    #[arg(long)]
+    pub save: Option<PathBuf>,
+    /// What to do with a file that cannot be read.
+    #[arg(long, value_enum, default_value_t = OnError::Abort)]
+    pub on_error: OnError,
+    /// Offline mapping settings (a service uses its own).
+    #[command(flatten)]
+    pub mapping: MappingArgs,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, ValueEnum)]
+pub enum OnError {
+    Skip,
+    Abort,
+}
+
+/// One recorded scan.
+pub struct Scan {
+    pub path: PathBuf,
+    pub points: Vec<[f32; 3]>,
+    pub pose: Isometry3<f64>,
+    /// Seconds, when known (TUM poses or a file named by its time stamp).
+    pub stamp: Option<f64>,
+}
+
+const EXTENSIONS: [&str; 3] = ["pcd", "bin", "ply"];
+
+/// Files to replay: directories expanded to their scans in name order.
+pub fn list_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for p in inputs {
+        if p.is_dir() {
+            let mut v: Vec<PathBuf> = std::fs::read_dir(p)
+                .with_context(|| format!("reading {}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| {
+                    f.extension()
+                        .is_some_and(|e| EXTENSIONS.iter().any(|x| e == *x))
+                })
+                .collect();
+            v.sort();
+            out.extend(v);
+        } else {
+            out.push(p.clone());
+        }
+    }
+    if out.is_empty() {
+        bail!("no .pcd, .bin or .ply files in {inputs:?}");
+    }
+    Ok(out)
+}
+
+fn stem_stamp(path: &Path) -> Option<f64> {
+    path.file_stem()?
+        .to_str()?
+        .parse::<f64>()
+        .ok()
+        .filter(|t| t.is_finite())
+}
+
+/// Read scan `index` of the list; `poses` for the formats without an embedded pose.
+pub fn read_scan(path: &Path, index: usize, poses: Option<&[StampedPose]>) -> Result<Scan> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    if ext == "pcd" {
+        let c = pcd::read(path)?;
+        return Ok(Scan {
+            path: path.into(),
+            points: c.points,
+            pose: c.pose,
+            stamp: stem_stamp(path),
+        });
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let points = match ext {
+        "bin" => scans::parse_kitti_bin(&bytes),
+        "ply" => ply::parse(&bytes),
+        _ => Err(format!("unknown extension '{ext}' (pcd, bin, ply)")),
+    }
+    .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let poses =
+        poses.ok_or_else(|| anyhow!("{}: .{ext} scans need --poses FILE", path.display()))?;
+    let stamp = stem_stamp(path);
+    let p = match (stamp, poses.first().and_then(|p| p.stamp)) {
+        (Some(t), Some(_)) => {
+            let i = poses.partition_point(|p| p.stamp.unwrap_or(f64::MIN) < t);
+            let best = [i.saturating_sub(1), i.min(poses.len() - 1)]
+                .into_iter()
+                .min_by(|&a, &b| {
+                    let d = |k: usize| (poses[k].stamp.unwrap_or(f64::MAX) - t).abs();
+                    d(a).total_cmp(&d(b))
+                })
+                .map(|k| poses[k])
+                .ok_or_else(|| anyhow!("empty pose file"))?;
+            let dt = (best.stamp.unwrap_or(f64::MAX) - t).abs();
+            if dt > 0.05 {
+                bail!(
+                    "{}: nearest pose is {dt:.3} s away (more than 0.05 s)",
+                    path.display()
+                );
+            }
+            best
+        }
+        _ => *poses.get(index).ok_or_else(|| {
+            anyhow!(
+                "{}: scan {} has no pose (the pose file has {} lines)",
+                path.display(),
+                index + 1,
+                poses.len()
+            )
+        })?,
+    };
+    Ok(Scan {
+        path: path.into(),
+        points,
+        pose: p.pose,
+        stamp: p.stamp.or(stamp),
+    })
+}
+
+/// Where scans go: integrated offline, or sent to a service.
+enum Sink {
+    Offline(Box<Offline>),
+    Service(Box<Online>),
+}
+
+struct Offline {
+    map: voxmap_core::OccupancyMap,
+    integ: voxmap_core::Integrator,
+    out: PathBuf,
+}
+
+struct Online {
+    publisher: FramePublisher,
+    snapshots: SnapshotSubscriber,
+    control: MapControl,
+}
+
+pub fn run(a: ReplayArgs) -> Result<()> {
+    let files = list_inputs(&a.inputs)?;
+    let poses = match &a.poses {
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let mut v = scans::parse_poses(&text).map_err(|e| anyhow!("{}: {e}", p.display()))?;
+            if v.iter().all(|p| p.stamp.is_some()) {
+                v.sort_by(|x, y| x.stamp.unwrap_or(0.0).total_cmp(&y.stamp.unwrap_or(0.0)));
+            }
+            Some(v)
+        }
+        None => None,
+    };
+    let rate = match a.rate.as_str() {
+        "fast" => None,
+        "recorded" => Some(0.0),
+        hz => Some(
+            hz.parse::<f64>()
+                .ok()
+                .filter(|h| h.is_finite() && *h > 0.0)
+                .ok_or_else(|| {
+                    anyhow!("--rate must be fast, recorded or a rate in Hz > 0, not '{hz}'")
+                })?,
+        ),
+    };
+    let mut sink = if a.offline {
+        let cfg = a.mapping.resolve()?;
+        Sink::Offline(Box::new(Offline {
+            map: cfg.new_map()?,
+            integ: cfg.integrator()?,
+            out: a.out.clone().context("--offline needs --out MAP")?,
+        }))
+    } else {
+        let control = MapControl::connect(&a.prefix, &a.map)
+            .map_err(|e| anyhow!("no voxmap service under prefix '{}': {e}", a.prefix))?;
+        Sink::Service(Box::new(Online {
+            publisher: FramePublisher::connect(&a.prefix, &a.map)?,
+            snapshots: SnapshotSubscriber::connect(&a.prefix, &a.map)?,
+            control,
+        }))
+    };
+
+    // Read ahead on a second thread so file reading overlaps integration.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, Result<Scan>)>(2);
+    let reader = {
+        let files = files.clone();
+        let poses = poses.clone();
+        std::thread::spawn(move || {
+            for (i, f) in files.iter().enumerate() {
+                if tx.send((i, read_scan(f, i, poses.as_deref()))).is_err() {
+                    break;
+                }
+            }
+        })
+    };
+
+    let bar = ProgressBar::with_draw_target(Some(files.len() as u64), ProgressDrawTarget::stderr());
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let plain = !std::io::stderr().is_terminal();
+    let started = Instant::now();
+    let (mut frames, mut points, mut skipped) = (0u64, 0u64, 0u64);
+    let mut integrate_s = 0.0;
+    let mut last_line = Instant::now();
+    let mut first_stamp: Option<(f64, Instant)> = None;
+    for (i, scan) in rx {
+        let scan = match scan {
+            Ok(s) => s,
+            Err(e) if a.on_error == OnError::Skip => {
+                bar.suspend(|| eprintln!("voxmap replay: skipping: {e:#}"));
+                skipped += 1;
+                bar.inc(1);
+                continue;
+            }
+            Err(e) => return Err(e.context(format!("scan {} of {}", i + 1, files.len()))),
+        };
+        // Pace.
+        match rate {
+            Some(0.0) => {
+                let t = scan.stamp.ok_or_else(|| {
+                    anyhow!(
+                        "{}: no time stamp for --rate recorded (use fast or a rate in Hz)",
+                        scan.path.display()
+                    )
+                })?;
+                let (t0, w0) = *first_stamp.get_or_insert((t, Instant::now()));
+                let due = w0 + Duration::from_secs_f64((t - t0).max(0.0));
+                std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            }
+            Some(hz) => {
+                let due = started + Duration::from_secs_f64(frames as f64 / hz);
+                std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            }
+            None => {}
+        }
+        match &mut sink {
+            Sink::Offline(off) => {
+                let Offline { map, integ, .. } = &mut **off;
+                let t = Instant::now();
+                let r = integ.integrate(
+                    map,
+                    &Frame {
+                        pose: scan.pose,
+                        points: &scan.points,
+                    },
+                );
+                integrate_s += t.elapsed().as_secs_f64();
+                if let Err(e) = r {
+                    if a.on_error == OnError::Abort {
+                        bail!("{}: {e}", scan.path.display());
+                    }
+                    bar.suspend(|| {
+                        eprintln!("voxmap replay: skipping {}: {e}", scan.path.display())
+                    });
+                    skipped += 1;
+                    bar.inc(1);
+                    continue;
+                }
+            }
+            Sink::Service(online) => {
+                let Online {
+                    publisher,
+                    snapshots,
+                    control,
+                } = &mut **online;
+                if let Err(e) = FrameHeader::with_pose(&scan.pose).validate(0) {
+                    bail!("{}: {e}", scan.path.display());
+                }
+                let stamp_ns = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(1, |d| d.as_nanos() as u64);
+                let seq = publisher.publish(&scan.pose, stamp_ns, &scan.points)?;
+                if rate.is_none() {
+                    wait_integrated(snapshots, control, seq)
+                        .with_context(|| format!("{}", scan.path.display()))?;
+                }
+            }
+        }
+        frames += 1;
+        points += scan.points.len() as u64;
+        bar.inc(1);
+        let secs = started.elapsed().as_secs_f64().max(1e-9);
+        let msg = format!(
+            "{:.1} frames/s, {:.2} Mpoints/s",
+            frames as f64 / secs,
+            points as f64 / secs / 1e6
+        );
+        if plain && last_line.elapsed() >= Duration::from_secs(2) {
+            eprintln!("voxmap replay: {frames}/{} frames, {msg}", files.len());
+            last_line = Instant::now();
+        }
+        bar.set_message(msg);
+    }
+    bar.finish_and_clear();
+    reader
+        .join()
+        .map_err(|_| anyhow!("reader thread panicked"))?;
+    let secs = started.elapsed().as_secs_f64();
+    println!(
+        "replayed {frames} frames ({points} points) in {secs:.2} s: {:.1} frames/s, {:.2} Mpoints/s{}",
+        frames as f64 / secs.max(1e-9),
+        points as f64 / secs.max(1e-9) / 1e6,
+        if skipped > 0 { format!("; {skipped} skipped") } else { String::new() }
+    );
+    match sink {
+        Sink::Offline(off) => {
+            let Offline { map, out, .. } = *off;
+            let c = map.counts();
+            println!(
+                "integration {integrate_s:.2} s ({:.2} Mpoints/s); map: {} occupied, {} free voxels, {} leaves, {} bytes",
+                points as f64 / integrate_s.max(1e-9) / 1e6,
+                c.occupied,
+                c.free,
+                c.leaves,
+                map.memory_bytes()
+            );
+            mapfile::save_map(&map, &out)?;
+            println!("wrote {}", out.display());
+        }
+        Sink::Service(online) => {
+            let control = &online.control;
+            let s = control.stats()?;
+            println!(
+                "service: {} frames integrated, {} dropped, {} rejected; map {} leaves, {} bytes; snapshot {} bytes",
+                s.frames_integrated, s.frames_dropped, s.frames_rejected, s.map_leaves, s.map_memory_bytes, s.snapshot_bytes
+            );
+            if let Some(p) = &a.save {
+                let abs = std::path::absolute(p).unwrap_or_else(|_| p.clone());
+                control.save(&abs.to_string_lossy())?;
+                println!("service saved its map to {}", abs.display());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Wait until the service publishes a snapshot that includes frame `seq`.
+fn wait_integrated(
+    snapshots: &mut SnapshotSubscriber,
+    control: &MapControl,
+    seq: u64,
+) -> Result<()> {
+    let t = Instant::now();
+    loop {
+        if let Some(v) = snapshots.latest()? {
+            if v.sequence() >= seq {
+                return Ok(());
+            }
+        }
+        if t.elapsed() > Duration::from_secs(30) {
+            let s = control.stats()?;
+            bail!(
+                "the service has not published frame {seq} after 30 s (it integrated {}, dropped {}, rejected {})",
+                s.frames_integrated,
+                s.frames_dropped,
+                s.frames_rejected
+            );
+        }
+        snapshots.wait_for_update(Duration::from_millis(100))?;
+    }
+}
