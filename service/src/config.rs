@@ -149,6 +149,15 @@ impl Config {
         if !(self.snapshot_interval_ms.is_finite() && self.snapshot_interval_ms >= 0.0) {
             bail!("snapshot_interval_ms must be finite and >= 0");
         }
+        let voxels = self.max_range / self.resolution;
+        if voxels > voxmap_core::integrate::MAX_RANGE_VOXELS {
+            bail!(
+                "max_range {} m is {voxels:.0} voxels at resolution {} m; at most {} are supported",
+                self.max_range,
+                self.resolution,
+                voxmap_core::integrate::MAX_RANGE_VOXELS
+            );
+        }
         // The map and integrator check the rest with their own messages.
         self.new_map()?;
         self.integrator()?;
@@ -202,6 +211,7 @@ mod tests {
             ("mode = \"fast\"\n", "unknown mode"),
             ("[sensor_model]\np_hit = 0.3\n", "p_hit"),
             ("resolution = \"x\"\n", "invalid type"),
+            ("max_range = 1000.0\n", "8192"),
         ] {
             std::fs::write(&f, bad).unwrap();
             let e = format!(

@@ -4,6 +4,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
+use voxmap_core::grid::voxel_at;
 use voxmap_core::io::{mapfile, octomap, ply};
 use voxmap_core::snapshot::{SnapshotView, MAGIC as SNAPSHOT_MAGIC};
 use voxmap_core::LeafOccupancy;
@@ -121,13 +122,8 @@ fn push_bounds(d: &mut Vec<(&'static str, String)>, leaves: &[LeafOccupancy], re
     let mut lo = [i32::MAX; 3];
     let mut hi = [i32::MIN; 3];
     for l in leaves {
-        let o = l.origin.to_array();
         for i in l.known.iter_ones() {
-            let v = [
-                o[0] + (i & 7) as i32,
-                o[1] + (i >> 3 & 7) as i32,
-                o[2] + (i >> 6) as i32,
-            ];
+            let v = voxel_at(l.origin, i).to_array();
             for k in 0..3 {
                 lo[k] = lo[k].min(v[k]);
                 hi[k] = hi[k].max(v[k]);
@@ -217,13 +213,8 @@ fn occupied_count(leaves: &[LeafOccupancy]) -> u64 {
 fn occupied_colored(leaves: &[LeafOccupancy], res: f64) -> Vec<([f32; 3], [u8; 3])> {
     let mut pts: Vec<[f64; 3]> = Vec::new();
     for l in leaves {
-        let o = l.origin.to_array();
         for i in l.occupied.iter_ones() {
-            let v = [
-                o[0] + (i & 7) as i32,
-                o[1] + (i >> 3 & 7) as i32,
-                o[2] + (i >> 6) as i32,
-            ];
+            let v = voxel_at(l.origin, i).to_array();
             pts.push(v.map(|c| (c as f64 + 0.5) * res));
         }
     }

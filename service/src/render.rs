@@ -6,6 +6,7 @@ use crate::files::Loaded;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
+use voxmap_core::grid::voxel_at;
 use voxmap_core::io::ply::height_color;
 use voxmap_core::LeafOccupancy;
 
@@ -130,10 +131,13 @@ impl Image {
 pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Result<Image> {
     let mut lo = [i32::MAX; 3];
     let mut hi = [i32::MIN; 3];
-    for l in leaves.iter().filter(|l| !l.known.is_empty()) {
-        for k in 0..3 {
-            lo[k] = lo[k].min(l.origin.to_array()[k]);
-            hi[k] = hi[k].max(l.origin.to_array()[k] + 7);
+    for l in leaves {
+        for i in l.known.iter_ones() {
+            let v = voxel_at(l.origin, i).to_array();
+            for k in 0..3 {
+                lo[k] = lo[k].min(v[k]);
+                hi[k] = hi[k].max(v[k]);
+            }
         }
     }
     if lo[0] > hi[0] {
@@ -154,16 +158,11 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
         View::Slice(z) => ((z / res).floor() as i32, (z / res).floor() as i32),
     };
     for l in leaves {
-        let o = l.origin.to_array();
-        if o[2] + 7 < zlo || o[2] > zhi {
+        if l.origin.z + 7 < zlo || l.origin.z > zhi {
             continue;
         }
         for i in l.known.iter_ones() {
-            let v = [
-                o[0] + (i & 7) as i32,
-                o[1] + (i >> 3 & 7) as i32,
-                o[2] + (i >> 6) as i32,
-            ];
+            let v = voxel_at(l.origin, i).to_array();
             if v[2] < zlo || v[2] > zhi {
                 continue;
             }

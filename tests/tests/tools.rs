@@ -1,0 +1,461 @@
+//! The tool subcommands on generated data: replay (offline and through a service, PCD,
+//! KITTI .bin and PLY inputs), export to OctoMap .bt (read back by OctoMap's own programs)
+//! and PLY, inspect, render, and the demo.
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use voxmap_core::io::{mapfile, octomap, pcd, ply};
+use voxmap_core::OccupancyMap;
+use voxmap_tests::{room_scan, unique_prefix, voxmap_bin, Service};
+
+fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(unique_prefix(name));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn voxmap(args: &[&str]) -> Output {
+    let out = Command::new(voxmap_bin())
+        .args(args)
+        .output()
+        .expect("run voxmap");
+    out
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = voxmap(args);
+    assert!(
+        out.status.success(),
+        "voxmap {args:?} failed: {}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+const ROOM: [f64; 3] = [3.0, 2.0, 1.5];
+
+/// Three scans of a closed box room from three poses (rotated about z).
+fn frames() -> Vec<(Isometry3<f64>, Vec<[f32; 3]>)> {
+    [
+        ([0.0, 0.0, 0.0], 0.0),
+        ([1.0, 0.5, 0.2], 0.7),
+        ([-1.5, -0.5, -0.3], -1.2),
+    ]
+    .into_iter()
+    .map(|(t, yaw)| {
+        let pose = Isometry3::from_parts(
+            Translation3::new(t[0], t[1], t[2]),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+        );
+        // The room scan is in a frame aligned with the room; rotate it into the sensor's.
+        let pts = room_scan(ROOM, t, 20_000)
+            .into_iter()
+            .map(|p| {
+                let v =
+                    pose.rotation.inverse() * Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+                [v.x as f32, v.y as f32, v.z as f32]
+            })
+            .collect();
+        (pose, pts)
+    })
+    .collect()
+}
+
+fn write_pcd_frames(dir: &Path) {
+    for (i, (pose, points)) in frames().into_iter().enumerate() {
+        let cloud = pcd::PointCloud { points, pose };
+        pcd::write(&dir.join(format!("frame_{i:03}.pcd")), &cloud).unwrap();
+    }
+}
+
+/// Every known voxel with its stored value, sorted.
+fn voxels(map: &OccupancyMap) -> Vec<([i32; 3], i8)> {
+    let mut v: Vec<_> = map
+        .grid()
+        .active_voxels()
+        .map(|(c, x)| (c.to_array(), x))
+        .collect();
+    v.sort();
+    v
+}
+
+const MAPPING: [&str; 6] = ["--resolution", "0.1", "--max-range", "10", "--threads", "2"];
+
+#[test]
+fn replay_offline_and_through_the_service_give_the_same_map() {
+    let dir = tmpdir("replay");
+    let scans = dir.join("scans");
+    std::fs::create_dir_all(&scans).unwrap();
+    write_pcd_frames(&scans);
+    let offline = dir.join("offline.vxm");
+    let out = ok(&[
+        &["replay", "--offline", "--out", offline.to_str().unwrap()],
+        &MAPPING[..],
+        &[scans.to_str().unwrap()],
+    ]
+    .concat());
+    assert!(out.contains("replayed 3 frames (60000 points)"), "{out}");
+    let a = mapfile::load_map(&offline).unwrap();
+    let c = a.counts();
+    assert!(c.occupied > 5_000 && c.free > 50_000, "{c:?}");
+
+    let prefix = unique_prefix("replay_svc");
+    let svc = Service::start(&prefix, &["--resolution", "0.1", "--max-range", "10"]);
+    let online = dir.join("online.vxm");
+    let out = ok(&[
+        "replay",
+        "--prefix",
+        &prefix,
+        "--save",
+        online.to_str().unwrap(),
+        scans.to_str().unwrap(),
+    ]);
+    assert!(
+        out.contains("3 frames integrated, 0 dropped, 0 rejected"),
+        "{out}"
+    );
+    drop(svc);
+    let b = mapfile::load_map(&online).unwrap();
+    assert_eq!(voxels(&a), voxels(&b), "offline and service maps differ");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn kitti_bin_and_ply_scans_with_pose_files_match_pcd() {
+    let dir = tmpdir("formats");
+    let (pcd_dir, bin_dir, ply_dir) = (dir.join("pcd"), dir.join("bin"), dir.join("ply"));
+    for d in [&pcd_dir, &bin_dir, &ply_dir] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    write_pcd_frames(&pcd_dir);
+    let (mut kitti, mut tum) = (String::new(), String::new());
+    for (i, (pose, pts)) in frames().into_iter().enumerate() {
+        let mut bin = Vec::new();
+        for p in &pts {
+            for c in p.iter().chain(&[0.5f32]) {
+                bin.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        std::fs::write(bin_dir.join(format!("{i:06}.bin")), bin).unwrap();
+        let colored: Vec<_> = pts.iter().map(|p| (*p, [0u8; 3])).collect();
+        // PLY scans named by time stamp, matched to TUM poses by stamp.
+        std::fs::write(
+            ply_dir.join(format!("{}.ply", 100 + i)),
+            ply::encode_colored(&colored),
+        )
+        .unwrap();
+        let m = pose.to_homogeneous();
+        for r in 0..3 {
+            for c in 0..4 {
+                kitti.push_str(&format!("{:.17e} ", m[(r, c)]));
+            }
+        }
+        kitti.push('\n');
+        let q = pose.rotation.quaternion();
+        let t = pose.translation.vector;
+        tum.push_str(&format!(
+            "{}.0 {:.17e} {:.17e} {:.17e} {:.17e} {:.17e} {:.17e} {:.17e}\n",
+            100 + i,
+            t.x,
+            t.y,
+            t.z,
+            q.i,
+            q.j,
+            q.k,
+            q.w
+        ));
+        // A pose between scans that must not be picked.
+        tum.push_str(&format!("{}.5 0 0 0 0 0 0 1\n", 100 + i));
+    }
+    std::fs::write(dir.join("kitti.txt"), kitti).unwrap();
+    std::fs::write(dir.join("tum.txt"), tum).unwrap();
+    let run = |input: &Path, poses: Option<&Path>, out: &str| {
+        let out = dir.join(out);
+        let mut args = vec!["replay", "--offline", "--out", out.to_str().unwrap()];
+        args.extend(MAPPING);
+        if let Some(p) = poses {
+            args.extend(["--poses", p.to_str().unwrap()]);
+        }
+        args.push(input.to_str().unwrap());
+        ok(&args);
+        voxels(&mapfile::load_map(&out).unwrap())
+    };
+    let reference = run(&pcd_dir, None, "pcd.vxm");
+    let kitti_poses = dir.join("kitti.txt");
+    let tum_poses = dir.join("tum.txt");
+    // Rotations pass through a matrix: compare states, allowing no voxel to differ.
+    assert_eq!(run(&bin_dir, Some(&kitti_poses), "bin.vxm"), reference);
+    assert_eq!(run(&ply_dir, Some(&tum_poses), "ply.vxm"), reference);
+
+    // Without poses, .bin scans are an error naming the file; a bad file can be skipped.
+    let out = voxmap(&[
+        "replay",
+        "--offline",
+        "--out",
+        "/dev/null",
+        bin_dir.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("000000.bin: .bin scans need --poses"));
+    std::fs::write(pcd_dir.join("frame_001.pcd"), b"VERSION .7\nFIELDS x y z\n").unwrap();
+    let out = voxmap(
+        &[
+            &[
+                "replay",
+                "--offline",
+                "--out",
+                dir.join("skip.vxm").to_str().unwrap(),
+                "--on-error",
+                "skip",
+            ],
+            &MAPPING[..],
+            &[pcd_dir.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    assert!(out.status.success());
+    let (so, se) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(
+        so.contains("replayed 2 frames") && so.contains("1 skipped"),
+        "{so}"
+    );
+    assert!(se.contains("frame_001.pcd"), "{se}");
+    let out = voxmap(
+        &[
+            &["replay", "--offline", "--out", "/dev/null"],
+            &MAPPING[..],
+            &[pcd_dir.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    assert!(!out.status.success(), "abort is the default");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Run one of OctoMap's programs; `None` when octomap-tools is not installed (CI installs
+/// it and sets VOXMAP_REQUIRE_OCTOMAP=1, which turns absence into a failure).
+fn octomap_tool(args: &[&str]) -> Option<String> {
+    match Command::new(args[0]).args(&args[1..]).output() {
+        Ok(o) => {
+            assert!(
+                o.status.success(),
+                "{args:?}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            Some(format!(
+                "{}{}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            ))
+        }
+        Err(e) => {
+            assert!(
+                std::env::var_os("VOXMAP_REQUIRE_OCTOMAP").is_none(),
+                "{}: {e} (install Debian's octomap-tools)",
+                args[0]
+            );
+            eprintln!("octomap-tools not installed; skipping the OctoMap read-back");
+            None
+        }
+    }
+}
+
+fn number_after(text: &str, key: &str) -> u64 {
+    let at = text
+        .find(key)
+        .unwrap_or_else(|| panic!("'{key}' not in:\n{text}"))
+        + key.len();
+    text[at..]
+        .trim_start()
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+#[test]
+fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
+    let dir = tmpdir("export");
+    let scans = dir.join("scans");
+    std::fs::create_dir_all(&scans).unwrap();
+    write_pcd_frames(&scans);
+    let map_path = dir.join("m.vxm");
+    ok(&[
+        &["replay", "--offline", "--out", map_path.to_str().unwrap()],
+        &MAPPING[..],
+        &[scans.to_str().unwrap()],
+    ]
+    .concat());
+    let map = mapfile::load_map(&map_path).unwrap();
+    let c = map.counts();
+    let (bt, plyf) = (dir.join("m.bt"), dir.join("m.ply"));
+    ok(&[
+        "export",
+        map_path.to_str().unwrap(),
+        "--bt",
+        bt.to_str().unwrap(),
+        "--ply",
+        plyf.to_str().unwrap(),
+    ]);
+    let s = octomap::read_bt(&std::fs::read(&bt).unwrap()).unwrap();
+    assert_eq!((s.occupied_voxels, s.free_voxels), (c.occupied, c.free));
+    assert_eq!(s.resolution, 0.1);
+    let pts = ply::parse(&std::fs::read(&plyf).unwrap()).unwrap();
+    assert_eq!(pts.len() as u64, c.occupied);
+    // Every PLY point is the centre of an occupied voxel of the map.
+    for p in pts.iter().step_by(97) {
+        let w = voxmap_core::WorldPoint::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        assert_eq!(map.state_at(&w), voxmap_core::VoxelState::Occupied);
+    }
+
+    // OctoMap's own programs: convert_octree reads the .bt, compare_octrees counts its
+    // nodes and expands it to full depth, bt2vrml writes one box per occupied leaf.
+    let ot = dir.join("m.ot");
+    if octomap_tool(&["convert_octree", bt.to_str().unwrap(), ot.to_str().unwrap()]).is_some() {
+        let cmp = octomap_tool(&[
+            "compare_octrees",
+            ot.to_str().unwrap(),
+            ot.to_str().unwrap(),
+        ])
+        .unwrap();
+        assert_eq!(number_after(&cmp, "Done ("), s.nodes, "{cmp}");
+        assert_eq!(
+            number_after(&cmp, "Expanded num. leafs:"),
+            c.occupied + c.free,
+            "{cmp}"
+        );
+        let vrml = octomap_tool(&["bt2vrml", bt.to_str().unwrap()]).unwrap();
+        assert_eq!(
+            number_after(&vrml, "Finished writing"),
+            s.occupied_leaves,
+            "{vrml}"
+        );
+    }
+
+    // A snapshot file exports the same occupancy.
+    let snap = voxmap_core::snapshot::Plan::new(
+        &map,
+        voxmap_core::snapshot::Scope::Whole,
+        Default::default(),
+    )
+    .to_vec();
+    let snap_path = dir.join("m.snap");
+    mapfile::save_snapshot(&snap, &snap_path).unwrap();
+    let bt2 = dir.join("s.bt");
+    ok(&[
+        "export",
+        snap_path.to_str().unwrap(),
+        "--bt",
+        bt2.to_str().unwrap(),
+    ]);
+    assert_eq!(std::fs::read(&bt2).unwrap(), std::fs::read(&bt).unwrap());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn inspect_and_render_read_maps_and_say_what_is_wrong_with_bad_files() {
+    let dir = tmpdir("inspect");
+    let scans = dir.join("scans");
+    std::fs::create_dir_all(&scans).unwrap();
+    write_pcd_frames(&scans);
+    let map_path = dir.join("m.vxm");
+    ok(&[
+        &["replay", "--offline", "--out", map_path.to_str().unwrap()],
+        &MAPPING[..],
+        &[scans.to_str().unwrap()],
+    ]
+    .concat());
+    let c = mapfile::load_map(&map_path).unwrap().counts();
+    let out = ok(&["inspect", map_path.to_str().unwrap()]);
+    assert!(out.contains("voxmap map file, version 1"), "{out}");
+    assert!(
+        out.contains(&format!("occupied voxels      {}", c.occupied)),
+        "{out}"
+    );
+    assert!(out.contains("p_hit 0.7 p_miss 0.4"), "{out}");
+    assert!(
+        out.contains("bounds (known)       x -3.00..3.00 y -2.00..2.00 z -1.50..1.50 m"),
+        "{out}"
+    );
+
+    // Corrupt body, truncated file, unknown version, not a map at all.
+    let good = std::fs::read(&map_path).unwrap();
+    let mut flipped = good.clone();
+    let n = flipped.len();
+    flipped[n - 100] ^= 0x40;
+    let mut newer = good.clone();
+    newer[8] = 9;
+    for (bytes, why) in [
+        (flipped, "corrupt map file"),
+        (good[..good.len() / 2].to_vec(), "corrupt map file"),
+        (newer, "map file version 9 is not supported"),
+        (
+            b"hello world, not a map".to_vec(),
+            "not a voxmap map file, snapshot file or OctoMap .bt file",
+        ),
+    ] {
+        let p = dir.join("bad.vxm");
+        std::fs::write(&p, &bytes).unwrap();
+        let out = voxmap(&["inspect", p.to_str().unwrap()]);
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(why) && err.contains("bad.vxm"), "{why}: {err}");
+    }
+
+    // Render: top-down and slice PNGs of the room's size.
+    let png_path = dir.join("top.png");
+    let out = ok(&[
+        "render",
+        map_path.to_str().unwrap(),
+        "-o",
+        png_path.to_str().unwrap(),
+        "--size",
+        "600",
+    ]);
+    assert!(out.contains("wrote"), "{out}");
+    let dec = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(&png_path).unwrap(),
+    ));
+    let r = dec.read_info().unwrap();
+    // 6 m x 4 m at 0.1 m: 60 x 40 voxels, 10 px each, and a 64 px caption band.
+    let info = r.info();
+    assert_eq!((info.width, info.height), (600, 464));
+    ok(&[
+        "render",
+        map_path.to_str().unwrap(),
+        "-o",
+        dir.join("s.png").to_str().unwrap(),
+        "--slice",
+        "0.0",
+    ]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn demo_runs_end_to_end_and_leaves_its_outputs() {
+    let dir = tmpdir("demo");
+    let out = ok(&["demo", "--seconds", "4", "--out", dir.to_str().unwrap()]);
+    assert!(out.contains("read in place in shared memory: yes"), "{out}");
+    assert!(out.contains("everything it started has stopped"), "{out}");
+    let s = octomap::read_bt(&std::fs::read(dir.join("map.bt")).unwrap()).unwrap();
+    assert!(
+        s.occupied_voxels > 10_000 && s.free_voxels > 50_000,
+        "{s:?}"
+    );
+    let map = mapfile::load_map(&dir.join("map.vxm")).unwrap();
+    // The scene's walls: the outer wall's inner face at x = 0.1 m and the wall at x = 6 m
+    // are occupied at sensor height, the room between them free.
+    let st = |x: f64, y: f64| map.state_at(&voxmap_core::WorldPoint::new(x, y, 0.85));
+    assert_eq!(st(5.95, 2.0), voxmap_core::VoxelState::Occupied);
+    assert_eq!(st(3.0, 3.0), voxmap_core::VoxelState::Free);
+    for f in ["map.png", "slice_1m.png", "service.log"] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
