@@ -484,6 +484,11 @@ impl SnapshotSubscriber {
             .map_err(ClientError::Snapshot)
     }
 
+    /// The wire header of the held sample (sequence, length, when it was published).
+    pub fn wire_header(&self) -> Option<voxmap_core::wire::SnapshotHeader> {
+        self.current.as_ref().map(|s| *s.user_header())
+    }
+
     /// The whole shared-memory payload of the held sample (to check it is not a copy).
     pub fn sample_bytes(&self) -> Option<&[u8]> {
         self.current.as_ref().map(|s| s.payload())

@@ -127,13 +127,16 @@ impl FrameHeader {
 /// User header of a snapshot sample; the payload is the snapshot bytes (`[u8]`), of which
 /// the first `len` are the snapshot (the sample may be larger).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::SnapshotHeader::v1")]
+#[type_name("voxmap::SnapshotHeader::v2")]
 #[repr(C)]
 pub struct SnapshotHeader {
     pub version: u32,
     pub reserved: u32,
     pub sequence: u64,
     pub len: u64,
+    /// When the service sent the sample (ns since the Unix epoch): with the planner's
+    /// receive time, the hand-over latency.
+    pub published_ns: u64,
 }
 
 /// iceoryx2 service names of one map under a prefix.
@@ -287,7 +290,7 @@ impl ControlRequest {
 
 /// Service counters, as reported by a `Stats` request.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::StatsWire::v1")]
+#[type_name("voxmap::StatsWire::v2")]
 #[repr(C)]
 pub struct StatsWire {
     pub frames_received: u64,
@@ -304,11 +307,15 @@ pub struct StatsWire {
     pub integrate_ms_p99: f64,
     pub integrate_ms_max: f64,
     pub encode_ms_last: f64,
+    /// Frame send (its time stamp) to receipt by the service, microseconds, over the
+    /// last 1024 frames with a time stamp.
+    pub intake_us_p50: f64,
+    pub intake_us_p99: f64,
 }
 
 /// A control response: `ok` 1 or 0, a message, and the current stats.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::ControlResponse::v1")]
+#[type_name("voxmap::ControlResponse::v2")]
 #[repr(C)]
 pub struct ControlResponse {
     pub ok: u32,

@@ -45,6 +45,10 @@ pub struct BenchArgs {
     /// Skip the snapshot measurements (run on the exact map at the last thread count).
     #[arg(long)]
     no_snapshot: bool,
+    /// Instead: the end-to-end benchmark (service, sensor and planner processes) with
+    /// phases of this many seconds.
+    #[arg(long, value_name = "SECONDS")]
+    e2e: Option<f64>,
 }
 
 /// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
@@ -157,6 +161,9 @@ fn ms(d: std::time::Duration) -> f64 {
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
+    if let Some(secs) = a.e2e {
+        return crate::demo::e2e(secs);
+    }
     let dir = match &a.workloads {
         Some(d) => d.clone(),
         None => generated_workloads()?,

@@ -39,6 +39,9 @@ pub struct SimArgs {
     /// Scans per second.
     #[arg(long, default_value_t = 10.0)]
     pub rate: f64,
+    /// Planner: print one JSON line of latencies (for `bench --e2e`).
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Sensor height above the floor, metres.
@@ -240,6 +243,7 @@ pub fn planner(a: SimArgs) -> Result<()> {
     let mut sub = SnapshotSubscriber::connect(&a.prefix, &a.map)?;
     let started = Instant::now();
     let mut latencies_ms = Vec::new();
+    let mut handover_us = Vec::new();
     let (mut los, mut blocked, mut boxes, mut free_boxes, mut in_place) =
         (0u64, 0u64, 0u64, 0u64, true);
     let mut query_ns = 0.0;
@@ -249,13 +253,16 @@ pub fn planner(a: SimArgs) -> Result<()> {
         if !sub.wait_for_update(Duration::from_millis(100))? {
             continue;
         }
+        let received = now_ns();
         let shm = sub.sample_bytes().map(|b| b.as_ptr());
+        let published = sub.wire_header().map_or(0, |h| h.published_ns);
         let Some(view) = sub.latest()? else { continue };
         if view.sequence() == last_seq {
             continue;
         }
         last_seq = view.sequence();
-        latencies_ms.push(now_ns().saturating_sub(view.timestamp_ns()) as f64 / 1e6);
+        latencies_ms.push(received.saturating_sub(view.timestamp_ns()) as f64 / 1e6);
+        handover_us.push(received.saturating_sub(published) as f64 / 1e3);
         in_place &= shm == Some(view.as_bytes().as_ptr());
         let t = Instant::now();
         let mut n = 0u64;
@@ -302,5 +309,135 @@ pub fn planner(a: SimArgs) -> Result<()> {
     if !in_place {
         bail!("a snapshot view did not point into the shared-memory sample");
     }
+    Ok(())
+}
+
+/// `voxmap bench --e2e`: service, sensor and planner as separate processes; 65,536-point
+/// scans at 0.1 m and 30 m max range. Phase 1 at 10 Hz measures latency, phase 2 sends as
+/// fast as the sensor can to find the sustained rate, phase 3 measures idle CPU.
+pub fn e2e(seconds: f64) -> Result<()> {
+    let exe = std::env::current_exe()?;
+    let prefix = format!("voxmap-e2e-{}", std::process::id());
+    let secs = seconds.to_string();
+    let mut kids = Kids(Vec::new());
+    kids.0.push((
+        "service",
+        Command::new(&exe)
+            .args([
+                "serve",
+                "--prefix",
+                &prefix,
+                "--resolution",
+                "0.1",
+                "--max-range",
+                "30",
+                "--threads",
+                "2",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()?,
+    ));
+    let mut snapshots = SnapshotSubscriber::connect(&prefix, "default")?;
+    if !snapshots.wait_for_update(Duration::from_secs(20))? {
+        bail!("the service published no snapshot within 20 s");
+    }
+    drop(snapshots);
+    let control = MapControl::connect(&prefix, "default")?;
+    let sim = |role: &str, rate: &str, json: bool| -> Result<Child> {
+        let mut c = Command::new(&exe);
+        c.args([
+            role,
+            "--prefix",
+            &prefix,
+            "--seconds",
+            &secs,
+            "--rate",
+            rate,
+        ]);
+        if json {
+            c.arg("--json").stdout(Stdio::piped());
+        } else {
+            c.stdout(Stdio::null());
+        }
+        Ok(c.spawn()?)
+    };
+    // Phase 1: latency at the sensor's nominal 10 Hz.
+    let planner = sim("sim-planner", "10", true)?;
+    let mut sensor = sim("sim-sensor", "10", false)?;
+    sensor.wait()?;
+    let out = planner.wait_with_output()?;
+    let p: serde_json::Value = serde_json::from_slice(&out.stdout).context("planner report")?;
+    let s1 = control.stats()?;
+    // Phase 2: as fast as the (simulated) sensor produces scans.
+    let t = Instant::now();
+    let mut sensor = sim("sim-sensor", "1000", false)?;
+    sensor.wait()?;
+    let dt = t.elapsed().as_secs_f64();
+    let s2 = control.stats()?;
+    // Phase 3: idle CPU of the service.
+    let pid = kids
+        .get("service")
+        .ok_or_else(|| anyhow!("service missing"))?
+        .id();
+    let ticks = || -> Result<u64> {
+        let st = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+        let f: Vec<&str> = st
+            .rsplit_once(')')
+            .map_or("", |x| x.1)
+            .split_whitespace()
+            .collect();
+        Ok(f.get(11).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0)
+            + f.get(12).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0))
+    };
+    let t0 = ticks()?;
+    std::thread::sleep(Duration::from_secs(5));
+    let idle_ticks = ticks()? - t0;
+    let f = |k: &str| p[k].as_f64().unwrap_or(f64::NAN);
+    let frames = (s2.frames_integrated - s1.frames_integrated) as f64;
+    println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads, sensor and planner as processes");
+    println!(
+        "  phase 1, 10 Hz: {} snapshots read in place: {}",
+        p["snapshots"], p["in_place"]
+    );
+    println!(
+        "    frame sent -> snapshot readable in planner: p50 {:.2} ms, p99 {:.2} ms",
+        f("latency_ms_p50"),
+        f("latency_ms_p99")
+    );
+    println!(
+        "    of which integration p50 {:.2} ms p99 {:.2} ms, last encode {:.2} ms",
+        s1.integrate_ms_p50, s1.integrate_ms_p99, s1.encode_ms_last
+    );
+    println!(
+        "    IPC: frame send -> service receive p50 {:.1} us, p99 {:.1} us",
+        s1.intake_us_p50, s1.intake_us_p99
+    );
+    println!(
+        "    IPC: snapshot send -> planner receive p50 {:.1} us, p99 {:.1} us",
+        f("handover_us_p50"),
+        f("handover_us_p99")
+    );
+    println!(
+        "    IPC share, p99 sum: {:.1} us (target 100 us)",
+        s1.intake_us_p99 + f("handover_us_p99")
+    );
+    println!(
+        "    snapshot {} bytes, map {} bytes",
+        s1.snapshot_bytes, s1.map_memory_bytes
+    );
+    println!(
+        "  phase 2, flat out: {:.1} frames/s, {:.2} Mpoints/s integrated ({} dropped in all)",
+        frames / dt,
+        (s2.points_integrated - s1.points_integrated) as f64 / dt / 1e6,
+        s2.frames_dropped
+    );
+    println!("  phase 3, idle: service used {idle_ticks} CPU ticks (1/100 s) in 5 s");
+    let service = kids
+        .get("service")
+        .ok_or_else(|| anyhow!("service missing"))?;
+    // SAFETY: as in `run`: a signal to our own unreaped child.
+    unsafe { libc::kill(service.id() as libc::pid_t, libc::SIGTERM) };
+    service.wait()?;
     Ok(())
 }

@@ -87,27 +87,33 @@ struct Stats {
     skipped_points: u64,
     /// Integration times (ms) of the last frames, oldest first.
     integrate_ms: std::collections::VecDeque<f64>,
+    /// Send-to-receive times (us) of the last time-stamped frames.
+    intake_us: std::collections::VecDeque<f64>,
     last_snapshot_bytes: usize,
     last_encode_ms: f64,
     sequence: u64,
 }
 
 impl Stats {
-    fn record_integration(&mut self, ms: f64) {
-        if self.integrate_ms.len() == 1024 {
-            self.integrate_ms.pop_front();
+    fn record(window: &mut std::collections::VecDeque<f64>, x: f64) {
+        if window.len() == 1024 {
+            window.pop_front();
         }
-        self.integrate_ms.push_back(ms);
+        window.push_back(x);
     }
 
     fn wire(&self, map: &OccupancyMap) -> StatsWire {
-        let mut t: Vec<f64> = self.integrate_ms.iter().copied().collect();
-        t.sort_by(f64::total_cmp);
-        let pct = |p: f64| {
+        let sorted = |w: &std::collections::VecDeque<f64>| {
+            let mut t: Vec<f64> = w.iter().copied().collect();
+            t.sort_by(f64::total_cmp);
+            t
+        };
+        let pct = |t: &[f64], p: f64| {
             t.get(((t.len() as f64 - 1.0) * p).round() as usize)
                 .copied()
                 .unwrap_or(0.0)
         };
+        let (t, intake) = (sorted(&self.integrate_ms), sorted(&self.intake_us));
         StatsWire {
             frames_received: self.received,
             frames_integrated: self.integrated,
@@ -119,10 +125,12 @@ impl Stats {
             map_memory_bytes: map.memory_bytes() as u64,
             snapshot_bytes: self.last_snapshot_bytes as u64,
             snapshot_sequence: self.sequence,
-            integrate_ms_p50: pct(0.5),
-            integrate_ms_p99: pct(0.99),
+            integrate_ms_p50: pct(&t, 0.5),
+            integrate_ms_p99: pct(&t, 0.99),
             integrate_ms_max: t.last().copied().unwrap_or(0.0),
             encode_ms_last: self.last_encode_ms,
+            intake_us_p50: pct(&intake, 0.5),
+            intake_us_p99: pct(&intake, 0.99),
         }
     }
 
@@ -254,6 +262,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
             reserved: 0,
             sequence,
             len: n as u64,
+            published_ns: now_ns(),
         };
         sample
             .send()
@@ -332,6 +341,13 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 .map_err(|e| anyhow!("receive frame: {e:?}"))?
             {
                 stats.received += 1;
+                let stamp = s.user_header().timestamp_ns;
+                if stamp != 0 {
+                    Stats::record(
+                        &mut stats.intake_us,
+                        now_ns().saturating_sub(stamp) as f64 / 1e3,
+                    );
+                }
                 let seq = s.user_header().sequence;
                 if let Some(prev) = last_seq.insert(s.header().publisher_id(), seq) {
                     if queue && seq > prev + 1 {
@@ -370,7 +386,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
                     stats.integrated += 1;
                     stats.points += rep.points;
                     stats.skipped_points += rep.skipped_nonfinite;
-                    stats.record_integration(rep.times.total().as_secs_f64() * 1e3);
+                    Stats::record(
+                        &mut stats.integrate_ms,
+                        rep.times.total().as_secs_f64() * 1e3,
+                    );
                     sequence = h.sequence;
                     stamp_ns = if h.timestamp_ns != 0 {
                         h.timestamp_ns
