@@ -32,6 +32,8 @@ pub struct Config {
     pub intake: String,
     /// Frames kept waiting under `intake = "queue"` (1..=4).
     pub queue_depth: usize,
+    /// SCHED_FIFO priority of the service's frame/snapshot thread (0 = normal scheduling).
+    pub rt_priority: i32,
 }
 
 /// Flags that override the configuration, for `serve` and `replay` alike.
@@ -145,6 +147,9 @@ impl Config {
                 "queue_depth must be 1..={}",
                 voxmap_client::qos::FRAME_SUBSCRIBER_BUFFER
             );
+        }
+        if !(0..=99).contains(&self.rt_priority) {
+            bail!("rt_priority must be 0..=99");
         }
         if !(self.snapshot_interval_ms.is_finite() && self.snapshot_interval_ms >= 0.0) {
             bail!("snapshot_interval_ms must be finite and >= 0");

@@ -3,6 +3,7 @@
 //! reading snapshots in place (`sim-planner`), each its own process; prints live stats;
 //! then writes a PNG and a `.bt` of the map and stops everything it started.
 
+use crate::os::now_ns;
 use crate::render::{self, View};
 use crate::rng::XorShift;
 use crate::sim::{self, Lidar, Scene};
@@ -42,6 +43,9 @@ pub struct SimArgs {
     /// Planner: print one JSON line of latencies (for `bench --e2e`).
     #[arg(long)]
     pub json: bool,
+    /// Run under SCHED_FIFO at this priority (0 = off).
+    #[arg(long, default_value_t = 0)]
+    pub rt_priority: i32,
 }
 
 /// Sensor height above the floor, metres.
@@ -64,12 +68,6 @@ impl Kids {
     fn get(&mut self, name: &str) -> Option<&mut Child> {
         self.0.iter_mut().find(|(n, _)| *n == name).map(|(_, c)| c)
     }
-}
-
-fn now_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(1, |d| d.as_nanos() as u64)
 }
 
 pub fn run(a: DemoArgs) -> Result<()> {
@@ -228,8 +226,10 @@ pub fn sensor(a: SimArgs) -> Result<()> {
         let pose = sim::pose_along(speed * t, SENSOR_HEIGHT);
         lidar.scan(&scene, &pose, &mut rng, &mut pts);
         // The scan's length is known only after casting, so it is built in a buffer and
-        // copied into the loan (0.8 MB, well under a millisecond).
-        publisher.publish(&pose, now_ns(), &pts)?;
+        // copied into the loan; stamped after the copy, as a driver stamps at send time.
+        let mut loan = publisher.loan(pts.len())?;
+        loan.points_mut().copy_from_slice(&pts);
+        loan.send(&pose, now_ns())?;
         frames += 1;
         points += pts.len() as u64;
     }
@@ -240,6 +240,9 @@ pub fn sensor(a: SimArgs) -> Result<()> {
 /// The simulated planner: on each snapshot, checks in place whether the path ahead is in
 /// line of sight and whether a robot-sized box along it is free.
 pub fn planner(a: SimArgs) -> Result<()> {
+    if a.rt_priority > 0 {
+        crate::os::set_realtime(a.rt_priority)?;
+    }
     let mut sub = SnapshotSubscriber::connect(&a.prefix, &a.map)?;
     let started = Instant::now();
     let mut latencies_ms = Vec::new();
@@ -290,12 +293,27 @@ pub fn planner(a: SimArgs) -> Result<()> {
     }
     let snaps = latencies_ms.len();
     latencies_ms.sort_by(f64::total_cmp);
-    let pct = |p: f64| {
-        latencies_ms
-            .get(((snaps as f64 - 1.0) * p).round() as usize)
+    handover_us.sort_by(f64::total_cmp);
+    let pct_of = |v: &[f64], p: f64| {
+        v.get(((v.len() as f64 - 1.0) * p).round() as usize)
             .copied()
             .unwrap_or(0.0)
     };
+    let pct = |p: f64| pct_of(&latencies_ms, p);
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "snapshots": snaps,
+                "in_place": in_place,
+                "latency_ms_p50": pct(0.5),
+                "latency_ms_p99": pct(0.99),
+                "handover_us_p50": pct_of(&handover_us, 0.5),
+                "handover_us_p99": pct_of(&handover_us, 0.99),
+            })
+        );
+        return Ok(());
+    }
     println!(
         "  planner: {snaps} snapshots read in place in shared memory: {}; frame sent -> snapshot readable p50 {:.1} ms, p99 {:.1} ms",
         if in_place { "yes" } else { "NO" },
@@ -313,12 +331,21 @@ pub fn planner(a: SimArgs) -> Result<()> {
 }
 
 /// `voxmap bench --e2e`: service, sensor and planner as separate processes; 65,536-point
-/// scans at 0.1 m and 30 m max range. Phase 1 at 10 Hz measures latency, phase 2 sends as
-/// fast as the sensor can to find the sustained rate, phase 3 measures idle CPU.
+/// scans at 0.1 m and 30 m max range. For normal and for real-time (SCHED_FIFO 10)
+/// scheduling of the service's I/O thread and the planner: latency at 10 Hz; then, at
+/// normal priority, the sustained rate with the sensor flat out, and the idle CPU.
 pub fn e2e(seconds: f64) -> Result<()> {
+    println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads, sensor and planner as processes, {seconds} s per phase");
+    for rt in [0, 10] {
+        e2e_run(seconds, rt)?;
+    }
+    Ok(())
+}
+
+fn e2e_run(seconds: f64, rt: i32) -> Result<()> {
     let exe = std::env::current_exe()?;
-    let prefix = format!("voxmap-e2e-{}", std::process::id());
-    let secs = seconds.to_string();
+    let prefix = format!("voxmap-e2e-{}-{rt}", std::process::id());
+    let (secs, rts) = (seconds.to_string(), rt.to_string());
     let mut kids = Kids(Vec::new());
     kids.0.push((
         "service",
@@ -331,16 +358,22 @@ pub fn e2e(seconds: f64) -> Result<()> {
                 "0.1",
                 "--max-range",
                 "30",
-                "--threads",
-                "2",
             ])
+            .args(["--threads", "2", "--rt-priority", &rts])
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            .stderr(Stdio::piped())
             .spawn()?,
     ));
     let mut snapshots = SnapshotSubscriber::connect(&prefix, "default")?;
     if !snapshots.wait_for_update(Duration::from_secs(20))? {
-        bail!("the service published no snapshot within 20 s");
+        let mut err = String::new();
+        if let Some(c) = kids.get("service") {
+            if let Ok(Some(_)) = c.try_wait() {
+                use std::io::Read;
+                c.stderr.take().map(|mut e| e.read_to_string(&mut err));
+            }
+        }
+        bail!("the service published no snapshot within 20 s: {err}");
     }
     drop(snapshots);
     let control = MapControl::connect(&prefix, "default")?;
@@ -356,48 +389,33 @@ pub fn e2e(seconds: f64) -> Result<()> {
             rate,
         ]);
         if json {
-            c.arg("--json").stdout(Stdio::piped());
+            c.args(["--json", "--rt-priority", &rts])
+                .stdout(Stdio::piped());
         } else {
             c.stdout(Stdio::null());
         }
         Ok(c.spawn()?)
     };
-    // Phase 1: latency at the sensor's nominal 10 Hz.
     let planner = sim("sim-planner", "10", true)?;
     let mut sensor = sim("sim-sensor", "10", false)?;
     sensor.wait()?;
     let out = planner.wait_with_output()?;
-    let p: serde_json::Value = serde_json::from_slice(&out.stdout).context("planner report")?;
+    let p: serde_json::Value = serde_json::from_slice(&out.stdout).with_context(|| {
+        format!(
+            "planner report ({}): {:?}",
+            out.status,
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })?;
     let s1 = control.stats()?;
-    // Phase 2: as fast as the (simulated) sensor produces scans.
-    let t = Instant::now();
-    let mut sensor = sim("sim-sensor", "1000", false)?;
-    sensor.wait()?;
-    let dt = t.elapsed().as_secs_f64();
-    let s2 = control.stats()?;
-    // Phase 3: idle CPU of the service.
-    let pid = kids
-        .get("service")
-        .ok_or_else(|| anyhow!("service missing"))?
-        .id();
-    let ticks = || -> Result<u64> {
-        let st = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
-        let f: Vec<&str> = st
-            .rsplit_once(')')
-            .map_or("", |x| x.1)
-            .split_whitespace()
-            .collect();
-        Ok(f.get(11).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0)
-            + f.get(12).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0))
-    };
-    let t0 = ticks()?;
-    std::thread::sleep(Duration::from_secs(5));
-    let idle_ticks = ticks()? - t0;
     let f = |k: &str| p[k].as_f64().unwrap_or(f64::NAN);
-    let frames = (s2.frames_integrated - s1.frames_integrated) as f64;
-    println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads, sensor and planner as processes");
+    let sched = if rt > 0 {
+        format!("SCHED_FIFO {rt}")
+    } else {
+        "normal".to_string()
+    };
     println!(
-        "  phase 1, 10 Hz: {} snapshots read in place: {}",
+        "  10 Hz, {sched} scheduling: {} snapshots, read in place: {}",
         p["snapshots"], p["in_place"]
     );
     println!(
@@ -426,13 +444,40 @@ pub fn e2e(seconds: f64) -> Result<()> {
         "    snapshot {} bytes, map {} bytes",
         s1.snapshot_bytes, s1.map_memory_bytes
     );
-    println!(
-        "  phase 2, flat out: {:.1} frames/s, {:.2} Mpoints/s integrated ({} dropped in all)",
-        frames / dt,
-        (s2.points_integrated - s1.points_integrated) as f64 / dt / 1e6,
-        s2.frames_dropped
-    );
-    println!("  phase 3, idle: service used {idle_ticks} CPU ticks (1/100 s) in 5 s");
+    if rt == 0 {
+        let t = Instant::now();
+        let mut sensor = sim("sim-sensor", "1000", false)?;
+        sensor.wait()?;
+        let dt = t.elapsed().as_secs_f64();
+        let s2 = control.stats()?;
+        println!(
+            "  flat out: {:.1} frames/s, {:.2} Mpoints/s integrated ({} dropped)",
+            (s2.frames_integrated - s1.frames_integrated) as f64 / dt,
+            (s2.points_integrated - s1.points_integrated) as f64 / dt / 1e6,
+            s2.frames_dropped - s1.frames_dropped
+        );
+        let pid = kids
+            .get("service")
+            .ok_or_else(|| anyhow!("service missing"))?
+            .id();
+        let ticks = || -> Result<u64> {
+            let st = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+            let f: Vec<u64> = st
+                .rsplit_once(')')
+                .map_or("", |x| x.1)
+                .split_whitespace()
+                .filter_map(|v| v.parse().ok())
+                .collect();
+            // utime and stime: fields 14 and 15 of stat, 11 and 12 after the command.
+            Ok(f.get(10).copied().unwrap_or(0) + f.get(11).copied().unwrap_or(0))
+        };
+        let t0 = ticks()?;
+        std::thread::sleep(Duration::from_secs(5));
+        println!(
+            "  idle: the service used {} CPU ticks (1/100 s) in 5 s",
+            ticks()? - t0
+        );
+    }
     let service = kids
         .get("service")
         .ok_or_else(|| anyhow!("service missing"))?;

@@ -4,6 +4,7 @@ mod bench;
 mod config;
 mod demo;
 mod files;
+mod os;
 mod render;
 mod replay;
 mod rng;

@@ -310,9 +310,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 if let Err(e) = FrameHeader::with_pose(&scan.pose).validate(0) {
                     bail!("{}: {e}", scan.path.display());
                 }
-                let stamp_ns = std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(1, |d| d.as_nanos() as u64);
+                let stamp_ns = crate::os::now_ns();
                 let seq = publisher.publish(&scan.pose, stamp_ns, &scan.points)?;
                 if rate.is_none() {
                     wait_integrated(snapshots, control, seq)

@@ -2,6 +2,7 @@
 //! pool, snapshots out, encoded straight into loaned shared-memory samples.
 
 use crate::config::MappingArgs;
+use crate::os::now_ns;
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
 use iceoryx2::port::update_connections::UpdateConnections;
@@ -46,6 +47,9 @@ pub struct ServeArgs {
     /// Frames kept waiting under --intake queue (1..=4).
     #[arg(long)]
     pub queue_depth: Option<usize>,
+    /// Run the frame/snapshot thread under SCHED_FIFO at this priority (1..=99; 0 = off).
+    #[arg(long)]
+    pub rt_priority: Option<i32>,
     /// Exit after this many seconds (for demos and tests); 0 = run until a signal.
     #[arg(long, default_value_t = 0.0)]
     pub exit_after: f64,
@@ -70,6 +74,9 @@ impl ServeArgs {
         }
         if let Some(v) = self.queue_depth {
             c.queue_depth = v;
+        }
+        if let Some(v) = self.rt_priority {
+            c.rt_priority = v;
         }
         c.check()?;
         Ok(c)
@@ -229,6 +236,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
     };
     let threads = cfg.threads();
     let mut integ = cfg.integrator()?;
+    // After the integration pool exists, so only this (I/O) thread runs real-time.
+    if cfg.rt_priority > 0 {
+        crate::os::set_realtime(cfg.rt_priority)?;
+    }
     let mut stats = Stats::default();
     let mut sequence = 0u64;
     // Time stamp of the data in the map: the last integrated frame's (or now, before any).
@@ -476,10 +487,4 @@ pub fn run(a: ServeArgs) -> Result<()> {
     }
     eprintln!("voxmap serve: exiting; {}", stats.log_line(&map));
     Ok(())
-}
-
-fn now_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
 }
