@@ -283,26 +283,41 @@ impl<V: GridValue> Grid<V> {
 
     /// Every leaf as (origin, leaf), in no particular order.
     pub fn leaves(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
-        self.internals.iter().flat_map(move |node| {
-            node.child_mask
-                .iter()
-                .enumerate()
-                .flat_map(move |(wi, &w)| {
-                    BitIter(w).map(move |b| {
-                        let ci = wi * 64 + b;
-                        let m = (1 << INTERNAL_LOG2) - 1;
-                        let c = ci as i32;
-                        let o = node.origin
-                            + VoxelCoord::new(
-                                c & m,
-                                c >> INTERNAL_LOG2 & m,
-                                c >> (2 * INTERNAL_LOG2),
-                            )
+        self.internals
+            .iter()
+            .flat_map(move |node| self.node_leaves(node))
+    }
+
+    /// Every leaf in block order: internal nodes by origin (z, y, x), and within one the
+    /// leaves by origin (z, y, x). The order depends only on which leaves exist, not on the
+    /// order they were made in, and costs a sort of the internal nodes only.
+    pub fn leaves_in_block_order(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
+        let mut order: Vec<&Internal> = self.internals.iter().map(|n| &**n).collect();
+        order.sort_unstable_by_key(|n| (n.origin.z, n.origin.y, n.origin.x));
+        order
+            .into_iter()
+            .flat_map(move |node| self.node_leaves(node))
+    }
+
+    fn node_leaves<'a>(
+        &'a self,
+        node: &'a Internal,
+    ) -> impl Iterator<Item = (VoxelCoord, &'a Leaf<V>)> + 'a {
+        // Child index x | y << 4 | z << 8: ascending is (z, y, x) order.
+        node.child_mask
+            .iter()
+            .enumerate()
+            .flat_map(move |(wi, &w)| {
+                BitIter(w).map(move |b| {
+                    let ci = wi * 64 + b;
+                    let m = (1 << INTERNAL_LOG2) - 1;
+                    let c = ci as i32;
+                    let o = node.origin
+                        + VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2))
                             .shl(LEAF_LOG2);
-                        (o, self.leaves.get(node.children[ci]))
-                    })
+                    (o, self.leaves.get(node.children[ci]))
                 })
-        })
+            })
     }
 
     /// Every active voxel as (coordinate, value), in no particular order.

@@ -225,7 +225,7 @@ fn corrupt_bytes_get_clear_errors() {
     assert_eq!(
         SnapshotView::open(&good[..10]).unwrap_err(),
         SnapshotError::Truncated {
-            needed: 152,
+            needed: 160,
             got: 10
         }
     );
@@ -250,16 +250,28 @@ fn corrupt_bytes_get_clear_errors() {
         SnapshotError::SectionOutOfBounds("masks")
     );
     assert_eq!(
-        SnapshotView::open(&with(&|h| h.origins_offset = u64::MAX - 3)).unwrap_err(),
-        SnapshotError::SectionOutOfBounds("origins")
+        SnapshotView::open(&with(&|h| h.leaves_offset = u64::MAX - 3)).unwrap_err(),
+        SnapshotError::SectionOutOfBounds("leaves")
     );
     assert_eq!(
         SnapshotView::open(&with(&|h| h.leaf_count = u64::MAX)).unwrap_err(),
         SnapshotError::BadHeader("leaf_count")
     );
     assert_eq!(
-        SnapshotView::open(&with(&|h| h.table_capacity = 3)).unwrap_err(),
+        SnapshotView::open(&with(&|h| h.table_capacity = h.leaf_count)).unwrap_err(),
         SnapshotError::BadHeader("table_capacity")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.masks_len -= 8)).unwrap_err(),
+        SnapshotError::BadIndex("leaf masks beyond the masks section")
+    );
+    // A leaf entry whose mask reference points past the masks section.
+    let mut b = good.clone();
+    let at = h.leaves_offset as usize + 12;
+    b[at..at + 4].copy_from_slice(&((u32::MAX - 4) | layout::HAS_KNOWN).to_le_bytes());
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("leaf masks beyond the masks section")
     );
     let mut flipped = good.clone();
     let last = flipped.len() - 1;
@@ -274,6 +286,44 @@ fn corrupt_bytes_get_clear_errors() {
     ));
     let msg = SnapshotError::UnsupportedVersion(9).to_string();
     assert!(msg.contains("version 9"), "{msg}");
+}
+
+#[test]
+fn leaves_store_only_the_masks_they_need() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let q = *map.quantized();
+    // A fully known free leaf, a fully known leaf with one occupied voxel, a partly known
+    // free leaf and a partly known leaf with an occupied voxel.
+    for i in 0..512 {
+        let v = crate::grid::voxel_at(VoxelCoord::new(0, 0, 0), i);
+        map.set_value(v, q.min);
+        map.set_value(v + VoxelCoord::new(8, 0, 0), q.min);
+    }
+    map.set_value(VoxelCoord::new(9, 1, 1), q.max);
+    map.set_value(VoxelCoord::new(16, 0, 0), q.min);
+    map.set_value(VoxelCoord::new(24, 0, 0), q.max);
+    let bytes = encode(&map, Scope::Whole, false);
+    let view = SnapshotView::open_checked(&bytes).unwrap();
+    // Masks: none, occupied only, known only, known and occupied.
+    assert_eq!(view.header().masks_len, 8 * (8 + 8 + 16));
+    assert_eq!(view.counts(), (512 + 512 + 2, 2));
+    for (v, s) in [
+        (VoxelCoord::new(3, 4, 5), VoxelState::Free),
+        (VoxelCoord::new(9, 1, 1), VoxelState::Occupied),
+        (VoxelCoord::new(10, 1, 1), VoxelState::Free),
+        (VoxelCoord::new(16, 0, 0), VoxelState::Free),
+        (VoxelCoord::new(17, 0, 0), VoxelState::Unknown),
+        (VoxelCoord::new(24, 0, 0), VoxelState::Occupied),
+        (VoxelCoord::new(25, 0, 0), VoxelState::Unknown),
+    ] {
+        assert_eq!((v, view.state(v)), (v, s));
+        assert_eq!(map.state(v), s);
+    }
+    let occ: Vec<_> = view.occupied_voxels().collect();
+    assert_eq!(
+        occ,
+        vec![VoxelCoord::new(9, 1, 1), VoxelCoord::new(24, 0, 0)]
+    );
 }
 
 /// Every query on whatever `open` accepts: must not panic.
@@ -324,7 +374,7 @@ proptest! {
         let mut b = GOOD.with(|g| g.clone());
         for (at, x) in flips {
             // Bias half the flips into the header, where the offsets live.
-            let i = if at % 2 == 0 { at % 152 } else { at % b.len() };
+            let i = if at % 2 == 0 { at % layout::HEADER_SIZE } else { at % b.len() };
             b[i] ^= x;
         }
         if cut % 4 == 0 {

@@ -4,6 +4,7 @@ use super::layout::*;
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
 use crate::grid::{leaf_offset, leaf_origin, voxel_at};
 use crate::model::{QuantizedModel, VoxelState};
+use bytemuck::Zeroable;
 
 /// Longest segment [`SnapshotView::first_hit`] walks, per axis, in voxels.
 pub const MAX_SEGMENT_VOXELS: f64 = 65536.0;
@@ -50,6 +51,13 @@ compile_error!(
 /// assert_eq!(view.state(VoxelCoord::new(3, -2, 7)), VoxelState::Occupied);
 /// assert_eq!(view.state(VoxelCoord::new(0, 0, 0)), VoxelState::Unknown);
 /// ```
+/// A leaf found in the table: its index (for the values section) and mask reference.
+#[derive(Clone, Copy, Debug)]
+struct LeafRef {
+    index: u64,
+    masks: u32,
+}
+
 #[derive(Clone, Copy, Debug)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
@@ -95,8 +103,11 @@ impl<'a> SnapshotView<'a> {
             return Err(SnapshotError::BadHeader("leaf_count"));
         }
         let cap = h.table_capacity;
-        if !cap.is_power_of_two() || cap < n.saturating_mul(2).max(1) || cap > 1 << 33 {
+        if cap <= n || cap >= 1 << 32 {
             return Err(SnapshotError::BadHeader("table_capacity"));
+        }
+        if !h.masks_len.is_multiple_of(8) || h.masks_len / 8 > MAX_MASK_WORDS {
+            return Err(SnapshotError::BadHeader("masks_len"));
         }
         if h.known_count > n * 512 || h.occupied_count > h.known_count {
             return Err(SnapshotError::BadHeader("voxel counts"));
@@ -111,16 +122,8 @@ impl<'a> SnapshotView<'a> {
             Ok(())
         };
         section("table", h.table_offset, cap.checked_mul(4))?;
-        section(
-            "origins",
-            h.origins_offset,
-            n.checked_mul(ORIGIN_SIZE as u64),
-        )?;
-        section(
-            "masks",
-            h.masks_offset,
-            n.checked_mul(MASKS_PER_LEAF as u64),
-        )?;
+        section("leaves", h.leaves_offset, n.checked_mul(ENTRY_SIZE as u64))?;
+        section("masks", h.masks_offset, Some(h.masks_len))?;
         if h.flags & FLAG_VALUES != 0 {
             section(
                 "values",
@@ -157,10 +160,16 @@ impl<'a> SnapshotView<'a> {
         if empty == 0 {
             return Err(SnapshotError::BadIndex("leaf table has no empty slot"));
         }
+        let words = h.masks_len / 8;
         for i in 0..n {
-            let o = v.origin(i);
-            if o.iter().any(|c| c & 7 != 0) {
+            let e = v.entry(i);
+            if e.origin.iter().any(|c| c & 7 != 0) {
                 return Err(SnapshotError::BadIndex("leaf origin not a multiple of 8"));
+            }
+            if u64::from(e.masks >> 2) + e.mask_words() > words {
+                return Err(SnapshotError::BadIndex(
+                    "leaf masks beyond the masks section",
+                ));
             }
         }
         Ok(v)
@@ -240,45 +249,61 @@ impl<'a> SnapshotView<'a> {
     }
 
     #[inline]
-    fn origin(&self, i: u64) -> [i32; 3] {
-        let at = self.header.origins_offset + ORIGIN_SIZE as u64 * i;
-        [0, 1, 2].map(|k| self.u32_at(at + 4 * k) as i32)
+    fn entry(&self, i: u64) -> LeafEntry {
+        let at = (self.header.leaves_offset + ENTRY_SIZE as u64 * i) as usize;
+        self.bytes
+            .get(at..at + ENTRY_SIZE)
+            .map_or(LeafEntry::zeroed(), bytemuck::pod_read_unaligned)
     }
 
-    /// Index of the leaf with origin `o`.
+    /// The leaf with origin `o`.
     #[inline]
-    fn find_leaf(&self, o: [i32; 3]) -> Option<u64> {
-        let mask = self.header.table_capacity - 1;
-        let mut s = table_hash(o, mask);
+    fn find_leaf(&self, o: [i32; 3]) -> Option<LeafRef> {
+        let cap = self.header.table_capacity;
+        let mut s = table_hash(o, cap);
         // Bounded: validated tables have an empty slot; the bound guards nothing else.
-        for _ in 0..=mask {
+        for _ in 0..cap {
             let e = self.u32_at(self.header.table_offset + 4 * s);
             if e == 0 {
                 return None;
             }
-            let i = u64::from(e - 1);
-            if self.origin(i) == o {
-                return Some(i);
+            let index = u64::from(e - 1);
+            let entry = self.entry(index);
+            if entry.origin == o {
+                return Some(LeafRef {
+                    index,
+                    masks: entry.masks,
+                });
             }
-            s = (s + 1) & mask;
+            s = if s + 1 == cap { 0 } else { s + 1 };
         }
         None
     }
 
+    /// Word `w` of a leaf's known mask. Branch-free: which masks a leaf stores varies from
+    /// leaf to leaf, so a branch here would mispredict on random queries.
     #[inline]
-    fn mask_bit(&self, leaf: u64, which: u64, i: usize) -> bool {
-        let at = self.header.masks_offset
-            + MASKS_PER_LEAF as u64 * leaf
-            + 64 * which
-            + 8 * (i as u64 >> 6);
-        self.u64_at(at) >> (i & 63) & 1 != 0
+    fn known_word(&self, masks: u32, w: usize) -> u64 {
+        let stored = self.u64_at(self.header.masks_offset + 8 * (u64::from(masks >> 2) + w as u64));
+        // Not stored: all known.
+        stored | u64::from(masks & HAS_KNOWN).wrapping_sub(1)
+    }
+
+    /// Word `w` of a leaf's occupied mask (not yet restricted to the known voxels).
+    #[inline]
+    fn occupied_word(&self, masks: u32, w: usize) -> u64 {
+        let first = u64::from(masks >> 2) + 8 * u64::from(masks & HAS_KNOWN);
+        let stored = self.u64_at(self.header.masks_offset + 8 * (first + w as u64));
+        // Not stored: none occupied.
+        stored & 0u64.wrapping_sub(u64::from(masks & HAS_OCCUPIED) >> 1)
     }
 
     #[inline]
-    fn leaf_state(&self, leaf: u64, i: usize) -> VoxelState {
-        if !self.mask_bit(leaf, 0, i) {
+    fn leaf_state(&self, leaf: LeafRef, i: usize) -> VoxelState {
+        let (w, bit) = (i >> 6, i & 63);
+        if self.known_word(leaf.masks, w) >> bit & 1 == 0 {
             VoxelState::Unknown
-        } else if self.mask_bit(leaf, 1, i) {
+        } else if self.occupied_word(leaf.masks, w) >> bit & 1 != 0 {
             VoxelState::Occupied
         } else {
             VoxelState::Free
@@ -308,10 +333,10 @@ impl<'a> SnapshotView<'a> {
         }
         let l = self.find_leaf(leaf_origin(v).to_array())?;
         let i = leaf_offset(v);
-        if !self.mask_bit(l, 0, i) {
+        if self.leaf_state(l, i) == VoxelState::Unknown {
             return None;
         }
-        let at = (self.header.values_offset + VALUES_PER_LEAF as u64 * l) as usize + i;
+        let at = (self.header.values_offset + VALUES_PER_LEAF as u64 * l.index) as usize + i;
         let raw = *self.bytes.get(at)? as i8;
         Some(crate::model::probability(self.q.to_logodds(raw)))
     }
@@ -372,9 +397,10 @@ impl<'a> SnapshotView<'a> {
             * ((lhi.z - llo.z) as u64 / 8 + 1);
         if unknown_is_free && leaves_in_box > self.leaf_count() {
             // Cheaper to scan the stored leaves than the box.
-            return (0..self.leaf_count()).all(|l| {
-                let o = VoxelCoord::from_array(self.origin(l));
-                (0..512).all(|i| !(self.mask_bit(l, 1, i) && inside(voxel_at(o, i))))
+            return self.leaf_occupancy().all(|l| {
+                l.occupied
+                    .iter_ones()
+                    .all(|i| !inside(voxel_at(l.origin, i)))
             });
         }
         let mut z = llo.z;
@@ -413,17 +439,15 @@ impl<'a> SnapshotView<'a> {
     /// (possible only in corrupt bytes) are dropped.
     pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::map::LeafOccupancy> + '_ {
         (0..self.leaf_count()).map(move |l| {
-            let at = self.header.masks_offset + MASKS_PER_LEAF as u64 * l;
+            let e = self.entry(l);
             let known = crate::mask::Mask512 {
-                words: std::array::from_fn(|w| self.u64_at(at + 8 * w as u64)),
+                words: std::array::from_fn(|w| self.known_word(e.masks, w)),
             };
             let occupied = crate::mask::Mask512 {
-                words: std::array::from_fn(|w| {
-                    self.u64_at(at + 64 + 8 * w as u64) & known.words[w]
-                }),
+                words: std::array::from_fn(|w| self.occupied_word(e.masks, w) & known.words[w]),
             };
             crate::map::LeafOccupancy {
-                origin: VoxelCoord::from_array(self.origin(l)),
+                origin: VoxelCoord::from_array(e.origin),
                 known,
                 occupied,
             }
@@ -432,14 +456,16 @@ impl<'a> SnapshotView<'a> {
 
     /// Occupied voxels, in leaf order.
     pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
-        (0..self.leaf_count()).flat_map(move |l| {
-            let o = VoxelCoord::from_array(self.origin(l));
-            (0..8u64).flat_map(move |w| {
-                let at = self.header.masks_offset + MASKS_PER_LEAF as u64 * l;
-                let bits = self.u64_at(at + 64 + 8 * w) & self.u64_at(at + 8 * w);
-                crate::mask::BitIter(bits).map(move |b| voxel_at(o, (w as usize) * 64 + b))
+        (0..self.leaf_count())
+            .map(move |l| self.entry(l))
+            .filter(|e| e.masks & HAS_OCCUPIED != 0)
+            .flat_map(move |e| {
+                let o = VoxelCoord::from_array(e.origin);
+                (0..8).flat_map(move |w| {
+                    let bits = self.occupied_word(e.masks, w) & self.known_word(e.masks, w);
+                    crate::mask::BitIter(bits).map(move |b| voxel_at(o, w * 64 + b))
+                })
             })
-        })
     }
 
     /// World centres of the occupied voxels.

@@ -29,9 +29,13 @@ pub struct Meta {
 struct PlannedLeaf<'a> {
     origin: VoxelCoord,
     leaf: &'a Leaf<i8>,
-    /// Voxels of the leaf inside the scope.
-    keep: Mask512,
+    /// The leaf's [`LeafEntry::masks`].
+    masks: u32,
+    /// Index into `Plan::keeps` of the voxels inside a box scope; `WHOLE`: all active.
+    keep: u32,
 }
+
+const WHOLE: u32 = u32::MAX;
 
 /// Voxels of `keep` whose value is at or above the threshold, a word at a time.
 fn occupied_mask(leaf: &Leaf<i8>, keep: &Mask512, threshold: i8) -> Mask512 {
@@ -77,26 +81,38 @@ fn extend_bounds(lo: &mut [i32; 3], hi: &mut [i32; 3], origin: VoxelCoord, keep:
     }
 }
 
+fn keep_of<'k>(keeps: &'k [Mask512], p: &'k PlannedLeaf<'_>) -> &'k Mask512 {
+    if p.keep == WHOLE {
+        &p.leaf.active
+    } else {
+        &keeps[p.keep as usize]
+    }
+}
+
 /// A snapshot laid out but not yet written: size it with [`Plan::encoded_len`], then
 /// [`Plan::write`] it into a buffer of at least that many bytes.
 pub struct Plan<'a> {
     map: &'a OccupancyMap,
     leaves: Vec<PlannedLeaf<'a>>,
+    keeps: Vec<Mask512>,
     meta: Meta,
     table_capacity: u64,
+    mask_words: u64,
 }
 
 impl<'a> Plan<'a> {
     pub fn new(map: &'a OccupancyMap, scope: Scope, meta: Meta) -> Self {
+        let mut keeps = Vec::new();
         let mut leaves: Vec<PlannedLeaf<'a>> = match scope {
             Scope::Whole => map
                 .grid()
-                .leaves()
+                .leaves_in_block_order()
                 .filter(|(_, l)| !l.active.is_empty())
                 .map(|(origin, leaf)| PlannedLeaf {
                     origin,
                     leaf,
-                    keep: leaf.active,
+                    masks: 0,
+                    keep: WHOLE,
                 })
                 .collect(),
             Scope::Box { min, max } => {
@@ -108,7 +124,7 @@ impl<'a> Plan<'a> {
                     (Some(lo), Some(hi)) => {
                         let lo = lo + VoxelCoord::new(1, 1, 1);
                         map.grid()
-                            .leaves()
+                            .leaves_in_block_order()
                             .filter_map(|(origin, leaf)| {
                                 let mut keep = Mask512::EMPTY;
                                 for i in leaf.active.iter_ones() {
@@ -123,7 +139,16 @@ impl<'a> Plan<'a> {
                                         keep.set(i);
                                     }
                                 }
-                                (!keep.is_empty()).then_some(PlannedLeaf { origin, leaf, keep })
+                                if keep.is_empty() {
+                                    return None;
+                                }
+                                keeps.push(keep);
+                                Some(PlannedLeaf {
+                                    origin,
+                                    leaf,
+                                    masks: 0,
+                                    keep: keeps.len() as u32 - 1,
+                                })
                             })
                             .collect()
                     }
@@ -131,18 +156,29 @@ impl<'a> Plan<'a> {
                 }
             }
         };
-        leaves.sort_unstable_by_key(|p| (p.origin.z, p.origin.y, p.origin.x));
-        let n = leaves.len() as u64;
-        let table_capacity = if n == 0 {
-            1
-        } else {
-            (2 * n).next_power_of_two()
-        };
+        let threshold = map.quantized().threshold;
+        let mut words = 0u64;
+        for p in &mut leaves {
+            let keep = keep_of(&keeps, p);
+            let mut kinds = 0;
+            if keep.count() != LEAF_VOXELS as u32 {
+                kinds |= HAS_KNOWN;
+            }
+            if !occupied_mask(p.leaf, keep, threshold).is_empty() {
+                kinds |= HAS_OCCUPIED;
+            }
+            // Past MAX_MASK_WORDS the reference would wrap; `write` refuses such a plan.
+            p.masks = ((words.min(MAX_MASK_WORDS - 1) as u32) << 2) | kinds;
+            words += 8 * u64::from(kinds.count_ones());
+        }
+        let table_capacity = table_capacity_for(leaves.len() as u64);
         Self {
             map,
             leaves,
+            keeps,
             meta,
             table_capacity,
+            mask_words: words,
         }
     }
 
@@ -153,15 +189,15 @@ impl<'a> Plan<'a> {
     fn sections(&self) -> (u64, u64, u64, u64, u64) {
         let n = self.leaves.len() as u64;
         let table = HEADER_SIZE as u64;
-        let origins = align8(table + 4 * self.table_capacity);
-        let masks = align8(origins + ORIGIN_SIZE as u64 * n);
-        let values_end = masks + MASKS_PER_LEAF as u64 * n;
+        let entries = align8(table + 4 * self.table_capacity);
+        let masks = entries + ENTRY_SIZE as u64 * n;
+        let values_end = masks + 8 * self.mask_words;
         let (values, total) = if self.meta.with_values {
             (values_end, values_end + VALUES_PER_LEAF as u64 * n)
         } else {
             (0, values_end)
         };
-        (table, origins, masks, values, total)
+        (table, entries, masks, values, total)
     }
 
     /// Bytes [`Plan::write`] needs.
@@ -171,7 +207,10 @@ impl<'a> Plan<'a> {
 
     /// Write the snapshot into `buf[..encoded_len()]`; returns the length written.
     pub fn write(&self, buf: &mut [u8]) -> Result<usize, SnapshotError> {
-        let (table, origins, masks, values, total) = self.sections();
+        let (table, entries, masks, values, total) = self.sections();
+        if self.mask_words > MAX_MASK_WORDS || self.table_capacity >= 1 << 32 {
+            return Err(SnapshotError::TooLarge);
+        }
         let total_us = total as usize;
         if buf.len() < total_us {
             return Err(SnapshotError::BufferTooSmall {
@@ -186,35 +225,46 @@ impl<'a> Plan<'a> {
         let mut occupied = 0u64;
         let mut lo = [i32::MAX; 3];
         let mut hi = [i32::MIN; 3];
-        let mask = self.table_capacity - 1;
+        let cap = self.table_capacity;
         for (i, p) in self.leaves.iter().enumerate() {
             let o = p.origin.to_array();
-            // Table slot.
-            let mut s = table_hash(o, mask);
+            let mut s = table_hash(o, cap);
             loop {
                 let at = (table + 4 * s) as usize;
                 if buf[at..at + 4] == [0; 4] {
                     buf[at..at + 4].copy_from_slice(&(i as u32 + 1).to_le_bytes());
                     break;
                 }
-                s = (s + 1) & mask;
+                s = if s + 1 == cap { 0 } else { s + 1 };
             }
-            let at = origins as usize + ORIGIN_SIZE * i;
-            for (k, c) in o.iter().enumerate() {
-                buf[at + 4 * k..at + 4 * k + 4].copy_from_slice(&c.to_le_bytes());
+            let entry = LeafEntry {
+                origin: o,
+                masks: p.masks,
+            };
+            let at = entries as usize + ENTRY_SIZE * i;
+            buf[at..at + ENTRY_SIZE].copy_from_slice(bytemuck::bytes_of(&entry));
+            let keep = keep_of(&self.keeps, p);
+            extend_bounds(&mut lo, &mut hi, p.origin, keep);
+            known += u64::from(keep.count());
+            let mut at = masks as usize + 8 * (p.masks >> 2) as usize;
+            let mut put = |m: &Mask512| {
+                for word in &m.words {
+                    buf[at..at + 8].copy_from_slice(&word.to_le_bytes());
+                    at += 8;
+                }
+            };
+            if p.masks & HAS_KNOWN != 0 {
+                put(keep);
             }
-            let occ = occupied_mask(p.leaf, &p.keep, q.threshold);
-            extend_bounds(&mut lo, &mut hi, p.origin, &p.keep);
-            known += u64::from(p.keep.count());
-            occupied += u64::from(occ.count());
-            let at = masks as usize + MASKS_PER_LEAF * i;
-            for (w, word) in p.keep.words.iter().chain(&occ.words).enumerate() {
-                buf[at + 8 * w..at + 8 * w + 8].copy_from_slice(&word.to_le_bytes());
+            if p.masks & HAS_OCCUPIED != 0 {
+                let occ = occupied_mask(p.leaf, keep, q.threshold);
+                occupied += u64::from(occ.count());
+                put(&occ);
             }
             if self.meta.with_values {
                 let at = values as usize + VALUES_PER_LEAF * i;
                 for v in 0..LEAF_VOXELS {
-                    buf[at + v] = if p.keep.get(v) {
+                    buf[at + v] = if keep.get(v) {
                         p.leaf.values[v] as u8
                     } else {
                         0
@@ -245,8 +295,9 @@ impl<'a> Plan<'a> {
             bounds_max: hi,
             table_capacity: self.table_capacity,
             table_offset: table,
-            origins_offset: origins,
+            leaves_offset: entries,
             masks_offset: masks,
+            masks_len: 8 * self.mask_words,
             values_offset: values,
             total_len: total,
             checksum: crc32fast::hash(&buf[HEADER_SIZE..]),
