@@ -198,16 +198,23 @@ fn empty_map_and_exact_buffer_sizes() {
         plan.write(&mut small),
         Err(SnapshotError::BufferTooSmall { .. })
     ));
-    // Writing into a larger buffer (a loaned sample) gives the same bytes.
+    // Writing into a larger, dirty buffer (a reused sample) gives the same bytes: every
+    // byte is written, not assumed zero.
     let map = random_map(5, 1);
-    let plan = Plan::new(&map, Scope::Whole, Meta::default());
-    let mut big = vec![0xAAu8; plan.encoded_len() + 100];
-    let n = plan.write(&mut big).unwrap();
-    assert_eq!(&big[..n], &plan.to_vec()[..]);
-    assert_eq!(
-        SnapshotView::open_checked(&big).unwrap().as_bytes().len(),
-        n
-    );
+    for with_values in [false, true] {
+        let meta = Meta {
+            with_values,
+            ..Meta::default()
+        };
+        let plan = Plan::new(&map, Scope::Whole, meta);
+        let mut big = vec![0xAAu8; plan.encoded_len() + 100];
+        let n = plan.write(&mut big).unwrap();
+        assert_eq!(&big[..n], &plan.to_vec()[..]);
+        assert_eq!(
+            SnapshotView::open_checked(&big).unwrap().as_bytes().len(),
+            n
+        );
+    }
 }
 
 #[test]

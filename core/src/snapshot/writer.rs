@@ -219,7 +219,9 @@ impl<'a> Plan<'a> {
             });
         }
         let buf = &mut buf[..total_us];
-        buf[HEADER_SIZE..].fill(0);
+        // Only the table (and its padding) is read before written; every other byte is
+        // written below, so a reused sample needs no full clear.
+        buf[HEADER_SIZE..entries as usize].fill(0);
         let q = self.map.quantized();
         let mut known = 0u64;
         let mut occupied = 0u64;
