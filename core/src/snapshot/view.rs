@@ -37,6 +37,13 @@ compile_error!(
     "snapshots are little-endian and read in place; big-endian targets are not supported"
 );
 
+/// A leaf found in the table: its index (for the values section) and mask reference.
+#[derive(Clone, Copy, Debug)]
+struct LeafRef {
+    index: u64,
+    masks: u32,
+}
+
 /// A validated snapshot over borrowed bytes (e.g. a shared-memory sample): no copy, no
 /// deserialization. Construction checks every offset, length and count; afterwards each
 /// query is O(1) per voxel and cannot panic, whatever the bytes held.
@@ -51,13 +58,6 @@ compile_error!(
 /// assert_eq!(view.state(VoxelCoord::new(3, -2, 7)), VoxelState::Occupied);
 /// assert_eq!(view.state(VoxelCoord::new(0, 0, 0)), VoxelState::Unknown);
 /// ```
-/// A leaf found in the table: its index (for the values section) and mask reference.
-#[derive(Clone, Copy, Debug)]
-struct LeafRef {
-    index: u64,
-    masks: u32,
-}
-
 #[derive(Clone, Copy, Debug)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
