@@ -294,12 +294,8 @@ pub fn planner(a: SimArgs) -> Result<()> {
     let snaps = latencies_ms.len();
     latencies_ms.sort_by(f64::total_cmp);
     handover_us.sort_by(f64::total_cmp);
-    let pct_of = |v: &[f64], p: f64| {
-        v.get(((v.len() as f64 - 1.0) * p).round() as usize)
-            .copied()
-            .unwrap_or(0.0)
-    };
-    let pct = |p: f64| pct_of(&latencies_ms, p);
+    use crate::serve::percentile;
+    let pct = |p: f64| percentile(&latencies_ms, p);
     if a.json {
         println!(
             "{}",
@@ -308,8 +304,8 @@ pub fn planner(a: SimArgs) -> Result<()> {
                 "in_place": in_place,
                 "latency_ms_p50": pct(0.5),
                 "latency_ms_p99": pct(0.99),
-                "handover_us_p50": pct_of(&handover_us, 0.5),
-                "handover_us_p99": pct_of(&handover_us, 0.99),
+                "handover_us_p50": percentile(&handover_us, 0.5),
+                "handover_us_p99": percentile(&handover_us, 0.99),
             })
         );
         return Ok(());
@@ -462,14 +458,15 @@ fn e2e_run(seconds: f64, rt: i32) -> Result<()> {
             .id();
         let ticks = || -> Result<u64> {
             let st = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
-            let f: Vec<u64> = st
+            // utime and stime: fields 14 and 15 of stat, 11 and 12 (0-based) after the
+            // command. Fields are taken by position: some (state, tpgid = -1) are not u64.
+            let f: Vec<&str> = st
                 .rsplit_once(')')
                 .map_or("", |x| x.1)
                 .split_whitespace()
-                .filter_map(|v| v.parse().ok())
                 .collect();
-            // utime and stime: fields 14 and 15 of stat, 11 and 12 after the command.
-            Ok(f.get(10).copied().unwrap_or(0) + f.get(11).copied().unwrap_or(0))
+            let field = |i: usize| f.get(i).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+            Ok(field(11) + field(12))
         };
         let t0 = ticks()?;
         std::thread::sleep(Duration::from_secs(5));

@@ -115,11 +115,6 @@ impl Stats {
             t.sort_by(f64::total_cmp);
             t
         };
-        let pct = |t: &[f64], p: f64| {
-            t.get(((t.len() as f64 - 1.0) * p).round() as usize)
-                .copied()
-                .unwrap_or(0.0)
-        };
         let (t, intake) = (sorted(&self.integrate_ms), sorted(&self.intake_us));
         StatsWire {
             frames_received: self.received,
@@ -132,12 +127,12 @@ impl Stats {
             map_memory_bytes: map.memory_bytes() as u64,
             snapshot_bytes: self.last_snapshot_bytes as u64,
             snapshot_sequence: self.sequence,
-            integrate_ms_p50: pct(&t, 0.5),
-            integrate_ms_p99: pct(&t, 0.99),
+            integrate_ms_p50: percentile(&t, 0.5),
+            integrate_ms_p99: percentile(&t, 0.99),
             integrate_ms_max: t.last().copied().unwrap_or(0.0),
             encode_ms_last: self.last_encode_ms,
-            intake_us_p50: pct(&intake, 0.5),
-            intake_us_p99: pct(&intake, 0.99),
+            intake_us_p50: percentile(&intake, 0.5),
+            intake_us_p99: percentile(&intake, 0.99),
         }
     }
 
@@ -487,4 +482,12 @@ pub fn run(a: ServeArgs) -> Result<()> {
     }
     eprintln!("voxmap serve: exiting; {}", stats.log_line(&map));
     Ok(())
+}
+
+/// The `p` quantile (0..=1, nearest rank) of ascending `sorted`; 0 when empty.
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
+    sorted
+        .get(((sorted.len() as f64 - 1.0) * p).round() as usize)
+        .copied()
+        .unwrap_or(0.0)
 }
