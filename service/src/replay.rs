@@ -215,9 +215,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     } else {
         let control = MapControl::connect(&a.prefix, &a.map)
             .map_err(|e| anyhow!("no voxmap service under prefix '{}': {e}", a.prefix))?;
+        let mut snapshots = SnapshotSubscriber::connect(&a.prefix, &a.map)?;
+        wait_for_service(&mut snapshots, &a.prefix)?;
         Sink::Service(Box::new(Online {
             publisher: FramePublisher::connect(&a.prefix, &a.map)?,
-            snapshots: SnapshotSubscriber::connect(&a.prefix, &a.map)?,
+            snapshots,
             control,
         }))
     };
@@ -372,6 +374,21 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 println!("service saved its map to {}", abs.display());
             }
         }
+    }
+    Ok(())
+}
+
+/// Wait for the service's first snapshot. The service subscribes to frames before it
+/// publishes one, and frames sent before it subscribes are lost (no history), so this is
+/// how replay knows its first frame will arrive; it also catches a service that is not
+/// running, which connecting alone does not (connect creates the services if absent).
+fn wait_for_service(snapshots: &mut SnapshotSubscriber, prefix: &str) -> Result<()> {
+    let t = Instant::now();
+    while snapshots.latest()?.is_none() {
+        if t.elapsed() > Duration::from_secs(30) {
+            bail!("no voxmap service under prefix '{prefix}': no snapshot after 30 s");
+        }
+        snapshots.wait_for_update(Duration::from_millis(200))?;
     }
     Ok(())
 }

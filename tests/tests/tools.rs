@@ -101,17 +101,25 @@ fn replay_offline_and_through_the_service_give_the_same_map() {
     let c = a.counts();
     assert!(c.occupied > 5_000 && c.free > 50_000, "{c:?}");
 
+    // Replay starts before the service: it must wait for it, not send frames into the void.
     let prefix = unique_prefix("replay_svc");
-    let svc = Service::start(&prefix, &["--resolution", "0.1", "--max-range", "10"]);
     let online = dir.join("online.vxm");
-    let out = ok(&[
-        "replay",
-        "--prefix",
-        &prefix,
-        "--save",
-        online.to_str().unwrap(),
-        scans.to_str().unwrap(),
-    ]);
+    let replay = Command::new(voxmap_bin())
+        .args(["replay", "--prefix", &prefix, "--save"])
+        .args([online.to_str().unwrap(), scans.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run voxmap replay");
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let svc = Service::start(&prefix, &["--resolution", "0.1", "--max-range", "10"]);
+    let r = replay.wait_with_output().expect("wait for replay");
+    let out = String::from_utf8_lossy(&r.stdout);
+    assert!(
+        r.status.success(),
+        "replay failed: {out}\n{}",
+        String::from_utf8_lossy(&r.stderr)
+    );
     assert!(
         out.contains("3 frames integrated, 0 dropped, 0 rejected"),
         "{out}"
