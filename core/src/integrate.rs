@@ -216,6 +216,12 @@ impl Integrator {
         })
     }
 
+    /// Run `f` on this integrator's thread pool, so that parallel work around integration
+    /// (snapshot encoding) keeps to the configured thread count.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.pool.install(f)
+    }
+
     pub fn config(&self) -> &IntegratorConfig {
         &self.cfg
     }

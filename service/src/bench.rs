@@ -238,7 +238,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 times.sort_by(f64::total_cmp);
                 let med = times[times.len() / 2];
                 if mode == RayMode::Exact && Some(&threads) == a.threads.last() && !a.no_snapshot {
-                    snapshots.push((name.clone(), snapshot_bench(&map, med)));
+                    snapshots.push((name.clone(), snapshot_bench(&integ, &map, med)));
                 }
                 drop(map);
                 let (min, max) = (times[0], times[times.len() - 1]);
@@ -328,7 +328,9 @@ struct SnapshotBench {
     los_ns: f64,
 }
 
-fn snapshot_bench(map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
+/// Encode on the integrator's pool, as the service does, so encode and integrate use the
+/// same threads.
+fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
     use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
     use voxmap_core::{VoxelCoord, WorldPoint};
     let meta = Meta::default();
@@ -337,8 +339,10 @@ fn snapshot_bench(map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
     let mut enc = Vec::new();
     for _ in 0..3 {
         let t = Instant::now();
-        let plan = Plan::new(map, Scope::Whole, meta);
-        plan.write(&mut buf).expect("sized");
+        integ.install(|| {
+            let plan = Plan::new(map, Scope::Whole, meta);
+            plan.write(&mut buf).expect("sized");
+        });
         enc.push(ms(t.elapsed()));
     }
     enc.sort_by(f64::total_cmp);

@@ -17,7 +17,7 @@ use voxmap_core::wire::{
     ControlKind, ControlRequest, ControlResponse, ServiceNames, SnapshotHeader, StatsWire,
     SNAPSHOT_WIRE_VERSION,
 };
-use voxmap_core::{Frame, OccupancyMap};
+use voxmap_core::{Frame, Integrator, OccupancyMap};
 
 #[derive(Args, Debug, Clone)]
 pub struct ServeArgs {
@@ -242,27 +242,26 @@ pub fn run(a: ServeArgs) -> Result<()> {
 
     let mut scope = ScopeSetting::Whole;
     let mut sensor = [0.0f64; 3];
-    let publish = |map: &OccupancyMap,
+    let publish = |integ: &Integrator,
+                   map: &OccupancyMap,
                    sequence: u64,
                    stamp_ns: u64,
                    stats: &mut Stats,
                    scope: Scope|
      -> Result<()> {
         let t = Instant::now();
-        let plan = Plan::new(
-            map,
-            scope,
-            Meta {
-                sequence,
-                timestamp_ns: stamp_ns,
-                with_values: cfg.snapshot_values,
-            },
-        );
+        let meta = Meta {
+            sequence,
+            timestamp_ns: stamp_ns,
+            with_values: cfg.snapshot_values,
+        };
+        let plan = integ.install(|| Plan::new(map, scope, meta));
         let n = plan.encoded_len();
         let mut sample = snapshots
             .loan_slice(n)
             .map_err(|e| anyhow!("loaning {n} bytes for a snapshot: {e:?}"))?;
-        plan.write(sample.payload_mut())?;
+        let payload = sample.payload_mut();
+        integ.install(|| plan.write(payload))?;
         *sample.user_header_mut() = SnapshotHeader {
             version: SNAPSHOT_WIRE_VERSION,
             reserved: 0,
@@ -281,7 +280,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
         Ok(())
     };
-    publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+    publish(
+        &integ,
+        &map,
+        sequence,
+        stamp_ns,
+        &mut stats,
+        scope.scope(sensor),
+    )?;
     eprintln!(
         "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {threads} threads, intake {}; frames on '{}'",
         cfg.prefix, cfg.map, map.resolution(), cfg.max_range, cfg.mode, cfg.intake, names.frames
@@ -411,7 +417,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
             }
         }
         if unpublished && last_publish.elapsed() >= interval {
-            publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+            publish(
+                &integ,
+                &map,
+                sequence,
+                stamp_ns,
+                &mut stats,
+                scope.scope(sensor),
+            )?;
             last_publish = Instant::now();
             unpublished = false;
         }
@@ -457,7 +470,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 eprintln!("voxmap serve: control request failed: {msg}");
             }
             if republish {
-                publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+                publish(
+                    &integ,
+                    &map,
+                    sequence,
+                    stamp_ns,
+                    &mut stats,
+                    scope.scope(sensor),
+                )?;
                 last_publish = Instant::now();
                 unpublished = false;
             }
@@ -475,7 +495,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    publish(&map, sequence, stamp_ns, &mut stats, scope.scope(sensor))?;
+    publish(
+        &integ,
+        &map,
+        sequence,
+        stamp_ns,
+        &mut stats,
+        scope.scope(sensor),
+    )?;
     if let Some(p) = &a.save_on_exit {
         mapfile::save_map(&map, p).with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());

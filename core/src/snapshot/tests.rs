@@ -51,6 +51,9 @@ fn view_agrees_with_the_map_on_every_query() {
         let map = random_map(seed, 3);
         let bytes = encode(&map, Scope::Whole, true);
         let view = SnapshotView::open_checked(&bytes).unwrap();
+        // Written in many parallel pieces, checksum included.
+        assert!(map.grid().leaf_count() > 10 * super::writer::PIECE);
+        assert!(bytes.len() > 10 * 4096);
         let c = map.counts();
         assert_eq!(view.counts(), (c.occupied + c.free, c.occupied));
         assert_eq!((view.sequence(), view.timestamp_ns()), (42, 7));
