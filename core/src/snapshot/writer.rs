@@ -280,12 +280,12 @@ impl<'a> Plan<'a> {
         buf[HEADER_SIZE..entries as usize].fill(0);
         let q = self.map.quantized();
         let cap = self.table_capacity;
-        for (i, home) in self.in_slot_order() {
-            let mut s = u64::from(home);
+        for (i, p) in self.leaves.iter().enumerate() {
+            let mut s = table_hash(p.origin.to_array(), cap);
             loop {
                 let at = (table + 4 * s) as usize;
                 if buf[at..at + 4] == [0; 4] {
-                    buf[at..at + 4].copy_from_slice(&(i + 1).to_le_bytes());
+                    buf[at..at + 4].copy_from_slice(&(i as u32 + 1).to_le_bytes());
                     break;
                 }
                 s = if s + 1 == cap { 0 } else { s + 1 };
@@ -418,37 +418,6 @@ impl<'a> Plan<'a> {
             }
         }
         sums
-    }
-
-    /// (leaf, home slot) for every leaf, roughly in slot order: a counting sort on the
-    /// slot's high bits, about 8 leaves per bucket. The table is far larger than the
-    /// caches on a big map; filled in leaf order, every probe missed (three quarters of
-    /// `write`'s time on a 60 m map), in slot order the fill streams. Any insertion order
-    /// gives a valid linear-probing table; this one is deterministic.
-    fn in_slot_order(&self) -> Vec<(u32, u32)> {
-        let n = self.leaves.len();
-        let cap = self.table_capacity;
-        let shift = (cap / (n as u64 / 8 + 1)).max(1).ilog2();
-        let mut counts = vec![0u32; (cap >> shift) as usize + 2];
-        let homes: Vec<u32> = self
-            .leaves
-            .iter()
-            .map(|p| {
-                let h = table_hash(p.origin.to_array(), cap) as u32;
-                counts[(h >> shift) as usize + 1] += 1;
-                h
-            })
-            .collect();
-        for b in 1..counts.len() {
-            counts[b] += counts[b - 1];
-        }
-        let mut out = vec![(0, 0); n];
-        for (i, &h) in homes.iter().enumerate() {
-            let c = &mut counts[(h >> shift) as usize];
-            out[*c as usize] = (i as u32, h);
-            *c += 1;
-        }
-        out
     }
 
     /// Encode into a new vector.
