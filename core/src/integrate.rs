@@ -454,7 +454,11 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
                 brick = dda.voxel().shr(3);
             }
         }
-        marks.or_free(&mut cache, brick, &local);
+        // A ray's last step may enter a brick only to end there: nothing free to mark, and
+        // a slot would give the map an empty leaf.
+        if local != [0; 8] {
+            marks.or_free(&mut cache, brick, &local);
+        }
         if r.hit {
             marks.set_hit(&mut cache, dda.voxel());
         }
@@ -1012,6 +1016,18 @@ mod tests {
         );
         at_origin(&mut map, 2.0, &pts[1..]);
         assert_eq!(map.state(VoxelCoord::new(10, 0, 0)), VoxelState::Occupied);
+
+        // Cut at x = 16.5: the end voxel opens leaf 2 but is not marked, so no leaf 2.
+        let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+        at_origin(&mut map, 1.65, &pts[..1]);
+        assert_eq!(map.state(VoxelCoord::new(15, 0, 0)), VoxelState::Free);
+        let leaves: Vec<_> = map
+            .grid()
+            .leaves()
+            .map(|(o, l)| (o.x, l.active.count()))
+            .collect();
+        assert_eq!(leaves.len(), 2, "{leaves:?}");
+        assert!(leaves.iter().all(|&(x, n)| x < 16 && n == 8), "{leaves:?}");
     }
 
     #[test]
