@@ -758,11 +758,19 @@ impl FrameMarks {
     #[inline]
     fn or_free<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord, bits: &[u64; 8]) {
         let slot = self.slot_for(cache, brick);
-        for (w, &b) in slot.free.iter().zip(bits) {
-            // Read first: most words near the sensor are already set by other rays, and a
-            // plain load is far cheaper than a locked read-modify-write.
-            if b != 0 && w.load(Relaxed) & b != b {
-                w.fetch_or(b, Relaxed);
+        // Read first: near the sensor other rays have set these bits already, and plain
+        // loads are far cheaper than locked read-modify-writes. One branch for the whole
+        // brick is predictable where per-word branches are not.
+        let missing = slot
+            .free
+            .iter()
+            .zip(bits)
+            .fold(0, |m, (w, &b)| m | (b & !w.load(Relaxed)));
+        if missing != 0 {
+            for (w, &b) in slot.free.iter().zip(bits) {
+                if b & !w.load(Relaxed) != 0 {
+                    w.fetch_or(b, Relaxed);
+                }
             }
         }
     }
