@@ -435,6 +435,9 @@ fn bounds(rays: &[Ray], origin: [f64; 3]) -> (VoxelCoord, VoxelCoord) {
 }
 
 /// Walk a chunk of rays, OR-ing their marks into `marks`; returns voxels visited.
+/// Not inlined, and with the DDA set-up inlined into it, so that its code does not depend
+/// on inlining choices made for its callers (which changed its speed by 40%).
+#[inline(never)]
 fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let mut steps = 0u64;
     let mut cache = BrickCache::default();
@@ -506,27 +509,16 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u
 /// Give every touched brick its map leaf; returns (leaf index, (slot, leaf is new)) sorted
 /// by leaf index.
 fn merge(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(u32, (u32, bool))> {
-    let n = marks.used_slots();
-    let mut bricks: Vec<(VoxelCoord, u32)> = (0..n)
-        .into_par_iter()
-        .map(|s| (marks.slot_origin(s), s))
-        .collect();
-    // Internal-node-major order, so consecutive bricks share the cached internal node and
-    // new leaves are laid out in space order.
-    bricks.par_sort_unstable_by_key(|(o, _)| {
-        let k = o.shr(crate::grid::INTERNAL_TOTAL_LOG2);
-        (k.z, k.y, k.x, o.z, o.y, o.x)
-    });
     let grid = map.grid_mut();
     let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
     let first_new = grid.leaf_count() as u32;
-    let mut items: Vec<(u32, (u32, bool))> = bricks
-        .iter()
-        .map(|&(o, s)| {
-            let l = grid.leaf_index_or_insert(o, Some(&mut hint));
-            (l, (s, l >= first_new))
-        })
-        .collect();
+    let mut items = Vec::with_capacity(marks.used_slots() as usize);
+    // Internal-node-major order, so consecutive bricks share the cached internal node and
+    // new leaves are laid out in space order.
+    items.extend(marks.bricks_in_order().map(|(o, s)| {
+        let l = grid.leaf_index_or_insert(o, Some(&mut hint));
+        (l, (s, l >= first_new))
+    }));
     if !items.windows(2).all(|w| w[0].0 < w[1].0) {
         items.par_sort_unstable_by_key(|&(l, _)| l);
     }
@@ -548,9 +540,12 @@ const RESERVED: u32 = u32::MAX;
 struct Slot {
     free: [AtomicU64; 8],
     hit: [AtomicU64; 8],
-    /// Brick coordinates relative to the frame's lowest brick, 21 bits each.
-    key: AtomicU64,
 }
+
+// A coarse cell covers exactly one grid internal node, and both number their 16^3
+// children x | y << 4 | z << 8: walking cells and their entries in order is walking the
+// grid's internal nodes and their children in order.
+const _: () = assert!(3 + CELL_LOG2 == crate::grid::INTERNAL_TOTAL_LOG2);
 
 type Block = [AtomicU32; CELL_ENTRIES];
 
@@ -702,12 +697,39 @@ impl FrameMarks {
         self.slots.get(s)
     }
 
-    /// Origin voxel of the brick behind slot `s`.
-    fn slot_origin(&self, s: u32) -> VoxelCoord {
-        let k = self.slots.get(s).key.load(Relaxed);
-        let m = (1 << 21) - 1;
-        let b = VoxelCoord::new((k & m) as i32, (k >> 21 & m) as i32, (k >> 42 & m) as i32);
-        self.lo + b.shl(3)
+    /// Every touched brick as (origin voxel, slot), in (z, y, x) order of cells and, within
+    /// a cell, of bricks. Call between frames' phases, when no claim is in flight.
+    fn bricks_in_order(&self) -> impl Iterator<Item = (VoxelCoord, u32)> + '_ {
+        let [dx, dy, _] = self.cells_dim;
+        let m = (1 << CELL_LOG2) - 1;
+        self.cells
+            .iter()
+            .enumerate()
+            .filter_map(|(c, e)| {
+                let b = e.load(Relaxed);
+                (b != 0).then_some((c, b - 1))
+            })
+            .flat_map(move |(c, b)| {
+                let cell = VoxelCoord::new(
+                    (c % dx) as i32,
+                    (c / dx % dy) as i32,
+                    (c / (dx * dy)) as i32,
+                );
+                let base = self.lo + cell.shl(3 + CELL_LOG2);
+                self.blocks
+                    .get(b)
+                    .iter()
+                    .enumerate()
+                    .filter_map(move |(e, s)| {
+                        let s = s.load(Relaxed);
+                        let at = VoxelCoord::new(
+                            (e & m) as i32,
+                            (e >> CELL_LOG2 & m) as i32,
+                            (e >> (2 * CELL_LOG2)) as i32,
+                        );
+                        (s != 0).then(|| (base + at.shl(3), s - 1))
+                    })
+            })
     }
 
     #[inline]
@@ -744,14 +766,7 @@ impl FrameMarks {
         let m = (1 << CELL_LOG2) - 1;
         let e = (x & m) | (y & m) << CELL_LOG2 | (z & m) << (2 * CELL_LOG2);
         let entry = &self.blocks.get(block)[e];
-        let s = claim(entry, || {
-            let s = self.slots.alloc(Slot::default);
-            self.slots
-                .get(s)
-                .key
-                .store(x as u64 | (y as u64) << 21 | (z as u64) << 42, Relaxed);
-            s
-        });
+        let s = claim(entry, || self.slots.alloc(Slot::default));
         self.slots.get(s)
     }
 

@@ -58,7 +58,7 @@ fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
 
 impl Dda {
     /// A walk from `o` to `e` (voxel units, finite, within the index space).
-    #[inline]
+    #[inline(always)]
     pub fn new(o: [f64; 3], e: [f64; 3]) -> Self {
         let (x, sx, tx, dx, lx, nx) = axis(o[0], e[0]);
         let (y, sy, ty, dy, ly, ny) = axis(o[1], e[1]);
