@@ -447,15 +447,25 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         steps += u64::from(n) + 1;
         let mut local = [0u64; 8];
         let mut brick = dda.voxel().shr(3);
-        for _ in 0..n {
-            let (x, y, z) = (dda.x, dda.y, dda.z);
-            local[(z & 7) as usize] |= 1u64 << ((x & 7) | (y & 7) << 3);
-            dda.step();
-            if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
-                marks.or_free(&mut cache, brick, &local);
-                local = [0; 8];
-                brick = dda.voxel().shr(3);
-            }
+        // Mark the current voxel, take one step, flush the brick's marks on leaving it.
+        macro_rules! walk {
+            ($step:ident) => {{
+                let (x, y, z) = (dda.x, dda.y, dda.z);
+                local[(z & 7) as usize] |= 1u64 << ((x & 7) | (y & 7) << 3);
+                dda.$step();
+                if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
+                    marks.or_free(&mut cache, brick, &local);
+                    local = [0; 8];
+                    brick = dda.voxel().shr(3);
+                }
+            }};
+        }
+        for _ in 2..n {
+            walk!(step_far);
+        }
+        dda.settle();
+        for _ in 0..n.min(2) {
+            walk!(step);
         }
         // A ray's last step may enter a brick only to end there: nothing free to mark, and
         // a slot would give the map an empty leaf.
