@@ -496,6 +496,8 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u
             continue;
         }
         n += u64::from(any.count_ones());
+        // Separate loops, not a select on `fresh`: the compiler may load both sides of a
+        // select, and that load is the read this avoids.
         if fresh {
             leaf.active.words[w] = any;
             for b in BitIter(any) {

@@ -131,6 +131,9 @@ impl Dda {
     /// would then lie within that rounding of t = 1; crossings of one axis are at least
     /// 2^47 units apart (rays are at most 8192 voxels), so at most one per other axis, two
     /// in all, can be there: it can only happen in the last two steps.
+    //
+    // Written out rather than shared with `step` through a `next`-crossing closure: that
+    // version walked rays 20-25% slower (interleaved A/B, 500k 6 m workloads).
     #[inline(always)]
     pub fn step_far(&mut self) {
         debug_assert!(self.steps > 2);

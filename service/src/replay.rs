@@ -383,12 +383,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
 /// how replay knows its first frame will arrive; it also catches a service that is not
 /// running, which connecting alone does not (connect creates the services if absent).
 fn wait_for_service(snapshots: &mut SnapshotSubscriber, prefix: &str) -> Result<()> {
-    let t = Instant::now();
-    while snapshots.latest()?.is_none() {
-        if t.elapsed() > Duration::from_secs(30) {
-            bail!("no voxmap service under prefix '{prefix}': no snapshot after 30 s");
-        }
-        snapshots.wait_for_update(Duration::from_millis(200))?;
+    // A new subscriber holds no snapshot, so any snapshot is an update.
+    if !snapshots.wait_for_update(Duration::from_secs(30))? {
+        bail!("no voxmap service under prefix '{prefix}': no snapshot after 30 s");
     }
     Ok(())
 }

@@ -306,21 +306,19 @@ impl<'a> Plan<'a> {
         for start in (0..n).step_by(PIECE) {
             let end = (start + PIECE).min(n);
             let e = take(&mut entry_bytes, ENTRY_SIZE * (end - start));
-            let m = take(
-                &mut mask_bytes,
-                8 * (word_of(end) - word_of(start)) as usize,
-            );
+            let first_word = word_of(start);
+            let m = take(&mut mask_bytes, 8 * (word_of(end) - first_word) as usize);
             let values_len = if self.meta.with_values {
                 VALUES_PER_LEAF * (end - start)
             } else {
                 0
             };
             let v = take(&mut value_bytes, values_len);
-            work.push((start..end, e, m, v));
+            work.push((start..end, first_word, e, m, v));
         }
         let sums = work
             .into_par_iter()
-            .map(|(range, e, m, v)| self.write_leaves(range, e, m, v))
+            .map(|(range, first_word, e, m, v)| self.write_leaves(range, first_word, e, m, v))
             .reduce(Sums::default, Sums::add);
         let checksum = buf[HEADER_SIZE..]
             .par_chunks(CRC_PIECE)
@@ -370,17 +368,17 @@ impl<'a> Plan<'a> {
     }
 
     /// Write the entries, masks and (if planned) values of `range`'s leaves into their
-    /// pieces of those sections.
+    /// pieces of those sections; `masks` starts at mask word `first_word`.
     fn write_leaves(
         &self,
         range: std::ops::Range<usize>,
+        first_word: u64,
         entries: &mut [u8],
         masks: &mut [u8],
         values: &mut [u8],
     ) -> Sums {
         let threshold = self.map.quantized().threshold;
         let mut sums = Sums::default();
-        let first_word = self.leaves.get(range.start).map_or(0, |p| p.masks >> 2);
         for (k, p) in self.leaves[range].iter().enumerate() {
             let entry = LeafEntry {
                 origin: p.origin.to_array(),
@@ -391,7 +389,7 @@ impl<'a> Plan<'a> {
             let keep = keep_of(&self.keeps, p);
             extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, keep);
             sums.known += u64::from(keep.count());
-            let mut at = 8 * ((p.masks >> 2) - first_word) as usize;
+            let mut at = 8 * (u64::from(p.masks >> 2) - first_word) as usize;
             let mut put = |m: &Mask512| {
                 for word in &m.words {
                     masks[at..at + 8].copy_from_slice(&word.to_le_bytes());
