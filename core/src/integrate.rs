@@ -24,7 +24,7 @@ use crate::mask::BitIter;
 use crate::model::QuantizedModel;
 use crate::raycast::Dda;
 use hashbrown::HashSet;
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering::*};
 use std::sync::OnceLock;
@@ -315,7 +315,8 @@ fn direction_key(d: [f64; 3]) -> u32 {
     if s == 0.0 {
         return 0;
     }
-    let (mut u, mut v) = (d[0] / s, d[1] / s);
+    let inv = 1.0 / s;
+    let (mut u, mut v) = (d[0] * inv, d[1] * inv);
     if d[2] < 0.0 {
         let (au, av) = (u.abs(), v.abs());
         u = (1.0 - av).copysign(u);
@@ -323,8 +324,11 @@ fn direction_key(d: [f64; 3]) -> u32 {
     }
     let qu = ((u + 1.0) * 32767.5) as u32 & 0xffff;
     let qv = ((v + 1.0) * 32767.5) as u32 & 0xffff;
-    spread16(qu) | spread16(qv) << 1
+    (spread16(qu) | spread16(qv) << 1).min(SKIPPED - 1)
 }
+
+/// The key of a ray from a non-finite point, never a direction's key.
+const SKIPPED: u32 = u32::MAX;
 
 #[inline]
 fn spread16(x: u32) -> u32 {
@@ -344,33 +348,46 @@ fn prepare_rays(
     range_units: f64,
     mode: RayMode,
 ) -> u64 {
-    let pose = frame.pose;
-    let make = |p: &[f32; 3]| -> Option<Ray> {
+    let rot = frame.pose.rotation.to_rotation_matrix().into_inner();
+    let t = frame.pose.translation.vector;
+    // Below this squared length a ray surely ends within range; above it, the same
+    // comparison as the reference, `sqrt(len2) <= range_units`, decides.
+    let surely_in = range_units * range_units * (1.0 - 1e-9);
+    let make = |p: &[f32; 3]| -> Ray {
         if !p.iter().all(|c| c.is_finite()) {
-            return None;
+            return Ray {
+                end: [0.0; 3],
+                key: SKIPPED,
+                hit: false,
+            };
         }
-        let w = pose * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-        let mut e = tf.point_to_units(&w);
+        let w = rot * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) + t;
+        let mut e = tf.point_to_units(&Point3::from(w));
         let d = [e[0] - origin[0], e[1] - origin[1], e[2] - origin[2]];
-        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        let hit = len <= range_units;
+        let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let hit = len2 < surely_in || len2.sqrt() <= range_units;
         if !hit {
-            let s = range_units / len;
+            let s = range_units / len2.sqrt();
             e = [
                 origin[0] + d[0] * s,
                 origin[1] + d[1] * s,
                 origin[2] + d[2] * s,
             ];
         }
-        Some(Ray {
+        Ray {
             end: e,
             key: direction_key(d),
             hit,
-        })
+        }
     };
+    // An indexed map collects straight into `rays`; non-finite points are rare, so they
+    // are dropped afterwards.
     rays.clear();
-    rays.par_extend(frame.points.par_iter().filter_map(make));
-    let skipped = frame.points.len() as u64 - rays.len() as u64;
+    rays.par_extend(frame.points.par_iter().map(make));
+    let skipped = rays.par_iter().filter(|r| r.key == SKIPPED).count() as u64;
+    if skipped > 0 {
+        rays.retain(|r| r.key != SKIPPED);
+    }
     match mode {
         RayMode::Exact => {}
         RayMode::Subsample { factor } => {
@@ -446,16 +463,23 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         let n = dda.steps();
         steps += u64::from(n) + 1;
         let mut local = [0u64; 8];
+        // The marks of the current z plane of the brick. A ray visits each plane of a brick
+        // in one run, so the plane's word is only stored, never read back: a read-modify-
+        // write of `local` would chain every step through store-to-load forwarding.
+        let mut plane = 0u64;
         let mut brick = dda.voxel().shr(3);
         // Mark the current voxel, take one step, flush the brick's marks on leaving it.
         macro_rules! walk {
             ($step:ident) => {{
                 let (x, y, z) = (dda.x, dda.y, dda.z);
-                local[(z & 7) as usize] |= 1u64 << ((x & 7) | (y & 7) << 3);
+                plane |= 1u64 << ((x & 7) | (y & 7) << 3);
+                local[(z & 7) as usize] = plane;
                 dda.$step();
+                plane &= ((dda.z != z) as u64).wrapping_sub(1);
                 if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
                     marks.or_free(&mut cache, brick, &local);
                     local = [0; 8];
+                    plane = 0;
                     brick = dda.voxel().shr(3);
                 }
             }};
