@@ -292,11 +292,28 @@ impl<V: GridValue> Grid<V> {
     /// leaves by origin (z, y, x). The order depends only on which leaves exist, not on the
     /// order they were made in, and costs a sort of the internal nodes only.
     pub fn leaves_in_block_order(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
+        self.internals_in_block_order()
+            .into_iter()
+            .flat_map(move |node| self.node_leaves(node))
+    }
+
+    /// `f` applied to [`Self::leaves_in_block_order`] in parallel (on the current rayon
+    /// pool), keeping the `Some`s in that order.
+    pub fn filter_map_leaves_in_block_order<'a, T: Send>(
+        &'a self,
+        f: impl Fn(VoxelCoord, &'a Leaf<V>) -> Option<T> + Sync + Send,
+    ) -> Vec<T> {
+        use rayon::prelude::*;
+        self.internals_in_block_order()
+            .par_iter()
+            .flat_map_iter(|node| self.node_leaves(node).filter_map(|(o, l)| f(o, l)))
+            .collect()
+    }
+
+    fn internals_in_block_order(&self) -> Vec<&Internal> {
         let mut order: Vec<&Internal> = self.internals.iter().map(|n| &**n).collect();
         order.sort_unstable_by_key(|n| (n.origin.z, n.origin.y, n.origin.x));
         order
-            .into_iter()
-            .flat_map(move |node| self.node_leaves(node))
     }
 
     fn node_leaves<'a>(

@@ -1,53 +1,65 @@
-//! The byte layout of a snapshot, version 2. All integers little-endian; every section
+//! The byte layout of a snapshot, version 3. All integers little-endian; every section
 //! starts on an 8-byte boundary.
 //!
 //! ```text
 //! offset  size                 what
 //! 0       160                  Header
 //! table   4 * table_capacity   u32 per slot: leaf index + 1, 0 = empty (linear probing)
-//! leaves  16 * leaf_count      LeafEntry: origin (voxels, multiples of 8), block order, + mask ref
-//! masks   masks_len            per leaf, only what it needs: [u64; 8] known mask unless all
-//!                              512 voxels are known, then [u64; 8] occupied mask unless
-//!                              none is occupied
+//! leaves  16 * leaf_count      LeafEntry: origin and mask kinds, record offset; block order
+//! masks   masks_len            one mask record per leaf (see `record`), in leaf order,
+//!                              zero-padded to a multiple of 8
 //! values  512 * leaf_count     i8 log-odds per voxel (only with FLAG_VALUES)
 //! ```
 //!
-//! Version 2 drops what version 1 stored for every leaf regardless: the known mask of a
-//! fully known leaf and the occupied mask of a leaf with nothing occupied (most leaves in
-//! free space). The origin and the mask reference share 16 bytes, so the lookup that finds
-//! a leaf has already loaded where its masks are.
+//! Version 3 stores each leaf's masks in the smallest of a few O(1)-readable encodings
+//! (see `record`); version 2 stored a whole 64-byte mask or none. The entry that the table
+//! lookup loads already says how and where the leaf's masks are stored.
 
 use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"VXMSNAP\0";
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// The snapshot carries per-voxel log-odds.
 pub const FLAG_VALUES: u32 = 1;
 pub const HEADER_SIZE: usize = std::mem::size_of::<Header>();
 pub const VALUES_PER_LEAF: usize = 512;
 pub const ENTRY_SIZE: usize = 16;
-/// [`LeafEntry::masks`] bit: the leaf stores a known mask (else all 512 voxels are known).
-pub const HAS_KNOWN: u32 = 1;
-/// [`LeafEntry::masks`] bit: the leaf stores an occupied mask (else none is occupied).
-pub const HAS_OCCUPIED: u32 = 2;
-/// Mask words a reference can address: `masks >> 2` is a word index below this.
-pub const MAX_MASK_WORDS: u64 = 1 << 30;
+/// Bytes the masks section may hold: record offsets are `u32`.
+pub const MAX_MASKS_LEN: u64 = u32::MAX as u64;
 
 /// One leaf in the `leaves` section.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct LeafEntry {
-    pub origin: [i32; 3],
-    /// `first mask word (u64 index into the masks section) << 2 | HAS_KNOWN | HAS_OCCUPIED`;
-    /// the occupied mask follows the known mask when both are stored.
-    pub masks: u32,
+    /// The leaf origin in voxels, whose coordinates are multiples of 8, with the known
+    /// mask's kind in the low 3 bits of x and the occupied mask's kind in those of y
+    /// (z's are zero). Use [`LeafEntry::origin`] and [`LeafEntry::kinds`].
+    pub key: [i32; 3],
+    /// Byte offset of the leaf's mask record in the masks section.
+    pub record: u32,
 }
 
 impl LeafEntry {
-    /// Mask words this leaf stores.
+    pub fn new(origin: [i32; 3], known_kind: u8, occupied_kind: u8, record: u32) -> Self {
+        LeafEntry {
+            key: [
+                origin[0] | i32::from(known_kind & 7),
+                origin[1] | i32::from(occupied_kind & 7),
+                origin[2],
+            ],
+            record,
+        }
+    }
+
     #[inline]
-    pub fn mask_words(&self) -> u64 {
-        8 * u64::from((self.masks & (HAS_KNOWN | HAS_OCCUPIED)).count_ones())
+    pub fn origin(&self) -> [i32; 3] {
+        self.key.map(|c| c & !7)
+    }
+
+    /// (known kind, occupied kind).
+    #[inline]
+    pub fn kinds(&self) -> (u8, u8) {
+        ((self.key[0] & 7) as u8, (self.key[1] & 7) as u8)
     }
 }
 
@@ -82,7 +94,7 @@ pub struct Header {
     pub table_offset: u64,
     pub leaves_offset: u64,
     pub masks_offset: u64,
-    /// Bytes in the masks section (a multiple of 8).
+    /// Bytes of mask records (the section is zero-padded to a multiple of 8).
     pub masks_len: u64,
     /// 0 when FLAG_VALUES is clear.
     pub values_offset: u64,
@@ -138,10 +150,10 @@ pub enum SnapshotError {
     BadHeader(&'static str),
     /// A section lies outside the buffer, overlaps the header or is misaligned.
     SectionOutOfBounds(&'static str),
-    /// The table points at a leaf that does not exist, an origin is not leaf-aligned, or a
-    /// leaf's masks lie outside the masks section.
+    /// The table points at a leaf that does not exist, or a leaf entry's kinds or mask
+    /// record are malformed.
     BadIndex(&'static str),
-    /// The map needs more mask words than a leaf entry can address.
+    /// The map needs more mask bytes than a leaf entry can address.
     TooLarge,
     ChecksumMismatch {
         stored: u32,
@@ -168,7 +180,7 @@ impl std::fmt::Display for SnapshotError {
             Self::BadHeader(what) => write!(f, "bad snapshot header: {what}"),
             Self::SectionOutOfBounds(s) => write!(f, "snapshot section '{s}' out of bounds"),
             Self::BadIndex(what) => write!(f, "bad snapshot index: {what}"),
-            Self::TooLarge => write!(f, "map too large for one snapshot (> 8 GiB of masks)"),
+            Self::TooLarge => write!(f, "map too large for one snapshot (> 4 GiB of masks)"),
             Self::ChecksumMismatch { stored, computed } => {
                 write!(
                     f,

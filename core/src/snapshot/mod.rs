@@ -8,6 +8,7 @@
 //! is bounds-safe and never panics, whatever the bytes. See `docs/snapshot-format.md`.
 
 pub mod layout;
+pub mod record;
 pub mod view;
 pub mod writer;
 

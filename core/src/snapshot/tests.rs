@@ -271,17 +271,27 @@ fn corrupt_bytes_get_clear_errors() {
         SnapshotView::open(&with(&|h| h.table_capacity = h.leaf_count)).unwrap_err(),
         SnapshotError::BadHeader("table_capacity")
     );
+    let bad_record = SnapshotError::BadIndex("leaf mask kinds or record malformed");
     assert_eq!(
-        SnapshotView::open(&with(&|h| h.masks_len -= 8)).unwrap_err(),
-        SnapshotError::BadIndex("leaf masks beyond the masks section")
+        SnapshotView::open(&with(&|h| h.masks_len -= 1)).unwrap_err(),
+        bad_record
     );
-    // A leaf entry whose mask reference points past the masks section.
+    // A leaf entry whose record offset points past the masks section.
     let mut b = good.clone();
     let at = h.leaves_offset as usize + 12;
-    b[at..at + 4].copy_from_slice(&((u32::MAX - 4) | layout::HAS_KNOWN).to_le_bytes());
+    b[at..at + 4].copy_from_slice(&(u32::MAX - 4).to_le_bytes());
+    assert_eq!(SnapshotView::open(&b).unwrap_err(), bad_record);
+    // An entry whose occupied kind names no encoding (6), and one with bits set in the
+    // low bits of its origin's z.
+    let mut b = good.clone();
+    let y = h.leaves_offset as usize + 4;
+    b[y] = b[y] & !7 | 6;
+    assert_eq!(SnapshotView::open(&b).unwrap_err(), bad_record);
+    let mut b = good.clone();
+    b[y + 4] |= 1;
     assert_eq!(
         SnapshotView::open(&b).unwrap_err(),
-        SnapshotError::BadIndex("leaf masks beyond the masks section")
+        SnapshotError::BadIndex("leaf origin not a multiple of 8")
     );
     let mut flipped = good.clone();
     let last = flipped.len() - 1;
@@ -314,8 +324,9 @@ fn leaves_store_only_the_masks_they_need() {
     map.set_value(VoxelCoord::new(24, 0, 0), q.max);
     let bytes = encode(&map, Scope::Whole, false);
     let view = SnapshotView::open_checked(&bytes).unwrap();
-    // Masks: none, occupied only, known only, known and occupied.
-    assert_eq!(view.header().masks_len, 8 * (8 + 8 + 16));
+    // Records: empty; one occupied row (a presence word and a byte); one known row; a
+    // known and an occupied row.
+    assert_eq!(view.header().masks_len, 9 + 9 + 18);
     assert_eq!(view.counts(), (512 + 512 + 2, 2));
     for (v, s) in [
         (VoxelCoord::new(3, 4, 5), VoxelState::Free),

@@ -1,6 +1,7 @@
 //! [`SnapshotView`]: queries on a snapshot read in place.
 
 use super::layout::*;
+use super::record::{self, MaskRef};
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
 use crate::grid::{leaf_offset, leaf_origin, voxel_at};
 use crate::model::{QuantizedModel, VoxelState};
@@ -37,11 +38,12 @@ compile_error!(
     "snapshots are little-endian and read in place; big-endian targets are not supported"
 );
 
-/// A leaf found in the table: its index (for the values section) and mask reference.
+/// A leaf found in the table: its index (for the values section) and mask record.
 #[derive(Clone, Copy, Debug)]
 struct LeafRef {
     index: u64,
-    masks: u32,
+    record: u32,
+    kinds: (u8, u8),
 }
 
 /// A validated snapshot over borrowed bytes (e.g. a shared-memory sample): no copy, no
@@ -61,6 +63,8 @@ struct LeafRef {
 #[derive(Clone, Copy, Debug)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
+    /// The mask records (the masks section without its padding).
+    masks: &'a [u8],
     header: Header,
     tf: GridTransform,
     q: QuantizedModel,
@@ -106,7 +110,7 @@ impl<'a> SnapshotView<'a> {
         if cap <= n || cap >= 1 << 32 {
             return Err(SnapshotError::BadHeader("table_capacity"));
         }
-        if !h.masks_len.is_multiple_of(8) || h.masks_len / 8 > MAX_MASK_WORDS {
+        if h.masks_len > MAX_MASKS_LEN {
             return Err(SnapshotError::BadHeader("masks_len"));
         }
         if h.known_count > n * 512 || h.occupied_count > h.known_count {
@@ -123,7 +127,7 @@ impl<'a> SnapshotView<'a> {
         };
         section("table", h.table_offset, cap.checked_mul(4))?;
         section("leaves", h.leaves_offset, n.checked_mul(ENTRY_SIZE as u64))?;
-        section("masks", h.masks_offset, Some(h.masks_len))?;
+        section("masks", h.masks_offset, Some(align8(h.masks_len)))?;
         if h.flags & FLAG_VALUES != 0 {
             section(
                 "values",
@@ -139,8 +143,10 @@ impl<'a> SnapshotView<'a> {
             max: h.clamp_max,
             threshold: h.threshold,
         };
+        let masks_at = h.masks_offset as usize;
         let v = SnapshotView {
             bytes: &bytes[..h.total_len as usize],
+            masks: &bytes[masks_at..masks_at + h.masks_len as usize],
             header: h,
             tf,
             q,
@@ -160,15 +166,15 @@ impl<'a> SnapshotView<'a> {
         if empty == 0 {
             return Err(SnapshotError::BadIndex("leaf table has no empty slot"));
         }
-        let words = h.masks_len / 8;
         for i in 0..n {
             let e = v.entry(i);
-            if e.origin.iter().any(|c| c & 7 != 0) {
+            if e.key[2] & 7 != 0 {
                 return Err(SnapshotError::BadIndex("leaf origin not a multiple of 8"));
             }
-            if u64::from(e.masks >> 2) + e.mask_words() > words {
+            let (k, o) = e.kinds();
+            if record::checked_len(v.masks, u64::from(e.record), k, o).is_none() {
                 return Err(SnapshotError::BadIndex(
-                    "leaf masks beyond the masks section",
+                    "leaf mask kinds or record malformed",
                 ));
             }
         }
@@ -241,14 +247,6 @@ impl<'a> SnapshotView<'a> {
     }
 
     #[inline]
-    fn u64_at(&self, off: u64) -> u64 {
-        let o = off as usize;
-        self.bytes
-            .get(o..o + 8)
-            .map_or(0, |b| u64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
-    }
-
-    #[inline]
     fn entry(&self, i: u64) -> LeafEntry {
         let at = (self.header.leaves_offset + ENTRY_SIZE as u64 * i) as usize;
         self.bytes
@@ -269,10 +267,11 @@ impl<'a> SnapshotView<'a> {
             }
             let index = u64::from(e - 1);
             let entry = self.entry(index);
-            if entry.origin == o {
+            if entry.origin() == o {
                 return Some(LeafRef {
                     index,
-                    masks: entry.masks,
+                    record: entry.record,
+                    kinds: entry.kinds(),
                 });
             }
             s = if s + 1 == cap { 0 } else { s + 1 };
@@ -280,33 +279,20 @@ impl<'a> SnapshotView<'a> {
         None
     }
 
-    /// Word `w` of a leaf's known mask. Branch-free: which masks a leaf stores varies from
-    /// leaf to leaf, so a branch here would mispredict on random queries.
+    /// The known and occupied masks of a leaf.
     #[inline]
-    fn known_word(&self, masks: u32, w: usize) -> u64 {
-        let stored = self.u64_at(self.header.masks_offset + 8 * (u64::from(masks >> 2) + w as u64));
-        // Not stored: all known.
-        stored | u64::from(masks & HAS_KNOWN).wrapping_sub(1)
-    }
-
-    /// Word `w` of a leaf's occupied mask (not yet restricted to the known voxels).
-    #[inline]
-    fn occupied_word(&self, masks: u32, w: usize) -> u64 {
-        let first = u64::from(masks >> 2) + 8 * u64::from(masks & HAS_KNOWN);
-        let stored = self.u64_at(self.header.masks_offset + 8 * (first + w as u64));
-        // Not stored: none occupied.
-        stored & 0u64.wrapping_sub(u64::from(masks & HAS_OCCUPIED) >> 1)
+    fn masks_of(&self, e: &LeafEntry) -> (MaskRef, MaskRef) {
+        let (k, o) = e.kinds();
+        record::masks_at(self.masks, u64::from(e.record), k, o)
     }
 
     #[inline]
     fn leaf_state(&self, leaf: LeafRef, i: usize) -> VoxelState {
-        let (w, bit) = (i >> 6, i & 63);
-        if self.known_word(leaf.masks, w) >> bit & 1 == 0 {
-            VoxelState::Unknown
-        } else if self.occupied_word(leaf.masks, w) >> bit & 1 != 0 {
-            VoxelState::Occupied
-        } else {
-            VoxelState::Free
+        let (k, o) = leaf.kinds;
+        match record::voxel_bits(self.masks, u64::from(leaf.record), k, o, i) {
+            (false, _) => VoxelState::Unknown,
+            (true, true) => VoxelState::Occupied,
+            (true, false) => VoxelState::Free,
         }
     }
 
@@ -440,14 +426,16 @@ impl<'a> SnapshotView<'a> {
     pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::map::LeafOccupancy> + '_ {
         (0..self.leaf_count()).map(move |l| {
             let e = self.entry(l);
-            let known = crate::mask::Mask512 {
-                words: std::array::from_fn(|w| self.known_word(e.masks, w)),
-            };
-            let occupied = crate::mask::Mask512 {
-                words: std::array::from_fn(|w| self.occupied_word(e.masks, w) & known.words[w]),
-            };
+            let (k, o) = self.masks_of(&e);
+            let known = k.decode(self.masks);
+            let mut occupied = o.decode(self.masks);
+            occupied
+                .words
+                .iter_mut()
+                .zip(known.words)
+                .for_each(|(o, k)| *o &= k);
             crate::map::LeafOccupancy {
-                origin: VoxelCoord::from_array(e.origin),
+                origin: VoxelCoord::from_array(e.origin()),
                 known,
                 occupied,
             }
@@ -458,12 +446,14 @@ impl<'a> SnapshotView<'a> {
     pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
         (0..self.leaf_count())
             .map(move |l| self.entry(l))
-            .filter(|e| e.masks & HAS_OCCUPIED != 0)
+            .filter(|e| e.kinds().1 != 0)
             .flat_map(move |e| {
-                let o = VoxelCoord::from_array(e.origin);
+                let (k, o) = self.masks_of(&e);
+                let (known, occupied) = (k.decode(self.masks), o.decode(self.masks));
+                let origin = VoxelCoord::from_array(e.origin());
                 (0..8).flat_map(move |w| {
-                    let bits = self.occupied_word(e.masks, w) & self.known_word(e.masks, w);
-                    crate::mask::BitIter(bits).map(move |b| voxel_at(o, w * 64 + b))
+                    let bits = occupied.words[w] & known.words[w];
+                    crate::mask::BitIter(bits).map(move |b| voxel_at(origin, w * 64 + b))
                 })
             })
     }

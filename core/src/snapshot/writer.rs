@@ -4,8 +4,9 @@
 //! passes run on the current rayon pool (the caller's, via `install`, or the global one).
 
 use super::layout::*;
+use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
-use crate::grid::{Leaf, LEAF_VOXELS};
+use crate::grid::Leaf;
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
 use rayon::prelude::*;
@@ -44,8 +45,10 @@ pub struct Meta {
 struct PlannedLeaf<'a> {
     origin: VoxelCoord,
     leaf: &'a Leaf<i8>,
-    /// The leaf's [`LeafEntry::masks`].
-    masks: u32,
+    /// The kinds of its known and occupied masks.
+    kinds: (u8, u8),
+    /// The record's offset in the masks section ([`LeafEntry::record`]).
+    record: u32,
     /// Index into `Plan::keeps` of the voxels inside a box scope; `WHOLE`: all active.
     keep: u32,
 }
@@ -149,24 +152,22 @@ pub struct Plan<'a> {
     keeps: Vec<Mask512>,
     meta: Meta,
     table_capacity: u64,
-    mask_words: u64,
+    masks_len: u64,
 }
 
 impl<'a> Plan<'a> {
     pub fn new(map: &'a OccupancyMap, scope: Scope, meta: Meta) -> Self {
         let mut keeps = Vec::new();
         let mut leaves: Vec<PlannedLeaf<'a>> = match scope {
-            Scope::Whole => map
-                .grid()
-                .leaves_in_block_order()
-                .filter(|(_, l)| !l.active.is_empty())
-                .map(|(origin, leaf)| PlannedLeaf {
+            Scope::Whole => map.grid().filter_map_leaves_in_block_order(|origin, leaf| {
+                (!leaf.active.is_empty()).then_some(PlannedLeaf {
                     origin,
                     leaf,
-                    masks: 0,
+                    kinds: (0, 0),
+                    record: 0,
                     keep: WHOLE,
                 })
-                .collect(),
+            }),
             Scope::Box { min, max } => {
                 let tf = map.transform();
                 // Voxels whose centre is inside [min, max].
@@ -198,7 +199,8 @@ impl<'a> Plan<'a> {
                                 Some(PlannedLeaf {
                                     origin,
                                     leaf,
-                                    masks: 0,
+                                    kinds: (0, 0),
+                                    record: 0,
                                     keep: keeps.len() as u32 - 1,
                                 })
                             })
@@ -209,23 +211,21 @@ impl<'a> Plan<'a> {
             }
         };
         let threshold = map.quantized().threshold;
+        // Choose each leaf's encodings; `record` holds the record's length until the
+        // offsets are summed below.
         leaves.par_iter_mut().with_min_len(PIECE).for_each(|p| {
             let keep = keep_of(&keeps, p);
-            let mut kinds = 0;
-            if keep.count() != LEAF_VOXELS as u32 {
-                kinds |= HAS_KNOWN;
-            }
-            if !occupied_mask(p.leaf, keep, threshold).is_empty() {
-                kinds |= HAS_OCCUPIED;
-            }
-            p.masks = kinds;
+            let known = record::choose_known(keep);
+            let occupied = record::choose_occupied(&occupied_mask(p.leaf, keep, threshold));
+            p.kinds = (known.kind, occupied.kind);
+            p.record = known.len + occupied.len;
         });
-        let mut words = 0u64;
+        let mut at = 0u64;
         for p in &mut leaves {
-            let kinds = p.masks;
-            // Past MAX_MASK_WORDS the reference would wrap; `write` refuses such a plan.
-            p.masks = ((words.min(MAX_MASK_WORDS - 1) as u32) << 2) | kinds;
-            words += 8 * u64::from(kinds.count_ones());
+            let len = u64::from(p.record);
+            // Past MAX_MASKS_LEN the offset would wrap; `write` refuses such a plan.
+            p.record = at.min(MAX_MASKS_LEN) as u32;
+            at += len;
         }
         let table_capacity = table_capacity_for(leaves.len() as u64);
         Self {
@@ -234,7 +234,7 @@ impl<'a> Plan<'a> {
             keeps,
             meta,
             table_capacity,
-            mask_words: words,
+            masks_len: at,
         }
     }
 
@@ -247,7 +247,7 @@ impl<'a> Plan<'a> {
         let table = HEADER_SIZE as u64;
         let entries = align8(table + 4 * self.table_capacity);
         let masks = entries + ENTRY_SIZE as u64 * n;
-        let values_end = masks + 8 * self.mask_words;
+        let values_end = masks + align8(self.masks_len);
         let (values, total) = if self.meta.with_values {
             (values_end, values_end + VALUES_PER_LEAF as u64 * n)
         } else {
@@ -264,7 +264,7 @@ impl<'a> Plan<'a> {
     /// Write the snapshot into `buf[..encoded_len()]`; returns the length written.
     pub fn write(&self, buf: &mut [u8]) -> Result<usize, SnapshotError> {
         let (table, entries, masks, values, total) = self.sections();
-        if self.mask_words > MAX_MASK_WORDS || self.table_capacity >= 1 << 32 {
+        if self.masks_len > MAX_MASKS_LEN || self.table_capacity >= 1 << 32 {
             return Err(SnapshotError::TooLarge);
         }
         let total_us = total as usize;
@@ -280,45 +280,57 @@ impl<'a> Plan<'a> {
         buf[HEADER_SIZE..entries as usize].fill(0);
         let q = self.map.quantized();
         let cap = self.table_capacity;
-        for (i, p) in self.leaves.iter().enumerate() {
-            let mut s = table_hash(p.origin.to_array(), cap);
+        // Hashes in parallel; the fill stays sequential, so the table does not depend on
+        // scheduling. With the hashes precomputed its iterations are independent until a
+        // probe collides, and their cache misses overlap.
+        let homes: Vec<u32> = self
+            .leaves
+            .par_iter()
+            .with_min_len(PIECE)
+            .map(|p| table_hash(p.origin.to_array(), cap) as u32)
+            .collect();
+        let slots = &mut buf[table as usize..(table + 4 * cap) as usize];
+        for (i, &home) in homes.iter().enumerate() {
+            let mut s = home as usize;
             loop {
-                let at = (table + 4 * s) as usize;
-                if buf[at..at + 4] == [0; 4] {
-                    buf[at..at + 4].copy_from_slice(&(i as u32 + 1).to_le_bytes());
+                let slot = &mut slots[4 * s..4 * s + 4];
+                if slot == [0; 4] {
+                    slot.copy_from_slice(&(i as u32 + 1).to_le_bytes());
                     break;
                 }
-                s = if s + 1 == cap { 0 } else { s + 1 };
+                s = if s + 1 == cap as usize { 0 } else { s + 1 };
             }
         }
         // Cut the leaf sections into disjoint pieces of PIECE leaves and write them in
         // parallel.
         let (_, rest) = buf.split_at_mut(entries as usize);
         let (mut entry_bytes, rest) = rest.split_at_mut((masks - entries) as usize);
-        let (mut mask_bytes, mut value_bytes) = rest.split_at_mut(8 * self.mask_words as usize);
+        let (mask_section, mut value_bytes) = rest.split_at_mut(align8(self.masks_len) as usize);
+        let (mut mask_bytes, padding) = mask_section.split_at_mut(self.masks_len as usize);
+        padding.fill(0);
         let n = self.leaves.len();
-        let word_of = |i: usize| {
+        let record_of = |i: usize| {
             self.leaves
                 .get(i)
-                .map_or(self.mask_words, |p| u64::from(p.masks >> 2))
+                .map_or(self.masks_len, |p| u64::from(p.record))
         };
         let mut work = Vec::with_capacity(n / PIECE + 1);
         for start in (0..n).step_by(PIECE) {
             let end = (start + PIECE).min(n);
             let e = take(&mut entry_bytes, ENTRY_SIZE * (end - start));
-            let first_word = word_of(start);
-            let m = take(&mut mask_bytes, 8 * (word_of(end) - first_word) as usize);
+            let first = record_of(start);
+            let m = take(&mut mask_bytes, (record_of(end) - first) as usize);
             let values_len = if self.meta.with_values {
                 VALUES_PER_LEAF * (end - start)
             } else {
                 0
             };
             let v = take(&mut value_bytes, values_len);
-            work.push((start..end, first_word, e, m, v));
+            work.push((start..end, first, e, m, v));
         }
         let sums = work
             .into_par_iter()
-            .map(|(range, first_word, e, m, v)| self.write_leaves(range, first_word, e, m, v))
+            .map(|(range, first, e, m, v)| self.write_leaves(range, first, e, m, v))
             .reduce(Sums::default, Sums::add);
         let checksum = buf[HEADER_SIZE..]
             .par_chunks(CRC_PIECE)
@@ -357,7 +369,7 @@ impl<'a> Plan<'a> {
             table_offset: table,
             leaves_offset: entries,
             masks_offset: masks,
-            masks_len: 8 * self.mask_words,
+            masks_len: self.masks_len,
             values_offset: values,
             total_len: total,
             checksum,
@@ -368,11 +380,11 @@ impl<'a> Plan<'a> {
     }
 
     /// Write the entries, masks and (if planned) values of `range`'s leaves into their
-    /// pieces of those sections; `masks` starts at mask word `first_word`.
+    /// pieces of those sections; `masks` starts at record offset `first`.
     fn write_leaves(
         &self,
         range: std::ops::Range<usize>,
-        first_word: u64,
+        first: u64,
         entries: &mut [u8],
         masks: &mut [u8],
         values: &mut [u8],
@@ -380,30 +392,21 @@ impl<'a> Plan<'a> {
         let threshold = self.map.quantized().threshold;
         let mut sums = Sums::default();
         for (k, p) in self.leaves[range].iter().enumerate() {
-            let entry = LeafEntry {
-                origin: p.origin.to_array(),
-                masks: p.masks,
-            };
+            let (known_kind, occupied_kind) = p.kinds;
+            let entry = LeafEntry::new(p.origin.to_array(), known_kind, occupied_kind, p.record);
             entries[ENTRY_SIZE * k..ENTRY_SIZE * (k + 1)]
                 .copy_from_slice(bytemuck::bytes_of(&entry));
             let keep = keep_of(&self.keeps, p);
             extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, keep);
             sums.known += u64::from(keep.count());
-            let mut at = 8 * (u64::from(p.masks >> 2) - first_word) as usize;
-            let mut put = |m: &Mask512| {
-                for word in &m.words {
-                    masks[at..at + 8].copy_from_slice(&word.to_le_bytes());
-                    at += 8;
-                }
+            let at = (u64::from(p.record) - first) as usize;
+            let occupied = if occupied_kind != 0 {
+                occupied_mask(p.leaf, keep, threshold)
+            } else {
+                Mask512::EMPTY
             };
-            if p.masks & HAS_KNOWN != 0 {
-                put(keep);
-            }
-            if p.masks & HAS_OCCUPIED != 0 {
-                let occ = occupied_mask(p.leaf, keep, threshold);
-                sums.occupied += u64::from(occ.count());
-                put(&occ);
-            }
+            sums.occupied += u64::from(occupied.count());
+            record::encode(keep, known_kind, &occupied, occupied_kind, &mut masks[at..]);
             if self.meta.with_values {
                 let out = &mut values[VALUES_PER_LEAF * k..VALUES_PER_LEAF * (k + 1)];
                 for (v, o) in out.iter_mut().enumerate() {
