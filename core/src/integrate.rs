@@ -279,10 +279,10 @@ impl Integrator {
             report.rays = rays.len() as u64;
             report.cut_rays = rays.par_iter().filter(|r| !r.hit).count() as u64;
             let (lo, hi) = bounds(rays, origin);
-            marks.reset(lo, hi);
+            marks.reset(lo, hi, rays.len().div_ceil(RAY_CHUNK));
             let t1 = Instant::now();
             report.voxel_steps = rays
-                .par_chunks(512)
+                .par_chunks(RAY_CHUNK)
                 .map(|chunk| cast_chunk(marks, origin, chunk))
                 .sum();
             let t2 = Instant::now();
@@ -615,6 +615,13 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
         id
     }
 
+    /// Reserve `n` consecutive ids at once; each must be initialised with `get_or_init`
+    /// before use. Ids reserved but never used stay zero, and are cleared like used ones.
+    fn reserve_ids(&self, n: u32) -> std::ops::Range<u32> {
+        let first = self.next.fetch_add(n, Relaxed);
+        first..first + n
+    }
+
     #[inline]
     fn get_or_init(&self, id: u32, new: impl Fn() -> T) -> &T {
         let id = id as usize;
@@ -693,7 +700,15 @@ struct BrickCache<'a> {
     cell: usize,
     block: Option<u32>,
     bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
+    /// Slot ids this thread has reserved and not yet used: one shared counter increment
+    /// per SLOT_BATCH new bricks instead of one per brick, which at 60 m (a new slot every
+    /// few steps) made the two threads fight over the counter's cache line.
+    spare_slots: std::ops::Range<u32>,
 }
+
+const SLOT_BATCH: u32 = 16;
+/// Rays per parallel task of the raycast.
+const RAY_CHUNK: usize = 512;
 
 const BRICK_CACHE: usize = 512;
 
@@ -703,6 +718,7 @@ impl Default for BrickCache<'_> {
             cell: 0,
             block: None,
             bricks: [None; BRICK_CACHE],
+            spare_slots: 0..0,
         }
     }
 }
@@ -713,8 +729,9 @@ fn brick_cache_index(b: VoxelCoord) -> usize {
 }
 
 impl FrameMarks {
-    /// Prepare for a frame whose voxels lie in `[lo, hi]`.
-    fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord) {
+    /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast in `chunks` calls of
+    /// `cast_chunk` (each may leave up to a batch of reserved slot ids unused).
+    fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, chunks: usize) {
         self.lo = lo.shr(3 + CELL_LOG2).shl(3 + CELL_LOG2);
         let d = hi.shr(3 + CELL_LOG2) - lo.shr(3 + CELL_LOG2);
         self.cells_dim = [d.x as usize + 1, d.y as usize + 1, d.z as usize + 1];
@@ -722,7 +739,8 @@ impl FrameMarks {
         self.cells.clear();
         self.cells.resize_with(ncells, || AtomicU32::new(0));
         self.blocks.reserve(ncells);
-        self.slots.reserve(ncells * CELL_ENTRIES);
+        self.slots
+            .reserve(ncells * CELL_ENTRIES + chunks * SLOT_BATCH as usize);
     }
 
     fn used_slots(&self) -> u32 {
@@ -802,7 +820,14 @@ impl FrameMarks {
         let m = (1 << CELL_LOG2) - 1;
         let e = (x & m) | (y & m) << CELL_LOG2 | (z & m) << (2 * CELL_LOG2);
         let entry = &self.blocks.get(block)[e];
-        let s = claim(entry, || self.slots.alloc(Slot::default));
+        let s = claim(entry, || {
+            if cache.spare_slots.is_empty() {
+                cache.spare_slots = self.slots.reserve_ids(SLOT_BATCH);
+            }
+            let id = cache.spare_slots.next().expect("refilled above");
+            self.slots.get_or_init(id, Slot::default);
+            id
+        });
         self.slots.get(s)
     }
 
