@@ -404,3 +404,22 @@ proptest! {
         exercise(&b);
     }
 }
+
+#[test]
+fn leaves_with_nothing_known_are_left_out() {
+    let mut map = random_map(7, 1);
+    let before = encode(&map, Scope::Whole, true);
+    // Empty leaves far from the map's: before, amid and after its leaves in block order.
+    for o in [[-4096, -4096, -4096], [4096, -4096, 0], [4096, 4096, 4096]] {
+        map.grid_mut()
+            .leaf_index_or_insert(VoxelCoord::from_array(o), None);
+    }
+    let after = encode(&map, Scope::Whole, true);
+    let (a, b) = (
+        SnapshotView::open_checked(&before).unwrap(),
+        SnapshotView::open_checked(&after).unwrap(),
+    );
+    assert_eq!(a.leaf_count(), b.leaf_count());
+    assert_eq!(a.counts(), b.counts());
+    assert_eq!(before, after);
+}

@@ -54,6 +54,8 @@ struct PlannedLeaf<'a> {
 }
 
 const WHOLE: u32 = u32::MAX;
+/// [`PlannedLeaf::kinds`] of a leaf with nothing known, dropped from the plan.
+const EMPTY: u8 = u8::MAX;
 
 /// Voxels of `keep` whose value is at or above the threshold, a word at a time.
 fn occupied_mask(leaf: &Leaf<i8>, keep: &Mask512, threshold: i8) -> Mask512 {
@@ -152,15 +154,20 @@ pub struct Plan<'a> {
     keeps: Vec<Mask512>,
     meta: Meta,
     table_capacity: u64,
+    /// The masks section, already encoded, in pieces (in leaf order).
+    records: Vec<Vec<u8>>,
     masks_len: u64,
+    sums: Sums,
 }
 
 impl<'a> Plan<'a> {
     pub fn new(map: &'a OccupancyMap, scope: Scope, meta: Meta) -> Self {
         let mut keeps = Vec::new();
         let mut leaves: Vec<PlannedLeaf<'a>> = match scope {
+            // Leaves are not read here: in block order they are scattered over the pool,
+            // and the pass below reads each one once.
             Scope::Whole => map.grid().filter_map_leaves_in_block_order(|origin, leaf| {
-                (!leaf.active.is_empty()).then_some(PlannedLeaf {
+                Some(PlannedLeaf {
                     origin,
                     leaf,
                     kinds: (0, 0),
@@ -211,21 +218,58 @@ impl<'a> Plan<'a> {
             }
         };
         let threshold = map.quantized().threshold;
-        // Choose each leaf's encodings; `record` holds the record's length until the
-        // offsets are summed below.
-        leaves.par_iter_mut().with_min_len(PIECE).for_each(|p| {
-            let keep = keep_of(&keeps, p);
-            let known = record::choose_known(keep);
-            let occupied = record::choose_occupied(&occupied_mask(p.leaf, keep, threshold));
-            p.kinds = (known.kind, occupied.kind);
-            p.record = known.len + occupied.len;
-        });
+        // Encode every leaf's record once, in pieces; `record` is the offset within the
+        // piece until the pieces' offsets are known. Leaves with nothing known (possible
+        // only in the whole scope) get no record and are dropped after.
+        let pieces: Vec<(Vec<u8>, Sums, usize)> = leaves
+            .par_chunks_mut(PIECE)
+            .map(|piece| {
+                let (mut bytes, mut sums, mut empty) = (Vec::new(), Sums::default(), 0);
+                for p in piece {
+                    let keep = *keep_of(&keeps, p);
+                    if keep.is_empty() {
+                        p.kinds = (EMPTY, 0);
+                        empty += 1;
+                        continue;
+                    }
+                    let occupied = occupied_mask(p.leaf, &keep, threshold);
+                    let known_choice = record::choose_known(&keep);
+                    let occupied_choice = record::choose_occupied(&occupied);
+                    p.kinds = (known_choice.kind, occupied_choice.kind);
+                    p.record = bytes.len() as u32;
+                    let at = bytes.len();
+                    bytes.resize(at + (known_choice.len + occupied_choice.len) as usize, 0);
+                    record::encode(&keep, p.kinds.0, &occupied, p.kinds.1, &mut bytes[at..]);
+                    extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, &keep);
+                    sums.known += u64::from(keep.count());
+                    sums.occupied += u64::from(occupied.count());
+                }
+                (bytes, sums, empty)
+            })
+            .collect();
+        let mut starts = Vec::with_capacity(pieces.len());
         let mut at = 0u64;
-        for p in &mut leaves {
-            let len = u64::from(p.record);
-            // Past MAX_MASKS_LEN the offset would wrap; `write` refuses such a plan.
-            p.record = at.min(MAX_MASKS_LEN) as u32;
-            at += len;
+        for (bytes, _, _) in &pieces {
+            starts.push(at);
+            at += bytes.len() as u64;
+        }
+        leaves
+            .par_chunks_mut(PIECE)
+            .zip(&starts)
+            .for_each(|(piece, &start)| {
+                for p in piece {
+                    // Past MAX_MASKS_LEN the offset would wrap; `write` refuses such a plan.
+                    p.record = (start + u64::from(p.record)).min(MAX_MASKS_LEN) as u32;
+                }
+            });
+        if pieces.iter().any(|(_, _, empty)| *empty > 0) {
+            leaves.retain(|p| p.kinds.0 != EMPTY);
+        }
+        let mut sums = Sums::default();
+        let mut records = Vec::with_capacity(pieces.len());
+        for (bytes, piece_sums, _) in pieces {
+            sums = Sums::add(sums, piece_sums);
+            records.push(bytes);
         }
         let table_capacity = table_capacity_for(leaves.len() as u64);
         Self {
@@ -234,7 +278,9 @@ impl<'a> Plan<'a> {
             keeps,
             meta,
             table_capacity,
+            records,
             masks_len: at,
+            sums,
         }
     }
 
@@ -301,37 +347,47 @@ impl<'a> Plan<'a> {
                 s = if s + 1 == cap as usize { 0 } else { s + 1 };
             }
         }
-        // Cut the leaf sections into disjoint pieces of PIECE leaves and write them in
-        // parallel.
+        // Cut the sections into disjoint pieces and write them in parallel.
         let (_, rest) = buf.split_at_mut(entries as usize);
-        let (mut entry_bytes, rest) = rest.split_at_mut((masks - entries) as usize);
-        let (mask_section, mut value_bytes) = rest.split_at_mut(align8(self.masks_len) as usize);
+        let (entry_bytes, rest) = rest.split_at_mut((masks - entries) as usize);
+        let (mask_section, value_bytes) = rest.split_at_mut(align8(self.masks_len) as usize);
         let (mut mask_bytes, padding) = mask_section.split_at_mut(self.masks_len as usize);
         padding.fill(0);
-        let n = self.leaves.len();
-        let record_of = |i: usize| {
-            self.leaves
-                .get(i)
-                .map_or(self.masks_len, |p| u64::from(p.record))
-        };
-        let mut work = Vec::with_capacity(n / PIECE + 1);
-        for start in (0..n).step_by(PIECE) {
-            let end = (start + PIECE).min(n);
-            let e = take(&mut entry_bytes, ENTRY_SIZE * (end - start));
-            let first = record_of(start);
-            let m = take(&mut mask_bytes, (record_of(end) - first) as usize);
-            let values_len = if self.meta.with_values {
-                VALUES_PER_LEAF * (end - start)
-            } else {
-                0
-            };
-            let v = take(&mut value_bytes, values_len);
-            work.push((start..end, first, e, m, v));
+        let mut record_pieces = Vec::with_capacity(self.records.len());
+        for r in &self.records {
+            record_pieces.push((take(&mut mask_bytes, r.len()), r));
         }
-        let sums = work
+        record_pieces
             .into_par_iter()
-            .map(|(range, first, e, m, v)| self.write_leaves(range, first, e, m, v))
-            .reduce(Sums::default, Sums::add);
+            .for_each(|(out, r)| out.copy_from_slice(r));
+        entry_bytes
+            .par_chunks_mut(ENTRY_SIZE * PIECE)
+            .zip(self.leaves.par_chunks(PIECE))
+            .for_each(|(out, leaves)| {
+                for (o, p) in out.chunks_exact_mut(ENTRY_SIZE).zip(leaves) {
+                    let (k, occ) = p.kinds;
+                    let entry = LeafEntry::new(p.origin.to_array(), k, occ, p.record);
+                    o.copy_from_slice(bytemuck::bytes_of(&entry));
+                }
+            });
+        if self.meta.with_values {
+            value_bytes
+                .par_chunks_mut(VALUES_PER_LEAF * PIECE)
+                .zip(self.leaves.par_chunks(PIECE))
+                .for_each(|(out, leaves)| {
+                    for (o, p) in out.chunks_exact_mut(VALUES_PER_LEAF).zip(leaves) {
+                        let keep = keep_of(&self.keeps, p);
+                        for (v, b) in o.iter_mut().enumerate() {
+                            *b = if keep.get(v) {
+                                p.leaf.values[v] as u8
+                            } else {
+                                0
+                            };
+                        }
+                    }
+                });
+        }
+        let sums = &self.sums;
         let checksum = buf[HEADER_SIZE..]
             .par_chunks(CRC_PIECE)
             .map(|c| {
@@ -377,48 +433,6 @@ impl<'a> Plan<'a> {
         };
         buf[..HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&h));
         Ok(total_us)
-    }
-
-    /// Write the entries, masks and (if planned) values of `range`'s leaves into their
-    /// pieces of those sections; `masks` starts at record offset `first`.
-    fn write_leaves(
-        &self,
-        range: std::ops::Range<usize>,
-        first: u64,
-        entries: &mut [u8],
-        masks: &mut [u8],
-        values: &mut [u8],
-    ) -> Sums {
-        let threshold = self.map.quantized().threshold;
-        let mut sums = Sums::default();
-        for (k, p) in self.leaves[range].iter().enumerate() {
-            let (known_kind, occupied_kind) = p.kinds;
-            let entry = LeafEntry::new(p.origin.to_array(), known_kind, occupied_kind, p.record);
-            entries[ENTRY_SIZE * k..ENTRY_SIZE * (k + 1)]
-                .copy_from_slice(bytemuck::bytes_of(&entry));
-            let keep = keep_of(&self.keeps, p);
-            extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, keep);
-            sums.known += u64::from(keep.count());
-            let at = (u64::from(p.record) - first) as usize;
-            let occupied = if occupied_kind != 0 {
-                occupied_mask(p.leaf, keep, threshold)
-            } else {
-                Mask512::EMPTY
-            };
-            sums.occupied += u64::from(occupied.count());
-            record::encode(keep, known_kind, &occupied, occupied_kind, &mut masks[at..]);
-            if self.meta.with_values {
-                let out = &mut values[VALUES_PER_LEAF * k..VALUES_PER_LEAF * (k + 1)];
-                for (v, o) in out.iter_mut().enumerate() {
-                    *o = if keep.get(v) {
-                        p.leaf.values[v] as u8
-                    } else {
-                        0
-                    };
-                }
-            }
-        }
-        sums
     }
 
     /// Encode into a new vector.
