@@ -146,6 +146,46 @@ fn view_agrees_with_the_map_on_every_query() {
     }
 }
 
+/// `first_hit` passes leaves with nothing blocking in one jump: check it on long segments
+/// through a sparse map, from and to leaf corners, faces and edges (ties), and along axes.
+#[test]
+fn first_hit_agrees_on_long_and_lattice_segments() {
+    let map = random_map(9, 2);
+    let bytes = encode(&map, Scope::Whole, false);
+    let view = SnapshotView::open(&bytes).unwrap();
+    let tf = map.transform();
+    let mut rng = Rng(77);
+    let lattice = |rng: &mut Rng| (rng.f() * 20.0).floor() * 0.4 - 4.0;
+    for i in 0..6000 {
+        let mut a = WorldPoint::new(lattice(&mut rng), lattice(&mut rng), lattice(&mut rng));
+        let mut b = WorldPoint::new(lattice(&mut rng), lattice(&mut rng), lattice(&mut rng));
+        match i % 3 {
+            0 => b[i / 3 % 3] = a[i / 3 % 3],
+            1 => {
+                a += nalgebra::Vector3::new(rng.f(), rng.f(), rng.f()) * 0.05;
+                b = WorldPoint::new(
+                    rng.f() * 9.0 - 4.5,
+                    rng.f() * 9.0 - 4.5,
+                    rng.f() * 9.0 - 4.5,
+                );
+            }
+            _ => {}
+        }
+        for unknown_blocks in [false, true] {
+            let want = find_voxel(tf.point_to_units(&a), tf.point_to_units(&b), |v| {
+                let s = map.state(v);
+                (s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown))
+                    .then_some(v)
+            });
+            assert_eq!(
+                view.first_hit(&a, &b, unknown_blocks).unwrap(),
+                want,
+                "{a:?} -> {b:?}, unknown blocks: {unknown_blocks}"
+            );
+        }
+    }
+}
+
 #[test]
 fn box_scope_keeps_exactly_the_voxels_inside() {
     let map = random_map(9, 2);

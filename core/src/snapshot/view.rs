@@ -343,18 +343,55 @@ impl<'a> SnapshotView<'a> {
         if (0..3).any(|k| (o[k] - e[k]).abs() > MAX_SEGMENT_VOXELS) {
             return Err(InvalidSegment::TooLong);
         }
-        let mut leaf_key = None;
-        let mut leaf = None;
-        Ok(crate::raycast::find_voxel(o, e, |v| {
-            let lo = leaf_origin(v);
-            if leaf_key != Some(lo) {
-                leaf_key = Some(lo);
-                leaf = self.find_leaf(lo.to_array());
+        // Leaves with no blocking voxel (most, on a large map) are passed in one jump.
+        enum Leaf {
+            Clear,
+            Blocked,
+            Mixed(LeafRef),
+        }
+        let class = |lo: VoxelCoord| match self.find_leaf(lo.to_array()) {
+            None if unknown_blocks => Leaf::Blocked,
+            None => Leaf::Clear,
+            // Kinds 0: nothing occupied; all known.
+            Some(l) if l.kinds.1 == 0 && (!unknown_blocks || l.kinds.0 == 0) => Leaf::Clear,
+            Some(l) => Leaf::Mixed(l),
+        };
+        let mut d = crate::raycast::Dda::new(o, e);
+        let mut leaf_key = leaf_origin(d.voxel());
+        let mut leaf = class(leaf_key);
+        let mut settled = false;
+        loop {
+            let v = d.voxel();
+            if leaf_origin(v) != leaf_key {
+                leaf_key = leaf_origin(v);
+                leaf = class(leaf_key);
             }
-            let s = leaf.map_or(VoxelState::Unknown, |l| self.leaf_state(l, leaf_offset(v)));
-            let blocked = s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown);
-            blocked.then_some(v)
-        }))
+            match leaf {
+                Leaf::Blocked => return Ok(Some(v)),
+                Leaf::Mixed(l) => {
+                    let s = self.leaf_state(l, leaf_offset(v));
+                    if s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown) {
+                        return Ok(Some(v));
+                    }
+                }
+                Leaf::Clear => {
+                    if d.steps() > 2 && d.leave_leaf() {
+                        continue;
+                    }
+                }
+            }
+            if d.steps() > 2 {
+                d.step_far();
+            } else if d.steps() > 0 {
+                if !settled {
+                    d.settle();
+                    settled = true;
+                }
+                d.step();
+            } else {
+                return Ok(None);
+            }
+        }
     }
 
     /// Whether no voxel with its centre in the box [min, max] (world metres) is occupied,
