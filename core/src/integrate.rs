@@ -583,7 +583,34 @@ struct Slot {
 // grid's internal nodes and their children in order.
 const _: () = assert!(3 + CELL_LOG2 == crate::grid::INTERNAL_TOTAL_LOG2);
 
-type Block = [AtomicU32; CELL_ENTRIES];
+/// The brick entries of one coarse cell: slot id + 1, or 0.
+struct Block([AtomicU32; CELL_ENTRIES]);
+
+impl Default for Block {
+    fn default() -> Self {
+        Block(std::array::from_fn(|_| AtomicU32::new(0)))
+    }
+}
+
+impl Zero for Block {
+    fn zero(&self) {
+        self.0.iter().for_each(|e| e.store(0, Relaxed));
+    }
+}
+
+/// Pool items: all-zero by default, and zeroed in place.
+trait Zero: Default + Send + Sync {
+    fn zero(&self);
+}
+
+impl Zero for Slot {
+    fn zero(&self) {
+        self.free
+            .iter()
+            .chain(&self.hit)
+            .for_each(|w| w.store(0, Relaxed));
+    }
+}
 
 /// A growable pool of zero-initialised `T`, handed out by id from any thread. Ids and
 /// storage persist across frames; `clear` re-zeroes what was used.
@@ -601,7 +628,7 @@ impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
     }
 }
 
-impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
+impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
     fn reserve(&mut self, n: usize) {
         let want = n.div_ceil(CHUNK);
         while self.chunks.len() < want {
@@ -609,9 +636,9 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
         }
     }
 
-    fn alloc(&self, new: impl Fn() -> T) -> u32 {
+    fn alloc(&self) -> u32 {
         let id = self.next.fetch_add(1, Relaxed);
-        self.get_or_init(id, new);
+        self.get_or_init(id);
         id
     }
 
@@ -623,9 +650,17 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
     }
 
     #[inline]
-    fn get_or_init(&self, id: u32, new: impl Fn() -> T) -> &T {
+    fn get_or_init(&self, id: u32) -> &T {
         let id = id as usize;
-        &self.chunks[id / CHUNK].get_or_init(|| (0..CHUNK).map(|_| new()).collect())[id % CHUNK]
+        let new_chunk = || {
+            let items: Box<[T]> = (0..CHUNK).map(|_| T::default()).collect();
+            // Zeroes may come as untouched pages (calloc), which map to the shared zero page
+            // on their first read; the first write then copies it and flushes the TLBs of
+            // every core running the process. Writing them now gets private pages at once.
+            items.iter().for_each(T::zero);
+            items
+        };
+        &self.chunks[id / CHUNK].get_or_init(new_chunk)[id % CHUNK]
     }
 
     #[inline]
@@ -638,7 +673,7 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
         self.next.load(Relaxed)
     }
 
-    fn clear(&mut self, zero: impl Fn(&T) + Sync) {
+    fn clear(&mut self) {
         let n = self.used() as usize;
         self.chunks[..n.div_ceil(CHUNK)]
             .par_iter()
@@ -646,7 +681,7 @@ impl<T: Send + Sync, const CHUNK: usize> Pool<T, CHUNK> {
             .for_each(|(c, chunk)| {
                 if let Some(items) = chunk.get() {
                     let end = (n - c * CHUNK).min(CHUNK);
-                    items[..end].iter().for_each(&zero);
+                    items[..end].iter().for_each(T::zero);
                 }
             });
         self.next.store(0, Relaxed);
@@ -772,6 +807,7 @@ impl FrameMarks {
                 let base = self.lo + cell.shl(3 + CELL_LOG2);
                 self.blocks
                     .get(b)
+                    .0
                     .iter()
                     .enumerate()
                     .filter_map(move |(e, s)| {
@@ -808,10 +844,7 @@ impl FrameMarks {
         let block = match cache.block {
             Some(b) if cache.cell == cell => b,
             _ => {
-                let b = claim(&self.cells[cell], || {
-                    self.blocks
-                        .alloc(|| std::array::from_fn(|_| AtomicU32::new(0)))
-                });
+                let b = claim(&self.cells[cell], || self.blocks.alloc());
                 cache.cell = cell;
                 cache.block = Some(b);
                 b
@@ -819,13 +852,13 @@ impl FrameMarks {
         };
         let m = (1 << CELL_LOG2) - 1;
         let e = (x & m) | (y & m) << CELL_LOG2 | (z & m) << (2 * CELL_LOG2);
-        let entry = &self.blocks.get(block)[e];
+        let entry = &self.blocks.get(block).0[e];
         let s = claim(entry, || {
             if cache.spare_slots.is_empty() {
                 cache.spare_slots = self.slots.reserve_ids(SLOT_BATCH);
             }
             let id = cache.spare_slots.next().expect("refilled above");
-            self.slots.get_or_init(id, Slot::default);
+            self.slots.get_or_init(id);
             id
         });
         self.slots.get(s)
@@ -864,14 +897,8 @@ impl FrameMarks {
 
     /// Zero everything this frame used, keeping the memory for the next.
     fn clear_used(&mut self) {
-        self.slots.clear(|s| {
-            s.free
-                .iter()
-                .chain(&s.hit)
-                .for_each(|w| w.store(0, Relaxed));
-        });
-        self.blocks
-            .clear(|b| b.iter().for_each(|e| e.store(0, Relaxed)));
+        self.slots.clear();
+        self.blocks.clear();
     }
 }
 
