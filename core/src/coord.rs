@@ -163,6 +163,23 @@ impl GridTransform {
         )
     }
 
+    /// Inclusive bounds of the voxels whose centres lie in the box `[min, max]` (a centre
+    /// within [`FACE_SNAP`] of a face counts as on it), or `None` if a corner is not
+    /// finite or lies outside the index space. No voxel is inside when some `lo > hi`.
+    pub fn voxels_centred_in(
+        &self,
+        min: &WorldPoint,
+        max: &WorldPoint,
+    ) -> Option<(VoxelCoord, VoxelCoord)> {
+        // Voxel v's centre is (v + 0.5) res: inside iff min/res - 0.5 <= v <= max/res - 0.5.
+        let half = self.resolution * 0.5;
+        let lo = self.point_to_units(&WorldPoint::new(min.x - half, min.y - half, min.z - half));
+        let hi = self.point_to_units(&WorldPoint::new(max.x - half, max.y - half, max.z - half));
+        // ceil(u) = -floor(-u), with the same range check as floor.
+        let lo = units_to_voxel(lo.map(|c| -c))?;
+        Some((VoxelCoord::new(-lo.x, -lo.y, -lo.z), units_to_voxel(hi)?))
+    }
+
     /// World position of a voxel's minimum corner.
     pub fn voxel_min_corner(&self, v: VoxelCoord) -> WorldPoint {
         WorldPoint::new(
@@ -244,6 +261,37 @@ mod tests {
         assert!(t.voxel_of(&WorldPoint::new(0.0, 0.0, 1e9)).is_none());
         assert!(GridTransform::new(0.0).is_err());
         assert!(GridTransform::new(f64::NAN).is_err());
+    }
+
+    #[test]
+    fn box_of_voxel_centres_is_closed() {
+        let t = GridTransform::new(0.1).unwrap();
+        let (v, w) = (VoxelCoord::new(-3, 2, 0), VoxelCoord::new(4, 5, 0));
+        // Faces through centres: both voxels inside.
+        assert_eq!(
+            t.voxels_centred_in(&t.voxel_center(v), &t.voxel_center(w)),
+            Some((v, w))
+        );
+        // Faces just inside those centres: both outside.
+        let e = WorldPoint::new(1e-6, 1e-6, 1e-6).coords;
+        let (lo, hi) = t
+            .voxels_centred_in(&(t.voxel_center(v) + e), &(t.voxel_center(w) - e))
+            .unwrap();
+        assert_eq!(
+            (lo, hi),
+            (v + VoxelCoord::new(1, 1, 1), w - VoxelCoord::new(1, 1, 1))
+        );
+        // A box between two centres holds none.
+        let (lo, hi) = t
+            .voxels_centred_in(
+                &WorldPoint::new(0.06, 0.06, 0.06),
+                &WorldPoint::new(0.14, 0.14, 0.14),
+            )
+            .unwrap();
+        assert!(lo.x > hi.x);
+        assert!(t
+            .voxels_centred_in(&WorldPoint::new(f64::NAN, 0.0, 0.0), &WorldPoint::origin())
+            .is_none());
     }
 
     #[test]

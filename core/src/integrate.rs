@@ -98,6 +98,9 @@ pub enum IntegrateError {
     NonFinitePose,
     /// The sensor origin (plus max range) lies outside the map's index space.
     OriginOutOfRange { origin: [f64; 3] },
+    /// The integrator's max range spans more than [`MAX_RANGE_VOXELS`] voxels at the
+    /// map's resolution (e.g. after loading a finer map).
+    RangeTooLong { max_range: f64, resolution: f64 },
 }
 
 impl std::fmt::Display for IntegrateError {
@@ -110,6 +113,13 @@ impl std::fmt::Display for IntegrateError {
                     "frame rejected: sensor origin {origin:?} m is outside the map's index space"
                 )
             }
+            IntegrateError::RangeTooLong {
+                max_range,
+                resolution,
+            } => write!(
+                f,
+                "frame rejected: max range {max_range} m is more than {MAX_RANGE_VOXELS} voxels at {resolution} m"
+            ),
         }
     }
 }
@@ -247,8 +257,9 @@ impl Integrator {
     ) -> Result<IntegrateReport, IntegrateError> {
         let range_units =
             self.check_range(map.resolution())
-                .map_err(|_| IntegrateError::OriginOutOfRange {
-                    origin: frame.pose.translation.vector.into(),
+                .map_err(|_| IntegrateError::RangeTooLong {
+                    max_range: self.cfg.max_range,
+                    resolution: map.resolution(),
                 })?;
         let pose = frame.pose;
         if !(pose.translation.vector.iter().all(|c| c.is_finite())
@@ -1226,16 +1237,20 @@ mod tests {
             threads: 1,
             mode: RayMode::Exact,
         };
-        assert!(Integrator::new(long)
-            .unwrap()
-            .integrate(
+        assert_eq!(
+            Integrator::new(long).unwrap().integrate(
                 &mut map,
                 &Frame {
                     pose: Isometry3::identity(),
                     points: &[]
                 }
-            )
-            .is_err());
+            ),
+            Err(IntegrateError::RangeTooLong {
+                max_range: 2000.0,
+                resolution: 0.1
+            })
+        );
+        assert_eq!(snapshot(&map), before);
     }
 
     #[test]

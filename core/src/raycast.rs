@@ -11,7 +11,8 @@ use crate::coord::VoxelCoord;
 /// Fixed-point scale of the ray parameter `t` in [0, 1]: t = 1 is `1 << T_BITS`.
 /// Face crossings are kept as integers so a step is compare, select, add: a short
 /// dependency chain in registers. With 60 fractional bits the accumulated rounding over
-/// the longest allowed ray (8192 voxels) stays below 1e-13 voxel.
+/// the longest walk (65536 voxels per axis, a snapshot's `first_hit`; integration rays are
+/// at most 8192) stays below 1e-13 of the ray.
 const T_BITS: u32 = 60;
 const T_ONE: f64 = (1u64 << T_BITS) as f64;
 
@@ -97,20 +98,22 @@ impl Dda {
         let cz = !cx && !cy;
         // Next crossing per axis, computed off the critical path; an axis is done after its
         // last crossing.
+        // Saturating: a done axis (u64::MAX) is not its last crossing, and its sum, though
+        // never selected, must not overflow.
         let nx = if self.tx == self.lx {
             u64::MAX
         } else {
-            self.tx + self.dx
+            self.tx.saturating_add(self.dx)
         };
         let ny = if self.ty == self.ly {
             u64::MAX
         } else {
-            self.ty + self.dy
+            self.ty.saturating_add(self.dy)
         };
         let nz = if self.tz == self.lz {
             u64::MAX
         } else {
-            self.tz + self.dz
+            self.tz.saturating_add(self.dz)
         };
         self.tx = if cx { nx } else { self.tx };
         self.ty = if cy { ny } else { self.ty };
@@ -126,11 +129,12 @@ impl Dda {
     /// hot loop keeps them in registers.
     ///
     /// Why it is exact: an axis past its last crossing would next cross at t >= 1, and it
-    /// can only be taken instead of a due crossing if rounding (under 2^21 of the 2^60
-    /// units of t over the longest ray) puts it below every crossing still due. All of those
-    /// would then lie within that rounding of t = 1; crossings of one axis are at least
-    /// 2^47 units apart (rays are at most 8192 voxels), so at most one per other axis, two
-    /// in all, can be there: it can only happen in the last two steps.
+    /// can only be taken instead of a due crossing if rounding (under 2^18 of the 2^60
+    /// units of t: at most one unit per crossing, 65536 crossings per axis) puts it below
+    /// every crossing still due. All of those would then lie within that rounding of t = 1;
+    /// crossings of one axis are at least 2^44 units apart (walks are at most 65536 voxels
+    /// per axis), so at most one per other axis, two in all, can be there: it can only
+    /// happen in the last two steps.
     //
     // Written out rather than shared with `step` through a `next`-crossing closure: that
     // version walked rays 20-25% slower (interleaved A/B, 500k 6 m workloads).

@@ -99,6 +99,7 @@ struct Stats {
     last_snapshot_bytes: usize,
     last_encode_ms: f64,
     sequence: u64,
+    publish_failures: u64,
 }
 
 impl Stats {
@@ -140,9 +141,9 @@ impl Stats {
         let w = self.wire(map);
         format!(
             "frames received {} integrated {} dropped {} rejected {}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
-             snapshot {} bytes, encode {:.2} ms; map {} leaves, {} bytes",
+             snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes",
             w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
-            w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, w.map_leaves, w.map_memory_bytes
+            w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, self.publish_failures, w.map_leaves, w.map_memory_bytes
         )
     }
 }
@@ -242,12 +243,12 @@ pub fn run(a: ServeArgs) -> Result<()> {
 
     let mut scope = ScopeSetting::Whole;
     let mut sensor = [0.0f64; 3];
-    let publish = |integ: &Integrator,
-                   map: &OccupancyMap,
-                   sequence: u64,
-                   stamp_ns: u64,
-                   stats: &mut Stats,
-                   scope: Scope|
+    let try_publish = |integ: &Integrator,
+                       map: &OccupancyMap,
+                       sequence: u64,
+                       stamp_ns: u64,
+                       stats: &mut Stats,
+                       scope: Scope|
      -> Result<()> {
         let t = Instant::now();
         let meta = Meta {
@@ -280,6 +281,19 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
         Ok(())
     };
+    // A snapshot that cannot be published (no shared memory left, a map too large for
+    // one snapshot) is logged and counted; the service keeps integrating.
+    let publish = |integ: &Integrator,
+                   map: &OccupancyMap,
+                   sequence: u64,
+                   stamp_ns: u64,
+                   stats: &mut Stats,
+                   scope: Scope| {
+        if let Err(e) = try_publish(integ, map, sequence, stamp_ns, stats, scope) {
+            stats.publish_failures += 1;
+            eprintln!("voxmap serve: snapshot {sequence} not published: {e:#}");
+        }
+    };
     publish(
         &integ,
         &map,
@@ -287,7 +301,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stamp_ns,
         &mut stats,
         scope.scope(sensor),
-    )?;
+    );
     eprintln!(
         "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {threads} threads, intake {}; frames on '{}'",
         cfg.prefix, cfg.map, map.resolution(), cfg.max_range, cfg.mode, cfg.intake, names.frames
@@ -362,8 +376,9 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 }
                 let seq = s.user_header().sequence;
                 if let Some(prev) = last_seq.insert(s.header().publisher_id(), seq) {
-                    if queue && seq > prev + 1 {
-                        stats.dropped += seq - prev - 1;
+                    // The sequence is the publisher's word: no arithmetic on it may overflow.
+                    if queue && seq > prev.saturating_add(1) {
+                        stats.dropped = stats.dropped.saturating_add(seq - prev - 1);
                     }
                 }
                 if next.replace(s).is_some() {
@@ -424,7 +439,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 stamp_ns,
                 &mut stats,
                 scope.scope(sensor),
-            )?;
+            );
             last_publish = Instant::now();
             unpublished = false;
         }
@@ -446,6 +461,18 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 k if k == ControlKind::Load as u32 => match r.path() {
                     None => (false, "bad path".to_string(), false),
                     Some(p) => match mapfile::load_map(std::path::Path::new(p)) {
+                        Ok(m)
+                            if integ.config().max_range / m.resolution()
+                                > voxmap_core::integrate::MAX_RANGE_VOXELS =>
+                        {
+                            let why = format!(
+                                "not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
+                                m.resolution(),
+                                integ.config().max_range,
+                                voxmap_core::integrate::MAX_RANGE_VOXELS
+                            );
+                            (false, why, false)
+                        }
                         Ok(m) => {
                             map = m;
                             (true, format!("loaded {p}"), true)
@@ -477,7 +504,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
                     stamp_ns,
                     &mut stats,
                     scope.scope(sensor),
-                )?;
+                );
                 last_publish = Instant::now();
                 unpublished = false;
             }
@@ -502,7 +529,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stamp_ns,
         &mut stats,
         scope.scope(sensor),
-    )?;
+    );
     if let Some(p) = &a.save_on_exit {
         mapfile::save_map(&map, p).with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());

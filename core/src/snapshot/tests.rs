@@ -236,6 +236,13 @@ fn empty_map_and_exact_buffer_sizes() {
         &WorldPoint::new(1.0, 1.0, 1.0),
         false
     ));
+    // A box of 2^66 leaves: counted without overflow, answered from the stored leaves.
+    let far = 0.1 * f64::from(1 << 29);
+    assert!(view.is_box_free(
+        &WorldPoint::new(-far, -far, -far),
+        &WorldPoint::new(far, far, far),
+        true
+    ));
     let mut small = vec![0u8; plan.encoded_len() - 1];
     assert!(matches!(
         plan.write(&mut small),

@@ -397,17 +397,9 @@ impl<'a> SnapshotView<'a> {
     /// Whether no voxel with its centre in the box [min, max] (world metres) is occupied,
     /// nor unknown unless `unknown_is_free`.
     pub fn is_box_free(&self, min: &WorldPoint, max: &WorldPoint, unknown_is_free: bool) -> bool {
-        let half = self.tf.resolution() * 0.5;
-        let lo = self
-            .tf
-            .voxel_of(&WorldPoint::new(min.x - half, min.y - half, min.z - half));
-        let hi = self
-            .tf
-            .voxel_of(&WorldPoint::new(max.x - half, max.y - half, max.z - half));
-        let (Some(lo), Some(hi)) = (lo, hi) else {
+        let Some((lo, hi)) = self.tf.voxels_centred_in(min, max) else {
             return false;
         };
-        let lo = lo + VoxelCoord::new(1, 1, 1);
         if lo.x > hi.x || lo.y > hi.y || lo.z > hi.z {
             return true; // no voxel centre inside
         }
@@ -415,9 +407,10 @@ impl<'a> SnapshotView<'a> {
             lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
         };
         let (llo, lhi) = (leaf_origin(lo), leaf_origin(hi));
+        // Up to 2^28 leaves per axis: the product can pass u64.
         let leaves_in_box = ((lhi.x - llo.x) as u64 / 8 + 1)
-            * ((lhi.y - llo.y) as u64 / 8 + 1)
-            * ((lhi.z - llo.z) as u64 / 8 + 1);
+            .saturating_mul((lhi.y - llo.y) as u64 / 8 + 1)
+            .saturating_mul((lhi.z - llo.z) as u64 / 8 + 1);
         if unknown_is_free && leaves_in_box > self.leaf_count() {
             // Cheaper to scan the stored leaves than the box.
             return self.leaf_occupancy().all(|l| {

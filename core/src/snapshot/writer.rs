@@ -176,44 +176,41 @@ impl<'a> Plan<'a> {
                 })
             }),
             Scope::Box { min, max } => {
-                let tf = map.transform();
-                // Voxels whose centre is inside [min, max].
-                let lo = tf.voxel_of(&WorldPoint::from(min.map(|c| c - tf.resolution() * 0.5)));
-                let hi = tf.voxel_of(&WorldPoint::from(max.map(|c| c - tf.resolution() * 0.5)));
-                match (lo, hi) {
-                    (Some(lo), Some(hi)) => {
-                        let lo = lo + VoxelCoord::new(1, 1, 1);
-                        map.grid()
-                            .leaves_in_block_order()
-                            .filter_map(|(origin, leaf)| {
-                                let mut keep = Mask512::EMPTY;
-                                for i in leaf.active.iter_ones() {
-                                    let v = crate::grid::voxel_at(origin, i);
-                                    if lo.x <= v.x
-                                        && v.x <= hi.x
-                                        && lo.y <= v.y
-                                        && v.y <= hi.y
-                                        && lo.z <= v.z
-                                        && v.z <= hi.z
-                                    {
-                                        keep.set(i);
-                                    }
+                let bounds = map
+                    .transform()
+                    .voxels_centred_in(&WorldPoint::from(min), &WorldPoint::from(max));
+                match bounds {
+                    Some((lo, hi)) => map
+                        .grid()
+                        .leaves_in_block_order()
+                        .filter_map(|(origin, leaf)| {
+                            let mut keep = Mask512::EMPTY;
+                            for i in leaf.active.iter_ones() {
+                                let v = crate::grid::voxel_at(origin, i);
+                                if lo.x <= v.x
+                                    && v.x <= hi.x
+                                    && lo.y <= v.y
+                                    && v.y <= hi.y
+                                    && lo.z <= v.z
+                                    && v.z <= hi.z
+                                {
+                                    keep.set(i);
                                 }
-                                if keep.is_empty() {
-                                    return None;
-                                }
-                                keeps.push(keep);
-                                Some(PlannedLeaf {
-                                    origin,
-                                    leaf,
-                                    kinds: (0, 0),
-                                    record: 0,
-                                    keep: keeps.len() as u32 - 1,
-                                })
+                            }
+                            if keep.is_empty() {
+                                return None;
+                            }
+                            keeps.push(keep);
+                            Some(PlannedLeaf {
+                                origin,
+                                leaf,
+                                kinds: (0, 0),
+                                record: 0,
+                                keep: keeps.len() as u32 - 1,
                             })
-                            .collect()
-                    }
-                    _ => Vec::new(),
+                        })
+                        .collect(),
+                    None => Vec::new(),
                 }
             }
         };
