@@ -438,8 +438,7 @@ proptest! {
 
     /// Arbitrary sections behind a valid header, so that they get past the magic, version
     /// and size checks: mostly zero bytes (30 to 1), so that about one case in six still
-    /// validates
-    /// and the queries run on garbage.
+    /// validates and the queries run on garbage.
     #[test]
     fn arbitrary_sections_never_panic(
         body in proptest::collection::vec(prop_oneof![30 => Just(0u8), 1 => any::<u8>()], 1..4096)
