@@ -26,8 +26,11 @@ pub const INTERNAL_LOG2: u32 = 4;
 pub const INTERNAL_TOTAL_LOG2: u32 = LEAF_LOG2 + INTERNAL_LOG2;
 /// Children (leaves) per internal node.
 pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
-/// Leaves per pool chunk.
-const POOL_CHUNK: usize = 256;
+/// Leaves per pool chunk (576 KiB of `Leaf<i8>`). Each chunk is its own zeroed
+/// allocation, above the allocator's mmap threshold: with 256 leaves a 60 m frame made
+/// 7000 mmap calls in the merge; 1024 cut the random 500k 60 m merge from 133-195 to
+/// 111-118 ms (1 and 2 threads, interleaved runs).
+const POOL_CHUNK: usize = 1024;
 
 /// In-leaf offset of a voxel.
 #[inline]
