@@ -9,6 +9,7 @@ pub struct Mask512 {
 
 impl Mask512 {
     pub const EMPTY: Self = Self { words: [0; 8] };
+    pub const FULL: Self = Self { words: [!0; 8] };
 
     #[inline]
     pub fn get(&self, i: usize) -> bool {

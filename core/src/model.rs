@@ -18,6 +18,7 @@ pub enum VoxelState {
 
 /// Probabilities of the inverse sensor model.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SensorModel {
     /// P(occupied | the voxel holds a ray's end point).
     pub p_hit: f64,

@@ -151,8 +151,8 @@ impl Config {
         if !(0..=99).contains(&self.rt_priority) {
             bail!("rt_priority must be 0..=99");
         }
-        if !(self.snapshot_interval_ms.is_finite() && self.snapshot_interval_ms >= 0.0) {
-            bail!("snapshot_interval_ms must be finite and >= 0");
+        if !(0.0..=3.6e6).contains(&self.snapshot_interval_ms) {
+            bail!("snapshot_interval_ms must be in [0, 3.6e6] (an hour)");
         }
         let voxels = self.max_range / self.resolution;
         if voxels > voxmap_core::integrate::MAX_RANGE_VOXELS {
@@ -217,6 +217,8 @@ mod tests {
             ("[sensor_model]\np_hit = 0.3\n", "p_hit"),
             ("resolution = \"x\"\n", "invalid type"),
             ("max_range = 1000.0\n", "8192"),
+            ("[sensor_model]\np_hitt = 0.9\n", "unknown field"),
+            ("snapshot_interval_ms = 1e23\n", "snapshot_interval_ms"),
         ] {
             std::fs::write(&f, bad).unwrap();
             let e = format!(

@@ -9,8 +9,11 @@ use voxmap_core::io::{mapfile, octomap, ply};
 use voxmap_core::snapshot::{SnapshotView, MAGIC as SNAPSHOT_MAGIC};
 use voxmap_core::LeafOccupancy;
 
-/// Most known voxels a `.bt` file may expand to (8 GB of leaves would follow).
-const MAX_BT_VOXELS: u64 = 1 << 32;
+/// Most known voxels a `.bt` file may expand to: 2^28, more than a 60 m LiDAR map holds
+/// (2.2e8), and at most 2^19 leaves (about 80 MB decoded).
+const MAX_BT_VOXELS: u64 = 1 << 28;
+/// Most occupied voxels a PLY export writes: 2^26 points, a 1.5 GB file.
+const MAX_PLY_POINTS: u64 = 1 << 26;
 
 /// A file's occupancy and what it says about itself.
 pub struct Loaded {
@@ -194,6 +197,13 @@ pub fn export(a: ExportArgs) -> Result<()> {
         );
     }
     if let Some(out) = &a.ply {
+        let n = occupied_count(&l.leaves);
+        if n > MAX_PLY_POINTS {
+            bail!(
+                "{}: {n} occupied voxels is more than a PLY export writes ({MAX_PLY_POINTS})",
+                a.input.display()
+            );
+        }
         let bytes = ply::encode_colored(&occupied_colored(&l.leaves, l.resolution));
         mapfile::write_atomic(out, &bytes)?;
         println!(

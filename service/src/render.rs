@@ -6,6 +6,7 @@ use crate::files::Loaded;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
+use voxmap_core::coord::MAX_VOXEL_INDEX;
 use voxmap_core::grid::voxel_at;
 use voxmap_core::io::ply::height_color;
 use voxmap_core::LeafOccupancy;
@@ -31,9 +32,13 @@ pub struct RenderArgs {
 
 pub fn run(a: RenderArgs) -> Result<()> {
     let loaded = Loaded::read(&a.input)?;
-    let view = match a.slice {
-        Some(z) => View::Slice(z),
-        None => View::Top(a.z_range.as_deref().map(|r| (r[0], r[1]))),
+    let view = match (a.slice, a.z_range.as_deref()) {
+        (Some(z), _) if !z.is_finite() => bail!("--slice must be a finite height"),
+        (Some(z), _) => View::Slice(z),
+        (None, Some(&[lo, hi])) if !(lo.is_finite() && hi.is_finite() && lo <= hi) => {
+            bail!("--z-range needs finite MIN <= MAX, not {lo} {hi}")
+        }
+        (None, r) => View::Top(r.map(|r| (r[0], r[1]))),
     };
     let img = render(&loaded.leaves, loaded.resolution, view, a.size)?;
     img.write_png(&a.out)?;
@@ -152,10 +157,12 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
     // Per cell: highest occupied z (top) or occupancy at the slice layer, and known-ness.
     let mut top = vec![i32::MIN; cw * ch];
     let mut known = vec![false; cw * ch];
+    // Heights far outside the map clamp to the index space, where `zhi + 1` cannot overflow.
+    let layer = |z: f64| (z / res).floor().clamp(-MAX_VOXEL_INDEX, MAX_VOXEL_INDEX) as i32;
     let (zlo, zhi) = match view {
-        View::Top(Some((a, b))) => ((a / res).floor() as i32, (b / res).floor() as i32),
+        View::Top(Some((a, b))) => (layer(a), layer(b)),
         View::Top(None) => (lo[2], hi[2]),
-        View::Slice(z) => ((z / res).floor() as i32, (z / res).floor() as i32),
+        View::Slice(z) => (layer(z), layer(z)),
     };
     for l in leaves {
         if l.origin.z + 7 < zlo || l.origin.z > zhi {

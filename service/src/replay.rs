@@ -199,9 +199,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         hz => Some(
             hz.parse::<f64>()
                 .ok()
-                .filter(|h| h.is_finite() && *h > 0.0)
+                .filter(|h| (0.001..=1e6).contains(h))
                 .ok_or_else(|| {
-                    anyhow!("--rate must be fast, recorded or a rate in Hz > 0, not '{hz}'")
+                    anyhow!(
+                        "--rate must be fast, recorded or a rate in Hz in [0.001, 1e6], not '{hz}'"
+                    )
                 })?,
         ),
     };
@@ -270,7 +272,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                     )
                 })?;
                 let (t0, w0) = *first_stamp.get_or_insert((t, Instant::now()));
-                let due = w0 + Duration::from_secs_f64((t - t0).max(0.0));
+                // Stamps in seconds: a day between scans means they are in another unit.
+                let gap = Duration::try_from_secs_f64((t - t0).max(0.0))
+                    .ok()
+                    .filter(|g| *g <= Duration::from_secs(86_400))
+                    .ok_or_else(|| {
+                        anyhow!(
+                            "{}: stamp {t} s is more than a day after the first ({t0} s); \
+                             are the names nanoseconds? use --rate fast or a rate in Hz",
+                            scan.path.display()
+                        )
+                    })?;
+                let due = w0 + gap;
                 std::thread::sleep(due.saturating_duration_since(Instant::now()));
             }
             Some(hz) => {

@@ -378,9 +378,22 @@ mod tests {
         let path = dir.join("m.vxm");
         save_map(&sample_map(), &path).unwrap();
         let before = std::fs::read(&path).unwrap();
-        // Saving to a path whose directory does not exist fails without touching anything.
-        assert!(save_map(&sample_map(), &dir.join("missing/m.vxm")).is_err());
+        // A save of another map to the same path that fails before its rename (its temp
+        // file's name is taken by a directory): the old file stays whole, no temp is left.
+        let tmp = dir.join(format!(".m.vxm.tmp.{}", std::process::id()));
+        std::fs::create_dir(&tmp).unwrap();
+        let mut other = sample_map();
+        other.set_value(VoxelCoord::new(100, 100, 100), 50);
+        assert!(save_map(&other, &path).is_err());
         assert_eq!(std::fs::read(&path).unwrap(), before);
+        std::fs::remove_dir(&tmp).unwrap();
+        save_map(&other, &path).unwrap();
+        assert_ne!(
+            std::fs::read(&path).unwrap(),
+            before,
+            "the same save succeeds after"
+        );
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -294,18 +294,14 @@ pub fn read_bt(bytes: &[u8]) -> Result<BtSummary, BtError> {
         s.nodes = 1;
         // Explicit stack of (depth, children left to visit in the current node's list).
         let mut stack: Vec<(u32, [u8; 8], usize)> = Vec::new();
-        let read_node = |at: &mut usize, depth: u32| -> Result<[u8; 8], BtError> {
+        let read_node = |at: &mut usize| -> Result<[u8; 8], BtError> {
             let b = data
                 .get(*at..*at + 2)
                 .ok_or_else(|| bad("data ends inside the tree"))?;
             *at += 2;
-            let codes: [u8; 8] = std::array::from_fn(|c| b[c / 4] >> (2 * (c % 4)) & 3);
-            if depth == DEPTH && codes.iter().any(|&c| c != 0) {
-                return Err(bad("tree deeper than 16 levels"));
-            }
-            Ok(codes)
+            Ok(std::array::from_fn(|c| b[c / 4] >> (2 * (c % 4)) & 3))
         };
-        stack.push((0, read_node(&mut at, 0)?, 0));
+        stack.push((0, read_node(&mut at)?, 0));
         while let Some(top) = stack.last_mut() {
             let (depth, codes, next) = (top.0, top.1, top.2);
             if next == 8 {
@@ -325,9 +321,12 @@ pub fn read_bt(bytes: &[u8]) -> Result<BtSummary, BtError> {
                     s.occupied_leaves += 1;
                     s.occupied_voxels += voxels;
                 }
+                _ if depth + 1 == DEPTH => {
+                    return Err(bad("tree deeper than 16 levels (a voxel with children)"));
+                }
                 _ => {
                     s.nodes += 1;
-                    let child = read_node(&mut at, depth + 1)?;
+                    let child = read_node(&mut at)?;
                     stack.push((depth + 1, child, 0));
                 }
             }
@@ -391,6 +390,33 @@ pub fn decode_bt(bytes: &[u8], max_voxels: u64) -> Result<(f64, Vec<LeafOccupanc
             3 => {
                 stack.push((depth + 1, k, codes_at(at), 0));
                 at += 2;
+            }
+            // A pruned node of whole leaves: set their masks, not voxel by voxel.
+            code if half >= 8 => {
+                let full = if code == 2 {
+                    Mask512::FULL
+                } else {
+                    Mask512::EMPTY
+                };
+                for z in (0..half).step_by(8) {
+                    for y in (0..half).step_by(8) {
+                        for x in (0..half).step_by(8) {
+                            let o = [
+                                k[0] + x - KEY_OFFSET,
+                                k[1] + y - KEY_OFFSET,
+                                k[2] + z - KEY_OFFSET,
+                            ];
+                            leaves.insert(
+                                o,
+                                LeafOccupancy {
+                                    origin: VoxelCoord::from_array(o),
+                                    known: Mask512::FULL,
+                                    occupied: full,
+                                },
+                            );
+                        }
+                    }
+                }
             }
             code => {
                 let occupied = code == 2;
@@ -559,7 +585,55 @@ mod tests {
         lying.extend(format!("size {}\n", n + 1).bytes());
         lying.extend(&good[at + needle.len()..]);
         assert!(matches!(read_bt(&lying), Err(BtError::Format(m)) if m.contains("says")));
-        assert!(read_bt(b"# Octomap OcTree file\nid OcTree\n").is_err());
+        // A header that stops before its size, resolution and data lines.
+        let cut = b"# Octomap OcTree binary file\nid OcTree\n";
+        assert!(matches!(read_bt(cut), Err(BtError::Format(m)) if !m.contains("first line")));
+    }
+
+    fn bt(size: usize, nodes: &[[u8; 2]]) -> Vec<u8> {
+        let mut b =
+            format!("# Octomap OcTree binary file\nid OcTree\nsize {size}\nres 0.1\ndata\n")
+                .into_bytes();
+        nodes.iter().for_each(|n| b.extend(n));
+        b
+    }
+
+    #[test]
+    fn deep_and_pruned_trees() {
+        // Inner nodes down to depth 16, where voxels are: refused, not read as voxels.
+        let mut deep = vec![[3, 0]; 16];
+        deep.push([0, 0]);
+        assert!(matches!(read_bt(&bt(17, &deep)), Err(BtError::Format(m)) if m.contains("deeper")));
+        // Inner nodes down to depth 12, whose first child is a pruned occupied 8^3 block
+        // and second a free one: two whole leaves, and the same file again on encoding.
+        let mut pruned = vec![[3, 0]; 12];
+        pruned.push([2 | 1 << 2, 0]);
+        let file = bt(15, &pruned);
+        let (res, mut leaves) = decode_bt(&file, 1 << 20).unwrap();
+        leaves.sort_by_key(|l| l.origin);
+        let o = -(1 << 15);
+        assert_eq!(
+            leaves,
+            vec![
+                LeafOccupancy {
+                    origin: VoxelCoord::new(o, o, o),
+                    known: Mask512::FULL,
+                    occupied: Mask512::FULL
+                },
+                LeafOccupancy {
+                    origin: VoxelCoord::new(o + 8, o, o),
+                    known: Mask512::FULL,
+                    occupied: Mask512::EMPTY
+                },
+            ]
+        );
+        let again = encode_bt(leaves, res).unwrap();
+        let data = |b: &[u8]| b[b.windows(5).position(|w| w == b"data\n").unwrap() + 5..].to_vec();
+        assert_eq!(data(&again), data(&file));
+        assert!(
+            decode_bt(&file, 1000).is_err(),
+            "1024 voxels over the limit"
+        );
     }
 
     /// A file OctoMap itself wrote reads back, and re-encoding its voxels gives the

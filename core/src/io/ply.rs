@@ -34,7 +34,8 @@ pub fn parse(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
     for l in &lines[1..] {
         let w: Vec<&str> = l.split_whitespace().collect();
         match w.as_slice() {
-            ["format", f, _] => format = Some(f.to_string()),
+            ["format", f, "1.0"] => format = Some(f.to_string()),
+            ["format", _, v] => return Err(format!("unsupported PLY version '{v}' (1.0 is)")),
             ["comment", ..] | ["obj_info", ..] | [] => {}
             ["element", name, count] => {
                 let count = count
@@ -112,7 +113,8 @@ pub fn parse(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
             .collect())
     } else {
         let text = std::str::from_utf8(body).map_err(|_| "ascii data is not text")?;
-        let mut out = Vec::with_capacity((*count).min(1 << 24));
+        // A vertex takes at least two bytes of text ("0\n"): reserve no more than fit.
+        let mut out = Vec::with_capacity((*count).min(body.len() / 2));
         let mut rows = text.lines().filter(|l| !l.trim().is_empty());
         for n in 0..*count {
             let row = rows
@@ -253,7 +255,9 @@ mod tests {
 
     #[test]
     fn bad_files_say_why() {
-        let cases: [(&str, &str); 5] = [
+        let cases: [(&str, &str); 7] = [
+            ("ply\nformat ascii 2.0\nelement vertex 0\nend_header\n", "version"),
+            ("ply\nformat ascii 1.0\nelement vertex 999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "truncated"),
             ("plx\nformat ascii 1.0\nend_header\n", "first line"),
             ("ply\nformat binary_big_endian 1.0\nelement vertex 0\nend_header\n", "not supported"),
             ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n", "no 'z'"),

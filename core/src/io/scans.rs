@@ -80,6 +80,15 @@ pub fn parse_poses(text: &str) -> Result<Vec<StampedPose>, String> {
                 ))
             }
         };
+        if out
+            .first()
+            .is_some_and(|f: &StampedPose| f.stamp.is_some() != p.stamp.is_some())
+        {
+            return Err(format!(
+                "line {}: KITTI and TUM poses mixed in one file",
+                n + 1
+            ));
+        }
         out.push(p);
     }
     Ok(out)
@@ -125,6 +134,7 @@ mod tests {
             ("0 1 2 3 0 0 0 2\n", "unit"),
             ("0 1 2 3 0 0 x 1\n", "numbers"),
             ("0 1 2 NaN 0 0 0 1\n", "non-finite"),
+            ("0 1 2 3 0 0 0 1\n1 0 0 0 0 1 0 0 0 0 1 0\n", "mixed"),
         ] {
             let e = parse_poses(t).unwrap_err();
             assert!(e.contains(why), "{e}");
