@@ -410,19 +410,24 @@ mod tests {
         v
     }
 
+    /// Cases 0-2 move the end just below, onto, or (on `axis`) just above voxel faces,
+    /// where rounding decides; other cases leave it.
+    fn near_faces(case: usize, axis: usize, e: &mut [f64; 3]) {
+        match case {
+            0 => *e = e.map(|c| c.round() - 1e-12),
+            1 => *e = e.map(|c| c.round()),
+            2 => e[axis] = e[axis].round() + 1e-13,
+            _ => {}
+        }
+    }
+
     #[test]
     fn step_far_walks_the_same_voxels() {
         let mut r = Rng(11);
         for i in 0..20000 {
             let o = [0, 1, 2].map(|_| r.f() * 4.0 - 2.0);
             let mut e = [0, 1, 2].map(|k| o[k] + (r.f() * 2.0 - 1.0) * 40.0);
-            // Ends just below, on and just above faces, where rounding decides.
-            match i % 4 {
-                0 => e = e.map(|c| c.round() - 1e-12),
-                1 => e = e.map(|c| c.round()),
-                2 => e[i % 3] = e[i % 3].round() + 1e-13,
-                _ => {}
-            }
+            near_faces(i % 4, i % 3, &mut e);
             assert_eq!(walk_far(o, e), walk(o, e), "{o:?} -> {e:?}");
         }
         // The longest rays, and rays with a tiny extent on one axis (huge delta).
@@ -442,10 +447,8 @@ mod tests {
         for i in 0..6000 {
             let o = [0, 1, 2].map(|_| r.f() * 16.0 - 8.0);
             let mut e = [0, 1, 2].map(|k| o[k] + (r.f() * 2.0 - 1.0) * 60.0);
+            near_faces(i % 7, i % 3, &mut e);
             match i % 7 {
-                0 => e = e.map(|c| c.round() - 1e-12),
-                1 => e = e.map(|c| c.round()),
-                2 => e[i % 3] = e[i % 3].round() + 1e-13,
                 3 => e[i % 3] = o[i % 3],
                 4 => {
                     // Lattice rays: exact edge and corner crossings, where ties decide.
