@@ -14,6 +14,8 @@ fuzz_target!(|data: &[u8]| {
             let _ = v.probability(p);
         }
         let _ = v.first_hit(&WorldPoint::new(-2.0, -1.0, 0.5), &WorldPoint::new(3.0, 2.0, -1.0), true);
+        // Unknown not blocking: leaves with nothing occupied are jumped.
+        let _ = v.first_hit(&WorldPoint::new(-6.0, 0.3, 0.2), &WorldPoint::new(6.0, -0.4, 0.1), false);
         let _ = v.is_box_free(&WorldPoint::new(-1.0, -1.0, -1.0), &WorldPoint::new(1.0, 1.0, 1.0), false);
         let _ = v.is_box_free(&WorldPoint::new(-1e5, -1e5, -1e5), &WorldPoint::new(1e5, 1e5, 1e5), true);
         let _ = v.occupied_voxels().take(10_000).count();
