@@ -235,8 +235,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let (r, map) = last.expect("runs >= 1");
                 let counts = map.counts();
                 let mem = map.memory_bytes();
-                times.sort_by(f64::total_cmp);
-                let med = times[times.len() / 2];
+                let med = median(&mut times);
                 if mode == RayMode::Exact && Some(&threads) == a.threads.last() && !a.no_snapshot {
                     snapshots.push((name.clone(), snapshot_bench(&integ, &map, med)));
                 }
@@ -310,7 +309,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     }
     if !a.json && !snapshots.is_empty() {
-        println!("xfaster = integrate median / encode; query = state at random known voxels; los10m = first_hit on a 10 m segment");
+        println!("xfaster = integrate median / encode; query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query); los10m = first_hit on a 10 m segment (median ns)");
     }
     Ok(())
 }
@@ -326,6 +325,15 @@ struct SnapshotBench {
     open_checked_ms: f64,
     query_ns: f64,
     los_ns: f64,
+}
+
+/// Point queries per timed batch.
+const QUERY_BATCH: usize = 256;
+
+/// The median of `v` (reordered); 0 when empty.
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
 }
 
 /// Encode on the integrator's pool, as the service does, so encode and integrate use the
@@ -345,7 +353,6 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         });
         enc.push(ms(t.elapsed()));
     }
-    enc.sort_by(f64::total_cmp);
     let t = Instant::now();
     let view = SnapshotView::open(&buf).expect("fresh snapshot opens");
     let open_ms = ms(t.elapsed());
@@ -365,13 +372,21 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
     for i in (1..pts.len()).rev() {
         pts.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }
-    let t = Instant::now();
-    let occ = pts
-        .iter()
-        .filter(|&&v| view.state(v) == voxmap_core::VoxelState::Occupied)
-        .count();
-    let query_ns = t.elapsed().as_secs_f64() * 1e9 / pts.len().max(1) as f64;
-    std::hint::black_box(occ);
+    // A query takes about as long as reading the clock, so queries are timed in batches:
+    // the median over batches of the mean per query.
+    let mut batches: Vec<f64> = pts
+        .chunks(QUERY_BATCH)
+        .map(|batch| {
+            let t = Instant::now();
+            let occ = batch
+                .iter()
+                .filter(|&&v| view.state(v) == voxmap_core::VoxelState::Occupied)
+                .count();
+            std::hint::black_box(occ);
+            t.elapsed().as_secs_f64() * 1e9 / batch.len() as f64
+        })
+        .collect();
+    let query_ns = median(&mut batches);
     // 10 m segments from near the sensor in random directions.
     let mut segs = Vec::new();
     for _ in 0..20_000 {
@@ -380,20 +395,23 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         let a = WorldPoint::new(r() * 0.5, r() * 0.5, r() * 0.2);
         segs.push((a, a + d));
     }
-    let t = Instant::now();
-    let hits = segs
+    // A walk takes a microsecond or so: each is timed on its own.
+    let mut walks: Vec<f64> = segs
         .iter()
-        .filter(|(a, b)| matches!(view.first_hit(a, b, false), Ok(Some(_))))
-        .count();
-    let los_ns = t.elapsed().as_secs_f64() * 1e9 / segs.len() as f64;
-    std::hint::black_box(hits);
+        .map(|(a, b)| {
+            let t = Instant::now();
+            std::hint::black_box(view.first_hit(a, b, false).ok());
+            t.elapsed().as_secs_f64() * 1e9
+        })
+        .collect();
+    let los_ns = median(&mut walks);
     let (known, _) = view.counts();
     SnapshotBench {
         bytes: buf.len(),
         leaves: view.leaf_count(),
         known,
         map_bytes: map.memory_bytes(),
-        encode_ms: enc[1],
+        encode_ms: median(&mut enc),
         integrate_ms,
         open_ms,
         open_checked_ms,
