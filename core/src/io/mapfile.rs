@@ -85,6 +85,11 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapFileError + '_ {
 /// Write `bytes` to `path` atomically: a temporary file in the same directory, fsync,
 /// rename over `path`, fsync the directory. A crash leaves the old file or the new one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
+    write_atomic_parts(path, &[bytes])
+}
+
+/// [`write_atomic`] of the concatenation of `parts`, without concatenating them in memory.
+pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<(), MapFileError> {
     let dir = path
         .parent()
         .filter(|d| !d.as_os_str().is_empty())
@@ -100,7 +105,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
     ));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
-        f.write_all(bytes).map_err(io_err(&tmp))?;
+        for part in parts {
+            f.write_all(part).map_err(io_err(&tmp))?;
+        }
         f.sync_all().map_err(io_err(&tmp))?;
         std::fs::rename(&tmp, path).map_err(io_err(path))?;
         if let Ok(d) = std::fs::File::open(dir) {
@@ -114,51 +121,111 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
     result
 }
 
-/// Encode a map file in memory.
+/// A map file in memory as its head (magic, version, header) and body (leaf records): the
+/// body is most of it, and writing the two parts saves copying it once more.
+pub struct EncodedMap {
+    pub head: Vec<u8>,
+    pub body: Vec<u8>,
+}
+
+impl EncodedMap {
+    /// Write the file atomically (see [`write_atomic`]).
+    pub fn write(&self, path: &Path) -> Result<(), MapFileError> {
+        write_atomic_parts(path, &[&self.head, &self.body])
+    }
+
+    pub fn len(&self) -> usize {
+        self.head.len() + self.body.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn into_bytes(self) -> Vec<u8> {
+        let mut out = self.head;
+        out.extend_from_slice(&self.body);
+        out
+    }
+}
+
+/// Encode a map file in memory, as one buffer.
 pub fn encode_map(map: &OccupancyMap) -> Vec<u8> {
-    let mut leaves: Vec<_> = map
+    encode_map_parts(map).into_bytes()
+}
+
+/// Encode a map file in memory, as head and body. Leaves go in block order (see
+/// [`crate::grid::Grid::leaves_in_block_order`]), so equal maps give equal files; records
+/// are filled and checksummed in parallel on the current rayon pool.
+pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
+    use rayon::prelude::*;
+    let leaves: Vec<_> = map
         .grid()
-        .leaves()
+        .leaves_in_block_order()
         .filter(|(_, l)| !l.active.is_empty())
         .collect();
-    leaves.sort_unstable_by_key(|(o, _)| (o.z, o.y, o.x));
-    let mut body = Vec::with_capacity(leaves.len() * RECORD);
-    for (o, leaf) in &leaves {
-        for c in o.to_array() {
-            body.extend_from_slice(&c.to_le_bytes());
-        }
-        for w in leaf.active.words {
-            body.extend_from_slice(&w.to_le_bytes());
-        }
-        body.extend(
-            leaf.values
-                .iter()
-                .zip(0..)
-                .map(|(&v, i)| if leaf.active.get(i) { v as u8 } else { 0 }),
-        );
-    }
+    let mut body = vec![0u8; leaves.len() * RECORD];
+    body.par_chunks_mut(RECORD)
+        .zip(&leaves)
+        .with_min_len(256)
+        .for_each(|(rec, (o, leaf))| {
+            for (k, c) in o.to_array().into_iter().enumerate() {
+                rec[4 * k..4 * k + 4].copy_from_slice(&c.to_le_bytes());
+            }
+            for (w, &word) in leaf.active.words.iter().enumerate() {
+                rec[12 + 8 * w..20 + 8 * w].copy_from_slice(&word.to_le_bytes());
+                // Unknown voxels are stored as 0, whatever the leaf holds there.
+                let vals = &leaf.values[64 * w..64 * w + 64];
+                for (b, (out, &v)) in rec[76 + 64 * w..140 + 64 * w]
+                    .iter_mut()
+                    .zip(vals)
+                    .enumerate()
+                {
+                    *out = (v as u8) & 0u8.wrapping_sub((word >> b & 1) as u8);
+                }
+            }
+        });
     let header = FileHeader {
         resolution: map.resolution(),
         model: *map.model(),
         frac_bits: map.quantized().frac_bits,
         leaf_count: leaves.len() as u64,
-        body_crc32: crc32fast::hash(&body),
+        body_crc32: par_crc32(&body),
     };
     let hb = bincode::serde::encode_to_vec(&header, bincode::config::standard())
         .expect("plain struct encodes");
-    let mut out = Vec::with_capacity(20 + hb.len() + body.len());
-    out.extend_from_slice(&MAP_MAGIC);
-    out.extend_from_slice(&MAP_VERSION.to_le_bytes());
-    out.extend_from_slice(&(hb.len() as u32).to_le_bytes());
-    out.extend_from_slice(&hb);
-    out.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
-    out.extend_from_slice(&body);
-    out
+    let mut head = Vec::with_capacity(20 + hb.len());
+    head.extend_from_slice(&MAP_MAGIC);
+    head.extend_from_slice(&MAP_VERSION.to_le_bytes());
+    head.extend_from_slice(&(hb.len() as u32).to_le_bytes());
+    head.extend_from_slice(&hb);
+    head.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
+    EncodedMap { head, body }
+}
+
+/// CRC-32 of `bytes`, in pieces on the current rayon pool, combined.
+fn par_crc32(bytes: &[u8]) -> u32 {
+    use rayon::prelude::*;
+    const PIECE: usize = 8 << 20;
+    bytes
+        .par_chunks(PIECE)
+        .map(|p| {
+            let mut h = crc32fast::Hasher::new();
+            h.update(p);
+            h
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(crc32fast::Hasher::new(), |mut acc, h| {
+            acc.combine(&h);
+            acc
+        })
+        .finalize()
 }
 
 /// Save a map atomically.
 pub fn save_map(map: &OccupancyMap, path: &Path) -> Result<(), MapFileError> {
-    write_atomic(path, &encode_map(map))
+    encode_map_parts(map).write(path)
 }
 
 /// Load a map file into a new map. Nothing is returned unless the whole file verified.
@@ -217,7 +284,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
             h.leaf_count
         )));
     }
-    if crc32fast::hash(body) != h.body_crc32 {
+    if par_crc32(body) != h.body_crc32 {
         return Err(bad("body checksum mismatch"));
     }
     let mut map = OccupancyMap::new(h.resolution, h.model)
@@ -226,8 +293,11 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
     if q.frac_bits != h.frac_bits {
         return Err(bad("fixed-point scale disagrees with the sensor model"));
     }
-    let mut seen = hashbrown::HashSet::with_capacity(h.leaf_count as usize);
-    for rec in body.chunks_exact(RECORD) {
+    // Leaves are created in record order, so record i fills leaf i; a leaf that exists
+    // already is a record stored twice.
+    let grid = map.grid_mut();
+    let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
+    for (i, rec) in body.chunks_exact(RECORD).enumerate() {
         let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
         let o = VoxelCoord::new(c(0), c(1), c(2));
         if o.to_array()
@@ -236,22 +306,36 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
         {
             return Err(bad("leaf origin not leaf-aligned or out of range"));
         }
-        if !seen.insert(o) {
+        if grid.leaf_index_or_insert(o, Some(&mut hint)) as usize != i {
             return Err(bad("leaf stored twice"));
         }
-        let li = map.grid_mut().leaf_index_or_insert(o, None);
-        let leaf = map.grid_mut().leaf_mut(li);
+    }
+    let items: Vec<(u32, &[u8])> = body
+        .chunks_exact(RECORD)
+        .enumerate()
+        .map(|(i, rec)| (i as u32, rec))
+        .collect();
+    let out_of_range = grid.leaf_pool_mut().par_update(&items, |leaf, rec| {
+        let mut bad = false;
         for w in 0..8 {
-            leaf.active.words[w] =
-                u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
-        }
-        for i in 0..LEAF_VOXELS {
-            let v = rec[76 + i] as i8;
-            if leaf.active.get(i) && !(q.min..=q.max).contains(&v) {
-                return Err(bad("log-odds value outside the clamping range"));
+            let word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
+            leaf.active.words[w] = word;
+            let vals = &rec[76 + 64 * w..140 + 64 * w];
+            for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
+                .iter_mut()
+                .zip(vals)
+                .enumerate()
+            {
+                let known = word >> b & 1 != 0;
+                let v = v as i8;
+                bad |= known & !(q.min..=q.max).contains(&v);
+                *out = if known { v } else { 0 };
             }
-            leaf.values[i] = if leaf.active.get(i) { v } else { 0 };
         }
+        u64::from(bad)
+    });
+    if out_of_range > 0 {
+        return Err(bad("log-odds value outside the clamping range"));
     }
     Ok(map)
 }
@@ -369,6 +453,79 @@ mod tests {
         }
         let e = load_map(Path::new("/nonexistent/m.vxm")).unwrap_err();
         assert!(e.to_string().contains("/nonexistent/m.vxm"));
+    }
+
+    /// Recompute the body checksum after a test edited the body, so that the checks
+    /// behind the checksum are reached.
+    fn reseal(bytes: &[u8]) -> Vec<u8> {
+        let hlen = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+        let cfg = bincode::config::standard();
+        let (mut h, _): (FileHeader, usize) =
+            bincode::serde::decode_from_slice(&bytes[16..16 + hlen], cfg).unwrap();
+        let body = &bytes[20 + hlen..];
+        h.body_crc32 = crc32fast::hash(body);
+        let hb = bincode::serde::encode_to_vec(&h, cfg).unwrap();
+        let mut out = bytes[..12].to_vec();
+        out.extend_from_slice(&(hb.len() as u32).to_le_bytes());
+        out.extend_from_slice(&hb);
+        out.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
+        out.extend_from_slice(body);
+        out
+    }
+
+    #[test]
+    fn lying_records_behind_a_good_checksum_are_clear_errors() {
+        let good = encode_map(&sample_map());
+        let hlen = u32::from_le_bytes(good[12..16].try_into().unwrap()) as usize;
+        let body = 20 + hlen;
+        assert!(decode_map(&reseal(&good)).is_ok());
+        let corrupt = |edit: &dyn Fn(&mut Vec<u8>), what: &str| {
+            let mut v = good.clone();
+            edit(&mut v);
+            match decode_map(&reseal(&v)) {
+                Err(Decode::Corrupt(m)) => assert!(m.contains(what), "{m}"),
+                other => panic!("expected {what:?}, got {:?}", other.map(|_| ())),
+            }
+        };
+        // The second record claims the first one's leaf.
+        corrupt(
+            &|v| v.copy_within(body..body + 12, body + RECORD),
+            "leaf stored twice",
+        );
+        corrupt(&|v| v[body] ^= 3, "not leaf-aligned");
+        corrupt(
+            &|v| v[body + 8..body + 12].copy_from_slice(&(1i32 << 30).to_le_bytes()),
+            "out of range",
+        );
+        // A known voxel's log-odds beyond the model's clamp.
+        let known = |i: usize| {
+            let w = u64::from_le_bytes(good[body + 12 + 8 * (i / 64)..][..8].try_into().unwrap());
+            w >> (i % 64) & 1 != 0
+        };
+        let b = (0..LEAF_VOXELS).find(|&i| known(i)).unwrap();
+        corrupt(&|v| v[body + 76 + b] = 127, "clamping range");
+        // An unknown voxel's value is not read: stored as anything, it loads as unknown.
+        let free = (0..LEAF_VOXELS).find(|&i| !known(i)).unwrap();
+        let mut v = good.clone();
+        v[body + 76 + free] = 127;
+        let back = decode_map(&reseal(&v)).ok().unwrap();
+        assert_eq!(voxels(&back), voxels(&sample_map()));
+    }
+
+    #[test]
+    fn equal_maps_give_equal_files() {
+        // The same voxels set in another order make other leaf indices, not another file.
+        let a = sample_map();
+        let mut b = OccupancyMap::new(a.resolution(), *a.model()).unwrap();
+        let mut vs = voxels(&a);
+        vs.reverse();
+        for (v, x) in vs {
+            b.set_value(v, x);
+        }
+        assert_eq!(encode_map(&a), encode_map(&b));
+        let e = encode_map_parts(&a);
+        assert_eq!(e.len(), encode_map(&a).len());
+        assert_eq!(e.into_bytes(), encode_map(&a));
     }
 
     #[test]
