@@ -3,6 +3,7 @@
 mod bench;
 mod config;
 mod demo;
+mod filejobs;
 mod files;
 mod os;
 mod render;

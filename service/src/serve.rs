@@ -2,6 +2,7 @@
 //! pool, snapshots out, encoded straight into loaned shared-memory samples.
 
 use crate::config::MappingArgs;
+use crate::filejobs::{Done, FileWorker, Job};
 use crate::os::now_ns;
 use anyhow::{anyhow, Context, Result};
 use clap::Args;
@@ -317,6 +318,17 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let tick = waitset
         .attach_interval(Duration::from_millis(200))
         .map_err(|e| anyhow!("attach: {e:?}"))?;
+    let mut files = FileWorker::spawn().context("starting the file worker")?;
+    // Control requests whose file job is running, in the order of the jobs.
+    let mut waiting: std::collections::VecDeque<
+        iceoryx2::active_request::ActiveRequest<
+            ipc::Service,
+            ControlRequest,
+            (),
+            ControlResponse,
+            (),
+        >,
+    > = std::collections::VecDeque::new();
     let started = Instant::now();
     let mut last_log = Instant::now();
     let interval = Duration::from_secs_f64(cfg.snapshot_interval_ms / 1e3);
@@ -443,6 +455,29 @@ pub fn run(a: ServeArgs) -> Result<()> {
             last_publish = Instant::now();
             unpublished = false;
         }
+        // Finished file jobs: loaded maps are swapped in, and their requests answered.
+        while let Some(done) = files.try_done() {
+            let req = waiting
+                .pop_front()
+                .expect("one waiting request per file job");
+            let (ok, msg, republish) = finish_file_job(done, &mut map, &integ);
+            if !ok {
+                eprintln!("voxmap serve: control request failed: {msg}");
+            }
+            if republish {
+                publish(
+                    &integ,
+                    &map,
+                    sequence,
+                    stamp_ns,
+                    &mut stats,
+                    scope.scope(sensor),
+                );
+                last_publish = Instant::now();
+                unpublished = false;
+            }
+            let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
+        }
         // Control requests: answered here, between frames; a bad request gets an error.
         while let Some(req) = control
             .receive()
@@ -451,33 +486,31 @@ pub fn run(a: ServeArgs) -> Result<()> {
             let r = *req.payload();
             let (ok, msg, republish) = match r.kind {
                 k if k == ControlKind::Stats as u32 => (true, String::new(), false),
+                // Saves and loads run on the file worker; their answers go out when done.
                 k if k == ControlKind::Save as u32 => match r.path() {
                     None => (false, "bad path".to_string(), false),
-                    Some(p) => match mapfile::save_map(&map, std::path::Path::new(p)) {
-                        Ok(()) => (true, format!("saved to {p}"), false),
-                        Err(e) => (false, e.to_string(), false),
-                    },
+                    Some(p) => {
+                        let file = integ.install(|| mapfile::encode_map_parts(&map));
+                        match files.submit(Job::Save {
+                            path: p.into(),
+                            file,
+                        }) {
+                            Ok(()) => {
+                                waiting.push_back(req);
+                                continue;
+                            }
+                            Err(e) => (false, e, false),
+                        }
+                    }
                 },
                 k if k == ControlKind::Load as u32 => match r.path() {
                     None => (false, "bad path".to_string(), false),
-                    Some(p) => match mapfile::load_map(std::path::Path::new(p)) {
-                        Ok(m)
-                            if integ.config().max_range / m.resolution()
-                                > voxmap_core::integrate::MAX_RANGE_VOXELS =>
-                        {
-                            let why = format!(
-                                "not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
-                                m.resolution(),
-                                integ.config().max_range,
-                                voxmap_core::integrate::MAX_RANGE_VOXELS
-                            );
-                            (false, why, false)
+                    Some(p) => match files.submit(Job::Load { path: p.into() }) {
+                        Ok(()) => {
+                            waiting.push_back(req);
+                            continue;
                         }
-                        Ok(m) => {
-                            map = m;
-                            (true, format!("loaded {p}"), true)
-                        }
-                        Err(e) => (false, e.to_string(), false),
+                        Err(e) => (false, e, false),
                     },
                 },
                 k if k == ControlKind::Clear as u32 => {
@@ -522,6 +555,11 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
+    // Saves asked for before the end are written, and every waiting request answered.
+    for (done, req) in files.finish().into_iter().zip(waiting) {
+        let (ok, msg, _) = finish_file_job(done, &mut map, &integ);
+        let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
+    }
     publish(
         &integ,
         &map,
@@ -536,6 +574,29 @@ pub fn run(a: ServeArgs) -> Result<()> {
     }
     eprintln!("voxmap serve: exiting; {}", stats.log_line(&map));
     Ok(())
+}
+
+/// Apply a finished file job: a loaded map replaces `map` unless the integrator cannot
+/// work at its resolution. Returns the answer (ok, message, republish).
+fn finish_file_job(done: Done, map: &mut OccupancyMap, integ: &Integrator) -> (bool, String, bool) {
+    match done {
+        Done::Saved(p, Ok(())) => (true, format!("saved to {}", p.display()), false),
+        Done::Loaded(p, Ok(m)) => {
+            let max_range = integ.config().max_range;
+            if max_range / m.resolution() > voxmap_core::integrate::MAX_RANGE_VOXELS {
+                let why = format!(
+                    "{} not loaded: at its resolution of {} m, max range {max_range} m spans more than {} voxels",
+                    p.display(),
+                    m.resolution(),
+                    voxmap_core::integrate::MAX_RANGE_VOXELS
+                );
+                return (false, why, false);
+            }
+            *map = m;
+            (true, format!("loaded {}", p.display()), true)
+        }
+        Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e)) => (false, e, false),
+    }
 }
 
 /// The `p` quantile (0..=1, nearest rank) of ascending `sorted`; 0 when empty.

@@ -279,6 +279,76 @@ fn snapshots_grow_from_a_kilobyte_past_64_megabytes_without_failing() {
 }
 
 #[test]
+fn a_slow_load_stalls_neither_frames_nor_requests() {
+    use std::io::Write;
+    use std::sync::mpsc::channel;
+    use voxmap_client::MapControl;
+    let prefix = unique_prefix("slowload");
+    let Scanned {
+        svc,
+        mut sub,
+        mut pubr,
+        pose,
+        known,
+    } = start_and_scan(&prefix, &[]);
+    let mut ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    ctl.set_timeout(Duration::from_secs(10));
+    let dir = std::env::temp_dir();
+    let saved = dir.join(format!("{prefix}.vxm"));
+    ctl.save(saved.to_str().unwrap()).unwrap();
+    ctl.clear().unwrap();
+
+    // A load from a FIFO: the service's file worker blocks reading it until this test
+    // writes the map file into it.
+    let fifo = dir.join(format!("{prefix}.fifo"));
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    assert!(made.unwrap().success());
+    let (p, f) = (prefix.clone(), fifo.clone());
+    let loader = std::thread::spawn(move || {
+        let ctl = connect_with_retry(|| MapControl::connect(&p, "default"));
+        ctl.load(f.to_str().unwrap())
+    });
+    // Opening a FIFO for writing returns once a reader has opened it: the load is running.
+    let (opened_tx, opened) = channel();
+    let (bytes_tx, bytes) = channel::<Vec<u8>>();
+    let f = fifo.clone();
+    std::thread::spawn(move || {
+        let mut w = std::fs::OpenOptions::new().write(true).open(&f).unwrap();
+        opened_tx.send(()).unwrap();
+        w.write_all(&bytes.recv().unwrap()).unwrap();
+    });
+    opened
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the service never opened the file to load");
+
+    // While the load waits: a smaller scan is integrated and published, requests answered.
+    pubr.publish(&pose, 1, &room_scan(H, SENSOR, 2_000))
+        .unwrap();
+    assert!(
+        wait_for_seq(&mut sub, 1, 1),
+        "frame not integrated during the load"
+    );
+    let partial = sub.latest().unwrap().unwrap().counts().0;
+    assert!(partial > 0 && partial < known, "{partial} vs {known}");
+    assert_eq!(ctl.stats().unwrap().frames_integrated, 2);
+    assert!(!loader.is_finished());
+
+    bytes_tx.send(std::fs::read(&saved).unwrap()).unwrap();
+    loader.join().unwrap().unwrap();
+    // The loaded map (the first scan) replaced the map being built meanwhile.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while sub.latest().unwrap().unwrap().counts().0 != known && Instant::now() < deadline {
+        sub.wait_for_update(Duration::from_millis(100)).unwrap();
+    }
+    assert_eq!(sub.latest().unwrap().unwrap().counts().0, known);
+
+    let (st, err) = svc.signal_and_wait("TERM");
+    assert!(st.success(), "{err}");
+    let _ = std::fs::remove_file(&saved);
+    let _ = std::fs::remove_file(&fifo);
+}
+
+#[test]
 fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     use voxmap_client::{ControlKind, ControlRequest, MapControl, SnapshotScope};
     let prefix = unique_prefix("ctl");
