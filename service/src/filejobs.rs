@@ -6,9 +6,9 @@
 //! parallel and memory-speed) and written here; a load is read and verified here and the
 //! loop swaps the map in when it is done.
 
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::mpsc::{channel, Receiver, Sender};
-use std::thread::JoinHandle;
 use voxmap_core::io::mapfile::{self, EncodedMap};
 use voxmap_core::OccupancyMap;
 
@@ -24,16 +24,18 @@ pub enum Done {
 }
 
 pub struct FileWorker {
-    jobs: Option<Sender<Job>>,
+    jobs: Sender<Job>,
     done: Receiver<Done>,
-    thread: Option<JoinHandle<()>>,
+    /// Per job submitted and not yet handed back, in order: whether it is a save.
+    saves: VecDeque<bool>,
 }
 
 impl FileWorker {
     pub fn spawn() -> std::io::Result<Self> {
         let (jobs, rx) = channel::<Job>();
         let (tx, done) = channel();
-        let thread = std::thread::Builder::new()
+        // Detached: at exit the service waits for saves only (see `finish`).
+        std::thread::Builder::new()
             .name("voxmap-files".into())
             .spawn(move || {
                 for job in rx {
@@ -53,32 +55,44 @@ impl FileWorker {
                 }
             })?;
         Ok(Self {
-            jobs: Some(jobs),
+            jobs,
             done,
-            thread: Some(thread),
+            saves: VecDeque::new(),
         })
     }
 
     /// Queue a job; an error if the worker has stopped (it only stops if a job panicked).
-    pub fn submit(&self, job: Job) -> Result<(), String> {
+    pub fn submit(&mut self, job: Job) -> Result<(), String> {
+        let save = matches!(job, Job::Save { .. });
         self.jobs
-            .as_ref()
-            .and_then(|j| j.send(job).ok())
-            .ok_or_else(|| "the file worker has stopped".to_string())
+            .send(job)
+            .map_err(|_| "the file worker has stopped".to_string())?;
+        self.saves.push_back(save);
+        Ok(())
     }
 
     /// The next finished job, if any; jobs finish in the order submitted.
     pub fn try_done(&mut self) -> Option<Done> {
-        self.done.try_recv().ok()
+        let d = self.done.try_recv().ok()?;
+        self.saves.pop_front();
+        Some(d)
     }
 
-    /// Wait for every submitted job and return what is left to hand back, in order.
+    /// For shutdown: wait until every save submitted is written, and return the jobs
+    /// finished by then, in order. Loads still queued or running are not waited for (a
+    /// load stuck on a dead file system must not hold up the exit).
     pub fn finish(mut self) -> Vec<Done> {
-        self.jobs = None;
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+        let mut out = Vec::new();
+        while self.saves.contains(&true) {
+            match self.done.recv() {
+                Ok(d) => {
+                    self.saves.pop_front();
+                    out.push(d);
+                }
+                Err(_) => break,
+            }
         }
-        self.done.try_iter().collect()
+        out
     }
 }
 
@@ -88,29 +102,30 @@ mod tests {
     use voxmap_core::{SensorModel, VoxelCoord};
 
     #[test]
-    fn jobs_finish_in_order_and_finish_waits_for_all() {
+    fn jobs_finish_in_order_and_the_exit_waits_for_saves_only() {
         let dir = std::env::temp_dir().join(format!("voxmap-filejobs-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         map.set_value(VoxelCoord::new(1, 2, 3), 40);
         let path = dir.join("m.vxm");
         let mut w = FileWorker::spawn().unwrap();
-        w.submit(Job::Save {
-            path: path.clone(),
-            file: mapfile::encode_map_parts(&map),
-        })
-        .unwrap();
+        let save = |w: &mut FileWorker, p: &std::path::Path| {
+            w.submit(Job::Save {
+                path: p.into(),
+                file: mapfile::encode_map_parts(&map),
+            })
+            .unwrap()
+        };
+        save(&mut w, &path);
         w.submit(Job::Load { path: path.clone() }).unwrap();
         w.submit(Job::Load {
             path: dir.join("missing.vxm"),
         })
         .unwrap();
         let mut got = Vec::new();
-        while got.is_empty() {
+        while got.len() < 3 {
             got.extend(w.try_done());
         }
-        assert!(matches!(got[0], Done::Saved(..)), "the save finishes first");
-        got.extend(w.finish());
         match &got[..] {
             [Done::Saved(_, Ok(())), Done::Loaded(_, Ok(m)), Done::Loaded(p, Err(e))] => {
                 assert_eq!(m.grid().get(VoxelCoord::new(1, 2, 3)), Some(40));
@@ -121,6 +136,21 @@ mod tests {
             }
             _ => panic!("jobs out of order or failed"),
         }
+        // At exit: a save is waited for, a load that never ends (a FIFO nobody writes) is not.
+        let fifo = dir.join("never.fifo");
+        assert!(std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success());
+        let second = dir.join("m2.vxm");
+        save(&mut w, &second);
+        w.submit(Job::Load { path: fifo.clone() }).unwrap();
+        let left = w.finish();
+        assert!(matches!(&left[..], [Done::Saved(p, Ok(()))] if *p == second));
+        assert!(second.exists());
+        // Unblock the stuck worker so that it ends with the test.
+        drop(std::fs::OpenOptions::new().write(true).open(&fifo));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -555,9 +555,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    // Saves asked for before the end are written, and every waiting request answered.
-    for (done, req) in files.finish().into_iter().zip(waiting) {
-        let (ok, msg, _) = finish_file_job(done, &mut map, &integ);
+    // Saves asked for before the end are written and answered; loads are not waited for.
+    let finished = files.finish();
+    for (i, req) in waiting.into_iter().enumerate() {
+        let (ok, msg) = match finished.get(i) {
+            Some(Done::Saved(p, Ok(()))) => (true, format!("saved to {}", p.display())),
+            Some(Done::Saved(_, Err(e))) => (false, e.clone()),
+            _ => (false, "not loaded: the service is exiting".to_string()),
+        };
         let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
     }
     publish(
