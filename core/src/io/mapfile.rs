@@ -273,10 +273,11 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
     let (h, _): (FileHeader, usize) = bincode::serde::decode_from_slice(hb, cfg)
         .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
     let body = &bytes[20 + hlen..];
-    let want = h
-        .leaf_count
-        .checked_mul(RECORD as u64)
-        .ok_or_else(|| bad("leaf count overflows"))?;
+    // Leaf indices are u32.
+    if h.leaf_count > u64::from(u32::MAX) {
+        return Err(bad("leaf count out of range"));
+    }
+    let want = h.leaf_count * RECORD as u64;
     if body.len() as u64 != want {
         return Err(Decode::Corrupt(format!(
             "body is {} bytes, header says {} leaves ({want} bytes)",
@@ -455,15 +456,14 @@ mod tests {
         assert!(e.to_string().contains("/nonexistent/m.vxm"));
     }
 
-    /// Recompute the body checksum after a test edited the body, so that the checks
-    /// behind the checksum are reached.
-    fn reseal(bytes: &[u8]) -> Vec<u8> {
+    /// Rewrite the header with `edit` applied, with a good header checksum.
+    fn with_header(bytes: &[u8], edit: impl Fn(&mut FileHeader, &[u8])) -> Vec<u8> {
         let hlen = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
         let cfg = bincode::config::standard();
         let (mut h, _): (FileHeader, usize) =
             bincode::serde::decode_from_slice(&bytes[16..16 + hlen], cfg).unwrap();
         let body = &bytes[20 + hlen..];
-        h.body_crc32 = crc32fast::hash(body);
+        edit(&mut h, body);
         let hb = bincode::serde::encode_to_vec(&h, cfg).unwrap();
         let mut out = bytes[..12].to_vec();
         out.extend_from_slice(&(hb.len() as u32).to_le_bytes());
@@ -473,12 +473,22 @@ mod tests {
         out
     }
 
+    /// Recompute the body checksum after a test edited the body, so that the checks
+    /// behind the checksum are reached.
+    fn reseal(bytes: &[u8]) -> Vec<u8> {
+        with_header(bytes, |h, body| h.body_crc32 = crc32fast::hash(body))
+    }
+
     #[test]
     fn lying_records_behind_a_good_checksum_are_clear_errors() {
         let good = encode_map(&sample_map());
         let hlen = u32::from_le_bytes(good[12..16].try_into().unwrap()) as usize;
         let body = 20 + hlen;
         assert!(decode_map(&reseal(&good)).is_ok());
+        let huge = with_header(&good, |h, _| h.leaf_count = 1 << 32);
+        assert!(
+            matches!(decode_map(&huge), Err(Decode::Corrupt(m)) if m.contains("leaf count out of range"))
+        );
         let corrupt = |edit: &dyn Fn(&mut Vec<u8>), what: &str| {
             let mut v = good.clone();
             edit(&mut v);
