@@ -298,6 +298,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     "map_memory_bytes": s.map_bytes, "encode_ms": s.encode_ms, "integrate_ms": s.integrate_ms,
                     "open_ms": s.open_ms, "open_checked_ms": s.open_checked_ms,
                     "point_query_ns": s.query_ns, "first_hit_10m_ns": s.los_ns,
+                    "mapfile_bytes": s.file_bytes, "mapfile_encode_ms": s.file_encode_ms,
+                    "mapfile_decode_ms": s.file_decode_ms,
                 })
             );
         } else {
@@ -310,6 +312,17 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     if !a.json && !snapshots.is_empty() {
         println!("xfaster = integrate median / encode; query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query); los10m = first_hit on a 10 m segment (median ns)");
+        println!();
+        println!(
+            "{:<40} {:>12} {:>10} {:>10}",
+            "map file (in memory, no disk)", "bytes", "encode ms", "decode ms"
+        );
+        for (name, s) in &snapshots {
+            println!(
+                "{:<40} {:>12} {:>10.1} {:>10.1}",
+                name, s.file_bytes, s.file_encode_ms, s.file_decode_ms
+            );
+        }
     }
     Ok(())
 }
@@ -325,6 +338,10 @@ struct SnapshotBench {
     open_checked_ms: f64,
     query_ns: f64,
     los_ns: f64,
+    /// Map file, in memory (no disk): bytes, encode and decode ms.
+    file_bytes: usize,
+    file_encode_ms: f64,
+    file_decode_ms: f64,
 }
 
 /// Point queries per timed batch.
@@ -406,6 +423,18 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         .collect();
     let los_ns = median(&mut walks);
     let (known, _) = view.counts();
+    // The map file, encoded and decoded on the integrator's pool as the service does.
+    let t = Instant::now();
+    let file = integ.install(|| voxmap_core::io::mapfile::encode_map_parts(map));
+    let file_encode_ms = ms(t.elapsed());
+    let file = file.into_bytes();
+    let t = Instant::now();
+    let back = integ.install(|| voxmap_core::io::mapfile::decode_map(&file));
+    let file_decode_ms = ms(t.elapsed());
+    assert!(
+        back.is_ok_and(|m| m.grid().leaf_count() == map.grid().leaf_count()),
+        "map file round trip"
+    );
     SnapshotBench {
         bytes: buf.len(),
         leaves: view.leaf_count(),
@@ -417,6 +446,9 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         open_checked_ms,
         query_ns,
         los_ns,
+        file_bytes: file.len(),
+        file_encode_ms,
+        file_decode_ms,
     }
 }
 
