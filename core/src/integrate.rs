@@ -479,28 +479,72 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         // write of `local` would chain every step through store-to-load forwarding.
         let mut plane = 0u64;
         let mut brick = dda.voxel().shr(3);
-        // Mark the current voxel, take one step, flush the brick's marks on leaving it.
-        macro_rules! walk {
-            ($step:ident) => {{
-                let (x, y, z) = (dda.x, dda.y, dda.z);
-                plane |= 1u64 << ((x & 7) | (y & 7) << 3);
-                local[(z & 7) as usize] = plane;
-                dda.$step();
-                plane &= ((dda.z != z) as u64).wrapping_sub(1);
-                if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
+        if n > 2 {
+            // All steps but the last two: mark the current voxel, step, flush the brick's
+            // marks on leaving it. The voxel is packed in one register, 21 bits per axis
+            // from a biased origin: a step is one add and "left the brick" one test, and
+            // the loop keeps more in registers. About 5% faster: 46 of 57 interleaved
+            // paired runs (6 m workloads, 1 and 2 threads) on a noisy VM.
+            const BIAS: i32 = 1 << 19;
+            const F: u32 = 21;
+            // Rays end within max range: no field under- or overflows.
+            const _: () = assert!(MAX_RANGE_VOXELS as i32 + 16 < BIAS);
+            // A brick-aligned origin, so that a field's low 3 bits are the in-brick offset.
+            let start = dda.voxel();
+            let o = start.shr(3).shl(3) - VoxelCoord::new(BIAS, BIAS, BIAS);
+            let [sx, sy, sz] = dda.direction();
+            let (mx, my, mz) = (
+                i64::from(sx) as u64,
+                (i64::from(sy) << F) as u64,
+                (i64::from(sz) << (2 * F)) as u64,
+            );
+            let d = start - o;
+            let mut p = u64::from(d.x as u32)
+                | u64::from(d.y as u32) << F
+                | u64::from(d.z as u32) << (2 * F);
+            let unpack = |p: u64| {
+                let m = (1u64 << F) - 1;
+                o + VoxelCoord::new((p & m) as i32, (p >> F & m) as i32, (p >> (2 * F)) as i32)
+            };
+            // Bits of a field above its low 3: a change there is a new brick.
+            const BRICK: u64 = !(7 | 7 << F | 7 << (2 * F));
+            for _ in 2..n {
+                let was = p;
+                plane |= 1u64 << ((p & 7) | (p >> (F - 3) & 0x38));
+                local[(p >> (2 * F) & 7) as usize] = plane;
+                let (cx, cy, _) = dda.step_far_crossing();
+                p = p.wrapping_add(if cx {
+                    mx
+                } else if cy {
+                    my
+                } else {
+                    mz
+                });
+                let moved = p ^ was;
+                plane &= ((moved >> (2 * F) != 0) as u64).wrapping_sub(1);
+                if moved & BRICK != 0 {
                     marks.or_free(&mut cache, brick, &local);
                     local = [0; 8];
                     plane = 0;
-                    brick = dda.voxel().shr(3);
+                    brick = unpack(p).shr(3);
                 }
-            }};
-        }
-        for _ in 2..n {
-            walk!(step_far);
+            }
+            let v = unpack(p);
+            (dda.x, dda.y, dda.z) = (v.x, v.y, v.z);
         }
         dda.settle();
         for _ in 0..n.min(2) {
-            walk!(step);
+            let (x, y, z) = (dda.x, dda.y, dda.z);
+            plane |= 1u64 << ((x & 7) | (y & 7) << 3);
+            local[(z & 7) as usize] = plane;
+            dda.step();
+            plane &= ((dda.z != z) as u64).wrapping_sub(1);
+            if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
+                marks.or_free(&mut cache, brick, &local);
+                local = [0; 8];
+                plane = 0;
+                brick = dda.voxel().shr(3);
+            }
         }
         // A ray's last step may enter a brick only to end there: nothing free to mark, and
         // a slot would give the map an empty leaf.
