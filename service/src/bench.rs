@@ -423,7 +423,8 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         .collect();
     let los_ns = median(&mut walks);
     let (known, _) = view.counts();
-    // The map file, encoded and decoded on the integrator's pool as the service does.
+    // The map file, encoded and decoded on the integrator's pool (the service encodes a
+    // save there; it decodes a load on the file worker, with rayon's global pool).
     let t = Instant::now();
     let file = integ.install(|| voxmap_core::io::mapfile::encode_map_parts(map));
     let file_encode_ms = ms(t.elapsed());

@@ -78,12 +78,15 @@ impl FileWorker {
         Some(d)
     }
 
-    /// For shutdown: wait until every save submitted is written, and return the jobs
-    /// finished by then, in order. Loads still queued or running are not waited for (a
-    /// load stuck on a dead file system must not hold up the exit).
+    /// For shutdown: wait for the saves at the front of the queue, and return the jobs
+    /// finished by then, in order. A load is not waited for (one stuck on a dead file
+    /// system must not hold up the exit), nor anything queued behind it.
     pub fn finish(mut self) -> Vec<Done> {
-        let mut out = Vec::new();
-        while self.saves.contains(&true) {
+        let mut out: Vec<Done> = self.done.try_iter().collect();
+        for _ in &out {
+            self.saves.pop_front();
+        }
+        while self.saves.front() == Some(&true) {
             match self.done.recv() {
                 Ok(d) => {
                     self.saves.pop_front();
@@ -123,8 +126,11 @@ mod tests {
         })
         .unwrap();
         let mut got = Vec::new();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
         while got.len() < 3 {
+            assert!(std::time::Instant::now() < deadline, "jobs never finished");
             got.extend(w.try_done());
+            std::thread::yield_now();
         }
         match &got[..] {
             [Done::Saved(_, Ok(())), Done::Loaded(_, Ok(m)), Done::Loaded(p, Err(e))] => {
@@ -136,20 +142,22 @@ mod tests {
             }
             _ => panic!("jobs out of order or failed"),
         }
-        // At exit: a save is waited for, a load that never ends (a FIFO nobody writes) is not.
+        // At exit: a save is waited for, a load that never ends (a FIFO nobody writes) is
+        // not, nor a save queued behind it.
         let fifo = dir.join("never.fifo");
         assert!(std::process::Command::new("mkfifo")
             .arg(&fifo)
             .status()
             .unwrap()
             .success());
-        let second = dir.join("m2.vxm");
+        let (second, third) = (dir.join("m2.vxm"), dir.join("m3.vxm"));
         save(&mut w, &second);
         w.submit(Job::Load { path: fifo.clone() }).unwrap();
+        save(&mut w, &third);
         let left = w.finish();
         assert!(matches!(&left[..], [Done::Saved(p, Ok(()))] if *p == second));
         assert!(second.exists());
-        // Unblock the stuck worker so that it ends with the test.
+        // Unblock the stuck worker (it then writes the third save and ends).
         drop(std::fs::OpenOptions::new().write(true).open(&fifo));
         std::fs::remove_dir_all(&dir).unwrap();
     }

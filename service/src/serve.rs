@@ -329,6 +329,8 @@ pub fn run(a: ServeArgs) -> Result<()> {
             (),
         >,
     > = std::collections::VecDeque::new();
+    // Control requests that came while a file job ran, in order.
+    let mut deferred = std::collections::VecDeque::new();
     let started = Instant::now();
     let mut last_log = Instant::now();
     let interval = Duration::from_secs_f64(cfg.snapshot_interval_ms / 1e3);
@@ -479,11 +481,28 @@ pub fn run(a: ServeArgs) -> Result<()> {
             let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
         }
         // Control requests: answered here, between frames; a bad request gets an error.
-        while let Some(req) = control
-            .receive()
-            .map_err(|e| anyhow!("control receive: {e:?}"))?
-        {
+        // While a save or load runs, requests other than stats wait for it, in order: they
+        // then see the map as it leaves the file job, and one save at a time holds a copy.
+        loop {
+            let next = match waiting.is_empty() {
+                true => deferred.pop_front(),
+                false => None,
+            };
+            let req = match next {
+                Some(req) => req,
+                None => match control
+                    .receive()
+                    .map_err(|e| anyhow!("control receive: {e:?}"))?
+                {
+                    Some(req) => req,
+                    None => break,
+                },
+            };
             let r = *req.payload();
+            if !waiting.is_empty() && r.kind != ControlKind::Stats as u32 {
+                deferred.push_back(req);
+                continue;
+            }
             let (ok, msg, republish) = match r.kind {
                 k if k == ControlKind::Stats as u32 => (true, String::new(), false),
                 // Saves and loads run on the file worker; their answers go out when done.
@@ -555,15 +574,20 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    // Saves asked for before the end are written and answered; loads are not waited for.
-    let finished = files.finish();
-    for (i, req) in waiting.into_iter().enumerate() {
-        let (ok, msg) = match finished.get(i) {
+    // A save being written is finished and answered; a load is not waited for, and
+    // requests still deferred are refused.
+    let mut finished = files.finish().into_iter();
+    for req in waiting {
+        let (ok, msg) = match finished.next() {
             Some(Done::Saved(p, Ok(()))) => (true, format!("saved to {}", p.display())),
-            Some(Done::Saved(_, Err(e))) => (false, e.clone()),
-            _ => (false, "not loaded: the service is exiting".to_string()),
+            Some(Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e))) => (false, e),
+            _ => (false, "not done: the service is exiting".to_string()),
         };
         let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
+    }
+    for req in deferred {
+        let msg = "not done: the service is exiting";
+        let _ = req.send_copy(ControlResponse::new(false, msg, stats.wire(&map)));
     }
     publish(
         &integ,

@@ -523,6 +523,18 @@ mod tests {
     }
 
     #[test]
+    fn checksum_in_pieces_equals_the_whole() {
+        let bytes: Vec<u8> = (0..20_000_017u32).map(|i| (i ^ i >> 9) as u8).collect();
+        for n in [0, 1, 8 << 20, (8 << 20) + 1, bytes.len()] {
+            assert_eq!(
+                par_crc32(&bytes[..n]),
+                crc32fast::hash(&bytes[..n]),
+                "{n} bytes"
+            );
+        }
+    }
+
+    #[test]
     fn equal_maps_give_equal_files() {
         // The same voxels set in another order make other leaf indices, not another file.
         let a = sample_map();
