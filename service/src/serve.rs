@@ -457,93 +457,82 @@ pub fn run(a: ServeArgs) -> Result<()> {
             last_publish = Instant::now();
             unpublished = false;
         }
-        // Finished file jobs: loaded maps are swapped in, and their requests answered.
-        while let Some(done) = files.try_done() {
-            let req = waiting
-                .pop_front()
-                .expect("one waiting request per file job");
-            let (ok, msg, republish) = finish_file_job(done, &mut map, &integ);
-            if !ok {
-                eprintln!("voxmap serve: control request failed: {msg}");
-            }
-            if republish {
-                publish(
-                    &integ,
-                    &map,
-                    sequence,
-                    stamp_ns,
-                    &mut stats,
-                    scope.scope(sensor),
-                );
-                last_publish = Instant::now();
-                unpublished = false;
-            }
-            let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
-        }
         // Control requests: answered here, between frames; a bad request gets an error.
         // While a save or load runs, requests other than stats wait for it, in order: they
         // then see the map as it leaves the file job, and one save at a time holds a copy.
+        // A finished file job is answered first (a loaded map swapped in), then requests
+        // deferred behind it, then new ones.
         loop {
-            let next = match waiting.is_empty() {
-                true => deferred.pop_front(),
-                false => None,
-            };
-            let req = match next {
-                Some(req) => req,
-                None => match control
-                    .receive()
-                    .map_err(|e| anyhow!("control receive: {e:?}"))?
-                {
+            let (req, (ok, msg, republish)) = if let Some(done) = files.try_done() {
+                let req = waiting
+                    .pop_front()
+                    .expect("one waiting request per file job");
+                (req, finish_file_job(done, &mut map, &integ))
+            } else {
+                let next = match waiting.is_empty() {
+                    true => deferred.pop_front(),
+                    false => None,
+                };
+                let req = match next {
                     Some(req) => req,
-                    None => break,
-                },
-            };
-            let r = *req.payload();
-            if !waiting.is_empty() && r.kind != ControlKind::Stats as u32 {
-                deferred.push_back(req);
-                continue;
-            }
-            let (ok, msg, republish) = match r.kind {
-                k if k == ControlKind::Stats as u32 => (true, String::new(), false),
-                // Saves and loads run on the file worker; their answers go out when done.
-                k if k == ControlKind::Save as u32 => match r.path() {
-                    None => (false, "bad path".to_string(), false),
-                    Some(p) => {
-                        let file = integ.install(|| mapfile::encode_map_parts(&map));
-                        match files.submit(Job::Save {
-                            path: p.into(),
-                            file,
-                        }) {
+                    None => match control
+                        .receive()
+                        .map_err(|e| anyhow!("control receive: {e:?}"))?
+                    {
+                        Some(req) => req,
+                        None => break,
+                    },
+                };
+                let r = *req.payload();
+                if !waiting.is_empty() && r.kind != ControlKind::Stats as u32 {
+                    deferred.push_back(req);
+                    continue;
+                }
+                let answer = match r.kind {
+                    k if k == ControlKind::Stats as u32 => (true, String::new(), false),
+                    // Saves and loads run on the file worker; their answers go out when done.
+                    k if k == ControlKind::Save as u32 => match r.path() {
+                        None => (false, "bad path".to_string(), false),
+                        Some(p) => {
+                            let file = integ.install(|| mapfile::encode_map_parts(&map));
+                            match files.submit(Job::Save {
+                                path: p.into(),
+                                file,
+                            }) {
+                                Ok(()) => {
+                                    waiting.push_back(req);
+                                    continue;
+                                }
+                                Err(e) => (false, e, false),
+                            }
+                        }
+                    },
+                    k if k == ControlKind::Load as u32 => match r.path() {
+                        None => (false, "bad path".to_string(), false),
+                        Some(p) => match files.submit(Job::Load { path: p.into() }) {
                             Ok(()) => {
                                 waiting.push_back(req);
                                 continue;
                             }
                             Err(e) => (false, e, false),
-                        }
-                    }
-                },
-                k if k == ControlKind::Load as u32 => match r.path() {
-                    None => (false, "bad path".to_string(), false),
-                    Some(p) => match files.submit(Job::Load { path: p.into() }) {
-                        Ok(()) => {
-                            waiting.push_back(req);
-                            continue;
-                        }
-                        Err(e) => (false, e, false),
+                        },
                     },
-                },
-                k if k == ControlKind::Clear as u32 => {
-                    map.clear();
-                    (true, "cleared".to_string(), true)
-                }
-                k if k == ControlKind::SetScope as u32 => match ScopeSetting::from_request(&r) {
-                    Ok(s) => {
-                        scope = s;
-                        (true, format!("scope {s:?}"), true)
+                    k if k == ControlKind::Clear as u32 => {
+                        map.clear();
+                        (true, "cleared".to_string(), true)
                     }
-                    Err(e) => (false, e, false),
-                },
-                k => (false, format!("unknown request kind {k}"), false),
+                    k if k == ControlKind::SetScope as u32 => {
+                        match ScopeSetting::from_request(&r) {
+                            Ok(s) => {
+                                scope = s;
+                                (true, format!("scope {s:?}"), true)
+                            }
+                            Err(e) => (false, e, false),
+                        }
+                    }
+                    k => (false, format!("unknown request kind {k}"), false),
+                };
+                (req, answer)
             };
             if !ok {
                 eprintln!("voxmap serve: control request failed: {msg}");
