@@ -320,15 +320,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         .map_err(|e| anyhow!("attach: {e:?}"))?;
     let mut files = FileWorker::spawn().context("starting the file worker")?;
     // Control requests whose file job is running, in the order of the jobs.
-    let mut waiting: std::collections::VecDeque<
-        iceoryx2::active_request::ActiveRequest<
-            ipc::Service,
-            ControlRequest,
-            (),
-            ControlResponse,
-            (),
-        >,
-    > = std::collections::VecDeque::new();
+    let mut waiting = std::collections::VecDeque::new();
     // Control requests that came while a file job ran, in order.
     let mut deferred = std::collections::VecDeque::new();
     let started = Instant::now();
@@ -563,20 +555,17 @@ pub fn run(a: ServeArgs) -> Result<()> {
             break;
         }
     }
-    // A save being written is finished and answered; a load is not waited for, and
-    // requests still deferred are refused.
+    // A save being written is finished and answered; a load is not waited for (nor
+    // swapped in if it is done), and requests still deferred are refused.
     let mut finished = files.finish().into_iter();
-    for req in waiting {
-        let (ok, msg) = match finished.next() {
-            Some(Done::Saved(p, Ok(()))) => (true, format!("saved to {}", p.display())),
-            Some(Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e))) => (false, e),
-            _ => (false, "not done: the service is exiting".to_string()),
+    for req in waiting.into_iter().chain(deferred) {
+        let (ok, msg, _) = match finished.next() {
+            Some(Done::Loaded(_, Ok(_))) | None => {
+                (false, "not done: the service is exiting".to_string(), false)
+            }
+            Some(done) => finish_file_job(done, &mut map, &integ),
         };
         let _ = req.send_copy(ControlResponse::new(ok, &msg, stats.wire(&map)));
-    }
-    for req in deferred {
-        let msg = "not done: the service is exiting";
-        let _ = req.send_copy(ControlResponse::new(false, msg, stats.wire(&map)));
     }
     publish(
         &integ,

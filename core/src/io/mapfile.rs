@@ -19,7 +19,10 @@ use std::path::{Path, PathBuf};
 
 pub const MAP_MAGIC: [u8; 8] = *b"VXMMAP\0\0";
 pub const MAP_VERSION: u32 = 1;
-const RECORD: usize = 12 + 64 + LEAF_VOXELS;
+/// A body record: origin, then known mask at `MASK_AT`, then values at `VALUES_AT`.
+const MASK_AT: usize = 12;
+const VALUES_AT: usize = MASK_AT + 64;
+const RECORD: usize = VALUES_AT + LEAF_VOXELS;
 const MAX_HEADER: usize = 4096;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -173,10 +176,10 @@ pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
                 rec[4 * k..4 * k + 4].copy_from_slice(&c.to_le_bytes());
             }
             for (w, &word) in leaf.active.words.iter().enumerate() {
-                rec[12 + 8 * w..20 + 8 * w].copy_from_slice(&word.to_le_bytes());
+                rec[MASK_AT + 8 * w..][..8].copy_from_slice(&word.to_le_bytes());
                 // Unknown voxels are stored as 0, whatever the leaf holds there.
                 let vals = &leaf.values[64 * w..64 * w + 64];
-                for (b, (out, &v)) in rec[76 + 64 * w..140 + 64 * w]
+                for (b, (out, &v)) in rec[VALUES_AT + 64 * w..][..64]
                     .iter_mut()
                     .zip(vals)
                     .enumerate()
@@ -298,6 +301,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
     // already is a record stored twice.
     let grid = map.grid_mut();
     let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
+    let mut items: Vec<(u32, &[u8])> = Vec::with_capacity(h.leaf_count as usize);
     for (i, rec) in body.chunks_exact(RECORD).enumerate() {
         let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
         let o = VoxelCoord::new(c(0), c(1), c(2));
@@ -310,18 +314,14 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
         if grid.leaf_index_or_insert(o, Some(&mut hint)) as usize != i {
             return Err(bad("leaf stored twice"));
         }
+        items.push((i as u32, rec));
     }
-    let items: Vec<(u32, &[u8])> = body
-        .chunks_exact(RECORD)
-        .enumerate()
-        .map(|(i, rec)| (i as u32, rec))
-        .collect();
     let out_of_range = grid.leaf_pool_mut().par_update(&items, |leaf, rec| {
         let mut bad = false;
         for w in 0..8 {
-            let word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
+            let word = u64::from_le_bytes(rec[MASK_AT + 8 * w..][..8].try_into().expect("8 bytes"));
             leaf.active.words[w] = word;
-            let vals = &rec[76 + 64 * w..140 + 64 * w];
+            let vals = &rec[VALUES_AT + 64 * w..][..64];
             for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
                 .iter_mut()
                 .zip(vals)
@@ -509,15 +509,19 @@ mod tests {
         );
         // A known voxel's log-odds beyond the model's clamp.
         let known = |i: usize| {
-            let w = u64::from_le_bytes(good[body + 12 + 8 * (i / 64)..][..8].try_into().unwrap());
+            let w = u64::from_le_bytes(
+                good[body + MASK_AT + 8 * (i / 64)..][..8]
+                    .try_into()
+                    .unwrap(),
+            );
             w >> (i % 64) & 1 != 0
         };
         let b = (0..LEAF_VOXELS).find(|&i| known(i)).unwrap();
-        corrupt(&|v| v[body + 76 + b] = 127, "clamping range");
+        corrupt(&|v| v[body + VALUES_AT + b] = 127, "clamping range");
         // An unknown voxel's value is not read: stored as anything, it loads as unknown.
         let free = (0..LEAF_VOXELS).find(|&i| !known(i)).unwrap();
         let mut v = good.clone();
-        v[body + 76 + free] = 127;
+        v[body + VALUES_AT + free] = 127;
         let back = decode_map(&reseal(&v)).ok().unwrap();
         assert_eq!(voxels(&back), voxels(&sample_map()));
     }
