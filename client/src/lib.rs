@@ -6,6 +6,8 @@
 //! - [`SnapshotSubscriber`]: [`SnapshotSubscriber::latest`] gives a
 //!   [`SnapshotView`] over the shared-memory sample itself: no copy, no deserialization;
 //!   [`SnapshotSubscriber::wait_for_update`] blocks on an event, not a busy loop.
+//!   Many point checks at once (a trajectory's samples) go through
+//!   [`SnapshotView::states_at`], which overlaps their memory reads.
 //!
 //! ```no_run
 //! use voxmap_client::{SnapshotSubscriber, VoxelState, WorldPoint};

@@ -282,8 +282,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         if !snapshots.is_empty() {
             println!();
             println!(
-                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9}",
-                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "open ms", "ms chk", "query ns", "los10m ns"
+                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>9}",
+                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "open ms", "ms chk", "query ns", "batch ns", "los10m ns"
             );
         }
     }
@@ -297,21 +297,22 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     "bytes_per_leaf": s.bytes as f64 / s.leaves.max(1) as f64,
                     "map_memory_bytes": s.map_bytes, "encode_ms": s.encode_ms, "integrate_ms": s.integrate_ms,
                     "open_ms": s.open_ms, "open_checked_ms": s.open_checked_ms,
-                    "point_query_ns": s.query_ns, "first_hit_10m_ns": s.los_ns,
+                    "point_query_ns": s.query_ns, "point_query_batched_ns": s.batch_query_ns,
+                    "first_hit_10m_ns": s.los_ns,
                     "mapfile_bytes": s.file_bytes, "mapfile_encode_ms": s.file_encode_ms,
                     "mapfile_decode_ms": s.file_decode_ms,
                 })
             );
         } else {
             println!(
-                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.3} {:>8.3} {:>9.1} {:>9.0}",
+                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.3} {:>8.3} {:>9.1} {:>9.1} {:>9.0}",
                 name, s.bytes, s.leaves, s.bytes as f64 / s.known.max(1) as f64, s.bytes as f64 / s.leaves.max(1) as f64,
-                s.encode_ms, s.integrate_ms / s.encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.los_ns
+                s.encode_ms, s.integrate_ms / s.encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.batch_query_ns, s.los_ns
             );
         }
     }
     if !a.json && !snapshots.is_empty() {
-        println!("xfaster = integrate median / encode; query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query); los10m = first_hit on a 10 m segment (median ns)");
+        println!("xfaster = integrate median / encode; query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query, one state() call each); batch = the same voxels through one states() call per batch; los10m = first_hit on a 10 m segment (median ns)");
         println!();
         println!(
             "{:<40} {:>12} {:>10} {:>10}",
@@ -337,6 +338,8 @@ struct SnapshotBench {
     open_ms: f64,
     open_checked_ms: f64,
     query_ns: f64,
+    /// The same queries through [`SnapshotView::states`], a batch per call.
+    batch_query_ns: f64,
     los_ns: f64,
     /// Map file, in memory (no disk): bytes, encode and decode ms.
     file_bytes: usize,
@@ -404,6 +407,22 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         })
         .collect();
     let query_ns = median(&mut batches);
+    let mut states = Vec::with_capacity(QUERY_BATCH);
+    let mut batches: Vec<f64> = pts
+        .chunks(QUERY_BATCH)
+        .map(|batch| {
+            let t = Instant::now();
+            states.clear();
+            view.states(batch, &mut states);
+            let occ = states
+                .iter()
+                .filter(|&&s| s == voxmap_core::VoxelState::Occupied)
+                .count();
+            std::hint::black_box(occ);
+            t.elapsed().as_secs_f64() * 1e9 / batch.len() as f64
+        })
+        .collect();
+    let batch_query_ns = median(&mut batches);
     // 10 m segments from near the sensor in random directions.
     let mut segs = Vec::new();
     for _ in 0..20_000 {
@@ -446,6 +465,7 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         open_ms,
         open_checked_ms,
         query_ns,
+        batch_query_ns,
         los_ns,
         file_bytes: file.len(),
         file_encode_ms,

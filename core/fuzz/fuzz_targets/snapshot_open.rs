@@ -8,10 +8,12 @@ use voxmap_core::{VoxelCoord, WorldPoint};
 fuzz_target!(|data: &[u8]| {
     let _ = SnapshotView::open_checked(data);
     if let Ok(v) = SnapshotView::open(data) {
-        for i in -16..16 {
-            let p = VoxelCoord::new(i * 5, -i * 3, i);
-            let _ = v.state(p);
-            let _ = v.probability(p);
+        let voxels: Vec<_> = (-16..16).map(|i| VoxelCoord::new(i * 5, -i * 3, i)).collect();
+        let mut batched = Vec::new();
+        v.states(&voxels, &mut batched);
+        for (p, s) in voxels.iter().zip(batched) {
+            assert_eq!(v.state(*p), s, "batched and single lookups disagree");
+            let _ = v.probability(*p);
         }
         let _ = v.first_hit(&WorldPoint::new(-2.0, -1.0, 0.5), &WorldPoint::new(3.0, 2.0, -1.0), true);
         // Unknown not blocking: leaves with nothing occupied are jumped.

@@ -64,9 +64,37 @@ fn view_agrees_with_the_map_on_every_query() {
             assert!((p - q).abs() < 1e-12);
         }
         let mut rng = Rng(seed + 100);
+        let mut voxels = Vec::new();
         for _ in 0..20000 {
             let v = VoxelCoord::new(rng.i(-70, 70), rng.i(-70, 70), rng.i(-70, 70));
             assert_eq!(view.state(v), map.state(v), "{v:?}");
+            voxels.push(v);
+        }
+        // Batched, appended after what `out` held, staged (as for snapshots bigger than a
+        // cache) or not; a length that leaves a short last group.
+        for staged in [true, false] {
+            let mut out = vec![VoxelState::Occupied];
+            view.states_of(voxels[..19999].iter().map(|v| Some(*v)), staged, &mut out);
+            assert_eq!(out.len(), 20000);
+            assert_eq!(out[0], VoxelState::Occupied);
+            for (v, s) in voxels.iter().zip(&out[1..]) {
+                assert_eq!(*s, map.state(*v), "{v:?}");
+            }
+        }
+        let tf = map.transform();
+        let mut points: Vec<_> = voxels.iter().map(|&v| tf.voxel_center(v)).collect();
+        points.extend([
+            WorldPoint::new(f64::NAN, 0.0, 0.0),
+            WorldPoint::new(1e300, 0.0, 0.0),
+        ]);
+        let (mut public, mut staged) = (Vec::new(), Vec::new());
+        view.states_at(&points, &mut public);
+        view.states_of(points.iter().map(|p| tf.voxel_of(p)), true, &mut staged);
+        let known = public.iter().filter(|&&s| s != VoxelState::Unknown).count();
+        assert!(known > 1000, "{known} known");
+        assert_eq!(public, staged);
+        for (p, s) in points.iter().zip(&public) {
+            assert_eq!(*s, view.state_at(p), "{p:?}");
         }
         // Occupied iteration and bounds.
         let mut got: Vec<_> = view.occupied_voxels().collect();
@@ -398,10 +426,17 @@ fn leaves_store_only_the_masks_they_need() {
 fn exercise(bytes: &[u8]) {
     if let Ok(v) = SnapshotView::open(bytes) {
         let _ = SnapshotView::open_checked(bytes);
-        for x in -20..20 {
-            let p = VoxelCoord::new(x * 3, -x, x * 7);
-            let _ = v.state(p);
-            let _ = v.probability(p);
+        let voxels: Vec<_> = (-20..20)
+            .map(|x| VoxelCoord::new(x * 3, -x, x * 7))
+            .collect();
+        let mut batched = Vec::new();
+        v.states(&voxels, &mut batched);
+        v.states_of(voxels.iter().map(|v| Some(*v)), true, &mut batched);
+        assert_eq!(batched.len(), 2 * voxels.len());
+        for (i, p) in voxels.iter().enumerate() {
+            assert_eq!(v.state(*p), batched[i]);
+            assert_eq!(v.state(*p), batched[voxels.len() + i]);
+            let _ = v.probability(*p);
         }
         let _ = v.first_hit(
             &WorldPoint::new(-3.0, -2.0, -1.0),

@@ -38,6 +38,32 @@ compile_error!(
     "snapshots are little-endian and read in place; big-endian targets are not supported"
 );
 
+/// Voxels whose lookups [`SnapshotView::states`] overlaps: about the cache misses a core
+/// keeps in flight (10 to 20 on current x86 and Arm cores). 32 was no faster.
+const STATES_GROUP: usize = 16;
+
+/// Snapshots up to this size are taken to sit in a core's cache (L2 is 0.5 to 4 MiB on
+/// current cores), where [`SnapshotView::states`] only adds work: 5-12% slower per query
+/// on a 195 kB snapshot.
+const STATES_IN_CACHE: usize = 512 << 10;
+
+/// Ask for the cache line holding `bytes[at]`, if there is one, to be loaded.
+#[inline(always)]
+fn prefetch(bytes: &[u8], at: u64) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(b) = usize::try_from(at).ok().and_then(|a| bytes.get(a)) {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: `_mm_prefetch` needs SSE, which every x86_64 CPU has. A prefetch is a
+        // hint: it reads nothing into the program and cannot fault, and the address is
+        // inside `bytes` anyway.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(b).cast()) };
+    }
+    // Elsewhere no prefetch: the loads of a group's stage are still independent of one
+    // another, so an out-of-order core overlaps them, only less far ahead.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (bytes, at);
+}
+
 /// A leaf found in the table: its index (for the values section) and mask record.
 #[derive(Clone, Copy, Debug)]
 struct LeafRef {
@@ -257,8 +283,13 @@ impl<'a> SnapshotView<'a> {
     /// The leaf with origin `o`.
     #[inline]
     fn find_leaf(&self, o: [i32; 3]) -> Option<LeafRef> {
+        self.probe(o, table_hash(o, self.header.table_capacity))
+    }
+
+    /// The leaf with origin `o`, probing the table from slot `s` (its hash).
+    #[inline]
+    fn probe(&self, o: [i32; 3], mut s: u64) -> Option<LeafRef> {
         let cap = self.header.table_capacity;
-        let mut s = table_hash(o, cap);
         // Bounded: validated tables have an empty slot; the bound guards nothing else.
         for _ in 0..cap {
             let e = self.u32_at(self.header.table_offset + 4 * s);
@@ -303,6 +334,82 @@ impl<'a> SnapshotView<'a> {
             Some(l) => self.leaf_state(l, leaf_offset(v)),
             None => VoxelState::Unknown,
         }
+    }
+
+    /// States of many voxels, appended to `out` in order: the same as [`Self::state`] on
+    /// each, and about twice as fast per voxel when the snapshot is much bigger than the
+    /// CPU cache (e.g. a collision check of a whole trajectory). A lone query waits for
+    /// its memory reads one after another (table slot, leaf entry, mask record: each a
+    /// cache miss on a big map); here those of a group of voxels are issued together, so
+    /// their waits overlap. Snapshots small enough to sit in cache are read one voxel at a
+    /// time, which is faster there.
+    pub fn states(&self, voxels: &[VoxelCoord], out: &mut Vec<VoxelState>) {
+        let staged = self.bytes.len() > STATES_IN_CACHE;
+        self.states_of(voxels.iter().map(|v| Some(*v)), staged, out);
+    }
+
+    /// [`Self::states`] at world points, as [`Self::state_at`] on each.
+    pub fn states_at(&self, points: &[WorldPoint], out: &mut Vec<VoxelState>) {
+        let staged = self.bytes.len() > STATES_IN_CACHE;
+        self.states_of(points.iter().map(|p| self.tf.voxel_of(p)), staged, out);
+    }
+
+    /// `None`: outside the index space, unknown. Not `staged`: one [`Self::state`] each.
+    pub(super) fn states_of(
+        &self,
+        voxels: impl ExactSizeIterator<Item = Option<VoxelCoord>>,
+        staged: bool,
+        out: &mut Vec<VoxelState>,
+    ) {
+        out.reserve(voxels.len());
+        if !staged {
+            out.extend(voxels.map(|v| v.map_or(VoxelState::Unknown, |v| self.state(v))));
+            return;
+        }
+        let mut voxels = voxels.peekable();
+        while voxels.peek().is_some() {
+            let mut group = [None; STATES_GROUP];
+            let mut n = 0;
+            for (g, v) in group.iter_mut().zip(voxels.by_ref()) {
+                *g = v;
+                n += 1;
+            }
+            self.states_group(&group[..n], out);
+        }
+    }
+
+    /// At most [`STATES_GROUP`] lookups, in stages: each stage's reads are independent of
+    /// one another and prefetched before the next stage needs them.
+    fn states_group(&self, voxels: &[Option<VoxelCoord>], out: &mut Vec<VoxelState>) {
+        let h = &self.header;
+        let mut slot = [0u64; STATES_GROUP];
+        for (s, v) in slot.iter_mut().zip(voxels) {
+            if let Some(v) = v {
+                *s = table_hash(leaf_origin(*v).to_array(), h.table_capacity);
+                prefetch(self.bytes, h.table_offset + 4 * *s);
+            }
+        }
+        for (s, v) in slot.iter().zip(voxels) {
+            let e = self.u32_at(h.table_offset + 4 * s);
+            if v.is_some() && e != 0 {
+                let entry = ENTRY_SIZE as u64 * u64::from(e - 1);
+                prefetch(self.bytes, h.leaves_offset + entry);
+            }
+        }
+        let mut leaf = [None; STATES_GROUP];
+        for ((l, v), s) in leaf.iter_mut().zip(voxels).zip(slot) {
+            *l = v.and_then(|v| self.probe(leaf_origin(v).to_array(), s));
+            if let Some(l) = l {
+                // A record spans one to three cache lines; the voxel's row is most often
+                // in the first two.
+                prefetch(self.masks, u64::from(l.record));
+                prefetch(self.masks, u64::from(l.record) + 64);
+            }
+        }
+        out.extend(voxels.iter().zip(leaf).map(|(v, l)| match (v, l) {
+            (Some(v), Some(l)) => self.leaf_state(l, leaf_offset(*v)),
+            _ => VoxelState::Unknown,
+        }));
     }
 
     /// State at a world point; points outside the index space are unknown.
