@@ -58,8 +58,10 @@ fn prefetch(bytes: &[u8], at: u64) {
         // inside `bytes` anyway.
         unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(b).cast()) };
     }
-    // Elsewhere no prefetch: the loads of a group's stage are still independent of one
-    // another, so an out-of-order core overlaps them, only less far ahead.
+    // Elsewhere no prefetch (Arm's is not stable Rust): a stage's loads are still
+    // independent, so an out-of-order core overlaps some of them. Measured on x86 with the
+    // prefetch taken out, on the 116 MB random 500k 60 m snapshot: 191-250 ns per query,
+    // against 111-120 ns with it and 296-324 ns one `state` call each.
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (bytes, at);
 }
