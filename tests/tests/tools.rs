@@ -446,6 +446,81 @@ fn inspect_and_render_read_maps_and_say_what_is_wrong_with_bad_files() {
 }
 
 #[test]
+fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
+    let dir = tmpdir("bench");
+    let (pose, points) = frames().swap_remove(1);
+    let n = points.len() as u64;
+    pcd::write(&dir.join("room_one.pcd"), &pcd::PointCloud { points, pose }).unwrap();
+    let out = ok(&[
+        "bench",
+        "--workloads",
+        dir.to_str().unwrap(),
+        "--runs",
+        "2",
+        "--threads",
+        "1,2",
+        "--modes",
+        "exact,unique_end",
+        "--json",
+    ]);
+    let rows: Vec<serde_json::Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    let (frames, snapshots): (Vec<_>, Vec<_>) = rows.iter().partition(|r| r["section"].is_null());
+    assert_eq!(frames.len(), 4, "{out}");
+    let u = |r: &serde_json::Value, k: &str| {
+        r[k].as_u64()
+            .unwrap_or_else(|| panic!("{k} missing or not a count in {r}"))
+    };
+    let f = |r: &serde_json::Value, k: &str| {
+        r[k].as_f64()
+            .unwrap_or_else(|| panic!("{k} missing or not a number in {r}"))
+    };
+    for r in &frames {
+        assert_eq!(r["workload"], "room_one");
+        assert_eq!(u(r, "runs"), 2);
+        assert_eq!(u(r, "points"), n);
+        assert!(f(r, "min_ms") <= f(r, "median_ms") && f(r, "median_ms") <= f(r, "max_ms"));
+        assert!(u(r, "rays") <= n && u(r, "voxel_steps") > u(r, "rays"));
+        assert!(u(r, "occupied") > 1000 && u(r, "free") > u(r, "occupied"));
+        assert!(u(r, "memory_bytes") > 0);
+    }
+    // Same map for any thread count; one ray per end voxel casts fewer rays.
+    for mode in ["exact", "unique_end"] {
+        let m: Vec<_> = frames.iter().filter(|r| r["mode"] == mode).collect();
+        assert_eq!(m.len(), 2);
+        assert_eq!((u(m[0], "threads"), u(m[1], "threads")), (1, 2));
+        for k in ["rays", "voxel_steps", "occupied", "free", "memory_bytes"] {
+            assert_eq!(m[0][k], m[1][k], "{mode} {k}");
+        }
+    }
+    let rays = |mode: &str| u(frames.iter().find(|r| r["mode"] == mode).unwrap(), "rays");
+    assert_eq!(rays("exact"), n);
+    assert!(rays("unique_end") < n);
+    // The snapshot section, for the exact map.
+    assert_eq!(snapshots.len(), 1, "{out}");
+    let s = snapshots[0];
+    assert_eq!(
+        (s["section"].as_str(), s["workload"].as_str()),
+        (Some("snapshot"), Some("room_one"))
+    );
+    let exact = frames.iter().find(|r| r["mode"] == "exact").unwrap();
+    assert_eq!(u(s, "known"), u(exact, "occupied") + u(exact, "free"));
+    for k in ["bytes", "leaves", "mapfile_bytes"] {
+        assert!(u(s, k) > 0, "{k}");
+    }
+    for k in [
+        "point_query_ns",
+        "point_query_batched_ns",
+        "first_hit_10m_ns",
+        "encode_ms",
+    ] {
+        assert!(f(s, k) > 0.0, "{k}");
+    }
+}
+
+#[test]
 fn demo_runs_end_to_end_and_leaves_its_outputs() {
     let dir = tmpdir("demo");
     let out = ok(&["demo", "--seconds", "4", "--out", dir.to_str().unwrap()]);
