@@ -236,6 +236,12 @@ impl Integrator {
         &self.cfg
     }
 
+    /// Whether this integrator can work on a map of `resolution`: its max range spans at
+    /// most [`MAX_RANGE_VOXELS`] voxels there.
+    pub fn fits_resolution(&self, resolution: f64) -> bool {
+        self.check_range(resolution).is_ok()
+    }
+
     /// Check that `max_range` is representable at `resolution` (see [`MAX_RANGE_VOXELS`]).
     fn check_range(&self, resolution: f64) -> Result<f64, ConfigError> {
         let r = self.cfg.max_range / resolution;

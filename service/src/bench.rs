@@ -393,36 +393,27 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         pts.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }
     // A query takes about as long as reading the clock, so queries are timed in batches:
-    // the median over batches of the mean per query.
-    let mut batches: Vec<f64> = pts
-        .chunks(QUERY_BATCH)
-        .map(|batch| {
-            let t = Instant::now();
-            let occ = batch
-                .iter()
-                .filter(|&&v| view.state(v) == voxmap_core::VoxelState::Occupied)
-                .count();
-            std::hint::black_box(occ);
-            t.elapsed().as_secs_f64() * 1e9 / batch.len() as f64
-        })
-        .collect();
-    let query_ns = median(&mut batches);
+    // the median over batches of the mean per query. `occupied` answers a batch.
+    let per_query_ns = |occupied: &mut dyn FnMut(&[VoxelCoord]) -> usize| {
+        let mut batches: Vec<f64> = pts
+            .chunks(QUERY_BATCH)
+            .map(|batch| {
+                let t = Instant::now();
+                std::hint::black_box(occupied(batch));
+                t.elapsed().as_secs_f64() * 1e9 / batch.len() as f64
+            })
+            .collect();
+        median(&mut batches)
+    };
+    let occupied = voxmap_core::VoxelState::Occupied;
+    let query_ns =
+        per_query_ns(&mut |batch| batch.iter().filter(|&&v| view.state(v) == occupied).count());
     let mut states = Vec::with_capacity(QUERY_BATCH);
-    let mut batches: Vec<f64> = pts
-        .chunks(QUERY_BATCH)
-        .map(|batch| {
-            let t = Instant::now();
-            states.clear();
-            view.states(batch, &mut states);
-            let occ = states
-                .iter()
-                .filter(|&&s| s == voxmap_core::VoxelState::Occupied)
-                .count();
-            std::hint::black_box(occ);
-            t.elapsed().as_secs_f64() * 1e9 / batch.len() as f64
-        })
-        .collect();
-    let batch_query_ns = median(&mut batches);
+    let batch_query_ns = per_query_ns(&mut |batch| {
+        states.clear();
+        view.states(batch, &mut states);
+        states.iter().filter(|&&s| s == occupied).count()
+    });
     // 10 m segments from near the sensor in random directions.
     let mut segs = Vec::new();
     for _ in 0..20_000 {

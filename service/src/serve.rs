@@ -483,32 +483,27 @@ pub fn run(a: ServeArgs) -> Result<()> {
                 let answer = match r.kind {
                     k if k == ControlKind::Stats as u32 => (true, String::new(), false),
                     // Saves and loads run on the file worker; their answers go out when done.
-                    k if k == ControlKind::Save as u32 => match r.path() {
-                        None => (false, "bad path".to_string(), false),
-                        Some(p) => {
-                            let file = integ.install(|| mapfile::encode_map_parts(&map));
-                            match files.submit(Job::Save {
-                                path: p.into(),
-                                file,
-                            }) {
-                                Ok(()) => {
-                                    waiting.push_back(req);
-                                    continue;
+                    k if k == ControlKind::Save as u32 || k == ControlKind::Load as u32 => {
+                        match r.path() {
+                            None => (false, "bad path".to_string(), false),
+                            Some(p) => {
+                                let path = p.into();
+                                let job = if k == ControlKind::Save as u32 {
+                                    let file = integ.install(|| mapfile::encode_map_parts(&map));
+                                    Job::Save { path, file }
+                                } else {
+                                    Job::Load { path }
+                                };
+                                match files.submit(job) {
+                                    Ok(()) => {
+                                        waiting.push_back(req);
+                                        continue;
+                                    }
+                                    Err(e) => (false, e, false),
                                 }
-                                Err(e) => (false, e, false),
                             }
                         }
-                    },
-                    k if k == ControlKind::Load as u32 => match r.path() {
-                        None => (false, "bad path".to_string(), false),
-                        Some(p) => match files.submit(Job::Load { path: p.into() }) {
-                            Ok(()) => {
-                                waiting.push_back(req);
-                                continue;
-                            }
-                            Err(e) => (false, e, false),
-                        },
-                    },
+                    }
                     k if k == ControlKind::Clear as u32 => {
                         map.clear();
                         (true, "cleared".to_string(), true)
@@ -589,12 +584,12 @@ fn finish_file_job(done: Done, map: &mut OccupancyMap, integ: &Integrator) -> (b
     match done {
         Done::Saved(p, Ok(())) => (true, format!("saved to {}", p.display()), false),
         Done::Loaded(p, Ok(m)) => {
-            let max_range = integ.config().max_range;
-            if max_range / m.resolution() > voxmap_core::integrate::MAX_RANGE_VOXELS {
+            if !integ.fits_resolution(m.resolution()) {
                 let why = format!(
-                    "{} not loaded: at its resolution of {} m, max range {max_range} m spans more than {} voxels",
+                    "{} not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
                     p.display(),
                     m.resolution(),
+                    integ.config().max_range,
                     voxmap_core::integrate::MAX_RANGE_VOXELS
                 );
                 return (false, why, false);

@@ -195,7 +195,15 @@ pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
         leaf_count: leaves.len() as u64,
         body_crc32: par_crc32(&body),
     };
-    let hb = bincode::serde::encode_to_vec(&header, bincode::config::standard())
+    EncodedMap {
+        head: encode_head(&header),
+        body,
+    }
+}
+
+/// A file's head: magic, version, header length, header, header checksum.
+fn encode_head(header: &FileHeader) -> Vec<u8> {
+    let hb = bincode::serde::encode_to_vec(header, bincode::config::standard())
         .expect("plain struct encodes");
     let mut head = Vec::with_capacity(20 + hb.len());
     head.extend_from_slice(&MAP_MAGIC);
@@ -203,7 +211,7 @@ pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
     head.extend_from_slice(&(hb.len() as u32).to_le_bytes());
     head.extend_from_slice(&hb);
     head.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
-    EncodedMap { head, body }
+    head
 }
 
 /// CRC-32 of `bytes`, in pieces on the current rayon pool, combined.
@@ -464,11 +472,7 @@ mod tests {
             bincode::serde::decode_from_slice(&bytes[16..16 + hlen], cfg).unwrap();
         let body = &bytes[20 + hlen..];
         edit(&mut h, body);
-        let hb = bincode::serde::encode_to_vec(&h, cfg).unwrap();
-        let mut out = bytes[..12].to_vec();
-        out.extend_from_slice(&(hb.len() as u32).to_le_bytes());
-        out.extend_from_slice(&hb);
-        out.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
+        let mut out = encode_head(&h);
         out.extend_from_slice(body);
         out
     }
