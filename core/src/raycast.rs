@@ -256,6 +256,21 @@ impl Dda {
         true
     }
 
+    /// Per axis: the `t` of the next crossing, the `t` between crossings and the `t` of the
+    /// last crossing, as [`Dda::step`] uses them; for walkers that step many rays at once.
+    /// Between crossings is capped at 2^62: an axis with a larger one crosses at most once
+    /// (2^60 is t = 1), so the cap only changes sums that `step` never uses, and keeps
+    /// `t + between` from overflowing.
+    #[inline]
+    pub(crate) fn crossings(&self) -> [[u64; 3]; 3] {
+        const CAP: u64 = 1 << 62;
+        [
+            [self.tx, self.ty, self.tz],
+            [self.dx.min(CAP), self.dy.min(CAP), self.dz.min(CAP)],
+            [self.lx, self.ly, self.lz],
+        ]
+    }
+
     #[inline]
     pub fn voxel(&self) -> VoxelCoord {
         VoxelCoord::new(self.x, self.y, self.z)

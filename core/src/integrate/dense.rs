@@ -1,0 +1,156 @@
+//! Dense per-thread marks for frames whose box is small (short-range sensors).
+//!
+//! When a frame's voxel box fits [`DENSE_BUDGET_WORDS`], each raycast thread marks into
+//! its own row-major bit grid over the whole box: a voxel is one bit index, a step one add,
+//! a mark one OR, and the grid stays in the thread's cache. The merge then ORs the threads'
+//! grids brick by brick into the frame's [`FrameMarks`] slots, which the update reads as
+//! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
+//! thread walked which ray.
+
+use super::{BrickCache, FrameMarks};
+use crate::coord::VoxelCoord;
+use rayon::prelude::*;
+use std::sync::atomic::Ordering::Relaxed;
+
+/// Largest dense grid per thread, in 64-bit words of free marks (hit marks take as many
+/// again): 4 MiB, a box of about 320^3 voxels (16 m of range at 0.1 m). Beyond this, or
+/// without AVX-512, frames take the sparse walk.
+pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 19;
+
+/// A frame's voxel box as a row-major bit grid: x fastest, rows padded to whole words,
+/// every edge a multiple of 8 from a brick-aligned corner, so a brick's row of 8 voxels is
+/// one byte of one word.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct DenseBox {
+    lo: VoxelCoord,
+    /// Voxels per axis: x a multiple of 64, y and z of 8.
+    n: [u64; 3],
+}
+
+impl DenseBox {
+    /// The box over voxels `lo..=hi`, if its grid fits the budget.
+    pub(super) fn new(lo: VoxelCoord, hi: VoxelCoord) -> Option<Self> {
+        let lo = lo.shr(3).shl(3);
+        let len = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1) as u64;
+        let n = [
+            len(lo.x, hi.x).next_multiple_of(64),
+            len(lo.y, hi.y).next_multiple_of(8),
+            len(lo.z, hi.z).next_multiple_of(8),
+        ];
+        let words = (n[0] / 64).checked_mul(n[1])?.checked_mul(n[2])?;
+        (words <= DENSE_BUDGET_WORDS).then_some(Self { lo, n })
+    }
+
+    pub(super) fn words(&self) -> usize {
+        (self.n[0] / 64 * self.n[1] * self.n[2]) as usize
+    }
+
+    /// Bit index of a voxel inside the box.
+    #[inline]
+    pub(super) fn index(&self, v: VoxelCoord) -> u64 {
+        let d = v - self.lo;
+        debug_assert!(d.x >= 0 && d.y >= 0 && d.z >= 0);
+        d.x as u64 + self.n[0] * (d.y as u64 + self.n[1] * d.z as u64)
+    }
+
+    /// Bit index change of one voxel step along x, y and z.
+    #[inline]
+    pub(super) fn strides(&self) -> [i64; 3] {
+        [1, self.n[0] as i64, (self.n[0] * self.n[1]) as i64]
+    }
+
+    /// Rows of bricks (one per brick y and z), the merge's unit of parallel work.
+    pub(super) fn brick_rows(&self) -> usize {
+        (self.n[1] / 8 * self.n[2] / 8) as usize
+    }
+}
+
+/// One thread's marks over a [`DenseBox`], for one frame.
+#[derive(Default)]
+pub(super) struct DenseBits {
+    free: Vec<u64>,
+    hit: Vec<u64>,
+    /// The frame these marks belong to; marks of an older frame are stale.
+    frame: u64,
+}
+
+impl DenseBits {
+    /// Start `frame`'s marks over `words` words, unless already started.
+    pub(super) fn begin(&mut self, frame: u64, words: usize) {
+        if self.frame != frame {
+            self.frame = frame;
+            for v in [&mut self.free, &mut self.hit] {
+                v.clear();
+                v.resize(words, 0);
+            }
+        }
+    }
+
+    pub(super) fn frame(&self) -> u64 {
+        self.frame
+    }
+
+    #[inline(always)]
+    pub(super) fn or_free(&mut self, word: u64, bit: u64) {
+        self.free[word as usize] |= bit;
+    }
+
+    #[inline]
+    pub(super) fn set_hit(&mut self, index: u64) {
+        self.hit[(index / 64) as usize] |= 1 << (index % 64);
+    }
+}
+
+/// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
+/// mark get a slot. `marks` must be reset for the frame's box with room for one batch of
+/// spare slots per brick row.
+pub(super) fn merge(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
+    let row_words = (dbox.n[0] / 64) as usize;
+    let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
+    (0..dbox.brick_rows()).into_par_iter().for_each(|r| {
+        let (by, bz) = (r % nby, r / nby);
+        let mut cache = BrickCache::default();
+        for wx in 0..row_words {
+            // Word (wx) of the 64 rows of this brick row: [z][y].
+            let mut free = [[0u64; 8]; 8];
+            let mut hit = [[0u64; 8]; 8];
+            let mut any = 0;
+            for z in 0..8 {
+                for y in 0..8 {
+                    let i = wx + row_words * (by * 8 + y + ny * (bz * 8 + z));
+                    for b in bits {
+                        free[z][y] |= b.free[i];
+                        hit[z][y] |= b.hit[i];
+                    }
+                    any |= free[z][y] | hit[z][y];
+                }
+            }
+            if any == 0 {
+                continue;
+            }
+            // Byte k of a row word is brick k's row; a brick's word z holds its rows y as
+            // bytes y.
+            for k in 0..8 {
+                let brick_word = |rows: &[u64; 8]| {
+                    (0..8).fold(0u64, |w, y| w | (rows[y] >> (8 * k) & 0xff) << (8 * y))
+                };
+                let f: [u64; 8] = std::array::from_fn(|z| brick_word(&free[z]));
+                let h: [u64; 8] = std::array::from_fn(|z| brick_word(&hit[z]));
+                if f.iter().chain(&h).all(|&w| w == 0) {
+                    continue;
+                }
+                let origin = dbox.lo
+                    + VoxelCoord::new((wx * 64 + k * 8) as i32, (by * 8) as i32, (bz * 8) as i32);
+                let slot = marks.slot_for(&mut cache, origin.shr(3));
+                // Each brick belongs to one row, and only this pass writes slots: plain
+                // stores suffice.
+                for (w, v) in slot.free.iter().zip(f) {
+                    w.store(v, Relaxed);
+                }
+                for (w, v) in slot.hit.iter().zip(h) {
+                    w.store(v, Relaxed);
+                }
+            }
+        }
+    });
+}
