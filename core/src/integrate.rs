@@ -1,11 +1,10 @@
 //! Frame integration: the paper's two-step update, made merge-free.
 //!
 //! 1. **Prepare** (parallel): transform points into the map frame, drop non-finite ones,
-//!    cut rays at `max_range`, apply the optional trade-off mode, and sort the rays by
-//!    direction (an octahedral Morton key) so that neighbouring rays walk neighbouring
-//!    memory.
-//! 2. **Raycast** (parallel over chunks of sorted rays), one of two walks with the same
-//!    result:
+//!    cut rays at `max_range`, apply the optional trade-off mode; for the sparse walk, sort
+//!    the rays by direction (an octahedral Morton key) so that neighbouring rays walk
+//!    neighbouring memory.
+//! 2. **Raycast** (parallel over chunks of rays), one of two walks with the same result:
 //!    - *sparse*: each ray is walked with the exact DDA; its marks are gathered per 8x8x8
 //!      brick in registers and OR-ed into one per-frame [`FrameMarks`] table shared by all
 //!      threads. There are no per-thread grids, so there is nothing to merge: this is what
@@ -326,6 +325,12 @@ impl Integrator {
             let (lo, hi) = bounds(rays, origin);
             let dense_box = dense_box(lo, hi, sparse_only);
             report.dense = dense_box.is_some();
+            // The dense walk needs no order: its grids stay in cache whatever the rays'
+            // directions, and its lanes only need to be far apart in direction, which the
+            // eighths of a sensor's scan order are (sorting took half of its prepare time).
+            if !report.dense {
+                rays.par_sort_unstable_by_key(|r| r.key);
+            }
             let chunks = rays.len().div_ceil(RAY_CHUNK);
             marks.reset(lo, hi, chunks + dense_box.map_or(0, |b| b.brick_rows()));
             let t1 = Instant::now();
@@ -499,7 +504,6 @@ fn prepare_rays(
             *rays = out;
         }
     }
-    rays.par_sort_unstable_by_key(|r| r.key);
     skipped
 }
 
@@ -536,8 +540,8 @@ fn cast_dense(
 ) -> u64 {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
     {
-        // Lane l of every task walks the l-th eighth of the (direction-sorted) rays: lanes
-        // far apart in direction (see `avx512::cast_chunk`).
+        // Lane l of every task walks the l-th eighth of the rays: in a sensor's scan order
+        // (or sorted) these are far apart in direction (see `avx512::cast_chunk`).
         let eighth = rays.len().div_ceil(8);
         let part = |l: usize, c: usize| {
             let start = (l * eighth + c * RAY_CHUNK).min(rays.len());
