@@ -117,7 +117,7 @@ pub(super) fn cast_chunk(
     }
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
-    let low6 = _mm512_set1_epi64(63);
+    let sink = _mm512_set1_epi64(dbox.sink() as i64);
     let never = _mm512_set1_epi64(-1);
     while active != 0 {
         let [mut tx, mut ty, mut tz, dx, dy, dz, lx, ly, lz, mx, my, mz, mut p, mut rem] =
@@ -125,16 +125,18 @@ pub(super) fn cast_chunk(
         // Walk until a lane ends its ray; nothing in here calls out, so the state stays
         // in registers.
         let done = loop {
-            // Mark the current voxels free. A lane without a ray marks nothing (bit 0) at
-            // word 0.
-            let word = to_array(_mm512_maskz_srli_epi64::<6>(active, p));
-            let bit = to_array(_mm512_maskz_sllv_epi64(
-                active,
-                one,
-                _mm512_and_si512(p, low6),
-            ));
-            for (&w, &b) in word.iter().zip(&bit) {
-                bits.or_free(w, b);
+            // Mark the current voxels free; a lane without a ray marks the sink bit. Through
+            // memory, not lane extracts: those compete with the walk for the vector port.
+            let mut at = [0u64; 8];
+            // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
+            unsafe {
+                _mm512_storeu_si512(
+                    at.as_mut_ptr().cast(),
+                    _mm512_mask_mov_epi64(sink, active, p),
+                )
+            };
+            for &q in &at {
+                bits.or_free(q);
             }
             // Step: the axis whose crossing comes first (ties x, y, z). An axis past its
             // last crossing gets t = never, so it is never first again.

@@ -45,6 +45,12 @@ impl DenseBox {
         (self.n[0] / 64 * self.n[1] * self.n[2]) as usize
     }
 
+    /// A bit index outside the box whose marks are ignored, for walkers that must mark
+    /// something in every lane.
+    pub(super) fn sink(&self) -> u64 {
+        self.words() as u64 * 64
+    }
+
     /// Bit index of a voxel inside the box.
     #[inline]
     pub(super) fn index(&self, v: VoxelCoord) -> u64 {
@@ -79,9 +85,10 @@ impl DenseBits {
     pub(super) fn begin(&mut self, frame: u64, words: usize) {
         if self.frame != frame {
             self.frame = frame;
+            // One word more than the box: the sink.
             for v in [&mut self.free, &mut self.hit] {
                 v.clear();
-                v.resize(words, 0);
+                v.resize(words + 1, 0);
             }
         }
     }
@@ -90,9 +97,10 @@ impl DenseBits {
         self.frame
     }
 
+    /// Mark the voxel at bit `index` free.
     #[inline(always)]
-    pub(super) fn or_free(&mut self, word: u64, bit: u64) {
-        self.free[word as usize] |= bit;
+    pub(super) fn or_free(&mut self, index: u64) {
+        self.free[(index / 64) as usize] |= 1 << (index % 64);
     }
 
     #[inline]
