@@ -35,10 +35,18 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering::*};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-#[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+#[cfg(all(
+    target_arch = "x86_64",
+    target_feature = "avx512f",
+    target_feature = "avx512dq"
+))]
 mod avx512;
 #[cfg_attr(
-    not(all(target_arch = "x86_64", target_feature = "avx512f")),
+    not(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    )),
     allow(dead_code)
 )]
 mod dense;
@@ -175,11 +183,29 @@ pub struct IntegrateReport {
     pub times: PhaseTimes,
 }
 
+/// A ray from the frame's sensor origin. `repr(C)` with explicit padding, so that every
+/// byte is initialised and the dense walk can gather whole fields from a slice of rays:
+/// `end` at offset 0, `key` at 24, `hit` at 28, 32 bytes in all.
 #[derive(Clone, Copy, Debug)]
+#[repr(C)]
 struct Ray {
     end: [f64; 3],
     key: u32,
     hit: bool,
+    pad: [u8; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<Ray>() == 32);
+
+impl Ray {
+    fn new(end: [f64; 3], key: u32, hit: bool) -> Self {
+        Ray {
+            end,
+            key,
+            hit,
+            pad: [0; 3],
+        }
+    }
 }
 
 /// Integrates frames into maps. Holds a thread pool and scratch memory that is reused
@@ -424,11 +450,7 @@ fn prepare_rays(
     let surely_in = range_units * range_units * (1.0 - 1e-9);
     let make = |p: &[f32; 3]| -> Ray {
         if !p.iter().all(|c| c.is_finite()) {
-            return Ray {
-                end: [0.0; 3],
-                key: SKIPPED,
-                hit: false,
-            };
+            return Ray::new([0.0; 3], SKIPPED, false);
         }
         let w = rot * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) + t;
         let mut e = tf.point_to_units(&Point3::from(w));
@@ -443,11 +465,7 @@ fn prepare_rays(
                 origin[2] + d[2] * s,
             ];
         }
-        Ray {
-            end: e,
-            key: direction_key(d),
-            hit,
-        }
+        Ray::new(e, direction_key(d), hit)
     };
     // An indexed map collects straight into `rays`; non-finite points are rare, so they
     // are dropped afterwards.
@@ -491,11 +509,7 @@ fn prepare_rays(
                     }
                     let end = m.map(|c| c / n as f64);
                     let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
-                    out.push(Ray {
-                        end,
-                        key: direction_key(d),
-                        hit: group[0].hit,
-                    });
+                    out.push(Ray::new(end, direction_key(d), group[0].hit));
                 } else {
                     out.extend_from_slice(group);
                 }
@@ -522,7 +536,12 @@ fn bounds(rays: &[Ray], origin: [f64; 3]) -> (VoxelCoord, VoxelCoord) {
 /// The dense box for a frame over voxels `lo..=hi`, if the dense walk can take it: the
 /// build has AVX-512 and the box fits the budget.
 fn dense_box(lo: VoxelCoord, hi: VoxelCoord, sparse_only: bool) -> Option<dense::DenseBox> {
-    if cfg!(all(target_arch = "x86_64", target_feature = "avx512f")) && !sparse_only {
+    if cfg!(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    )) && !sparse_only
+    {
         dense::DenseBox::new(lo, hi)
     } else {
         None
@@ -538,7 +557,11 @@ fn cast_dense(
     origin: [f64; 3],
     rays: &[Ray],
 ) -> u64 {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512f"))]
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    ))]
     {
         // Lane l of every task walks the l-th eighth of the rays: in a sensor's scan order
         // (or sorted) these are far apart in direction (see `avx512::cast_chunk`).
@@ -548,7 +571,7 @@ fn cast_dense(
             let end = (l * eighth + (c + 1) * RAY_CHUNK)
                 .min((l + 1) * eighth)
                 .min(rays.len());
-            &rays[start..end.max(start)]
+            start..end.max(start)
         };
         (0..eighth.div_ceil(RAY_CHUNK))
             .into_par_iter()
@@ -560,12 +583,22 @@ fn cast_dense(
                 // SAFETY: only compiled when the build enables AVX-512F for the whole crate
                 // (the cfg above), so every CPU that runs this code has it.
                 unsafe {
-                    avx512::cast_chunk(&mut bits, dbox, origin, std::array::from_fn(|l| part(l, c)))
+                    avx512::cast_chunk(
+                        &mut bits,
+                        dbox,
+                        origin,
+                        rays,
+                        std::array::from_fn(|l| part(l, c)),
+                    )
                 }
             })
             .sum()
     }
-    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512f")))]
+    #[cfg(not(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    )))]
     {
         let _ = (dense, dbox, frame_no, origin, rays);
         unreachable!("dense_box gives no box without AVX-512")
@@ -1272,7 +1305,11 @@ mod tests {
         };
         let (dense, sparse) = (run(false), run(true));
         let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
-        if cfg!(all(target_arch = "x86_64", target_feature = "avx512f")) {
+        if cfg!(all(
+            target_arch = "x86_64",
+            target_feature = "avx512f",
+            target_feature = "avx512dq"
+        )) {
             assert_eq!(took_dense, [true, true, true, false, true, true]);
         }
         for (d, s) in dense.iter().zip(&sparse) {

@@ -14,7 +14,7 @@ use crate::coord::VoxelCoord;
 /// the longest walk (65536 voxels per axis, a snapshot's `first_hit`; integration rays are
 /// at most 8192) stays below 1e-13 of the ray.
 const T_BITS: u32 = 60;
-const T_ONE: f64 = (1u64 << T_BITS) as f64;
+pub(crate) const T_ONE: f64 = (1u64 << T_BITS) as f64;
 
 /// The state of one traversal. Call [`Dda::step`] exactly [`Dda::steps`] times.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -254,21 +254,6 @@ impl Dda {
         self.z += self.sz * cz as i32;
         self.steps -= (cx + cy + cz) as u32;
         true
-    }
-
-    /// Per axis: the `t` of the next crossing, the `t` between crossings and the `t` of the
-    /// last crossing, as [`Dda::step`] uses them; for walkers that step many rays at once.
-    /// Between crossings is capped at 2^62: an axis with a larger one crosses at most once
-    /// (2^60 is t = 1), so the cap only changes sums that `step` never uses, and keeps
-    /// `t + between` from overflowing.
-    #[inline]
-    pub(crate) fn crossings(&self) -> [[u64; 3]; 3] {
-        const CAP: u64 = 1 << 62;
-        [
-            [self.tx, self.ty, self.tz],
-            [self.dx.min(CAP), self.dy.min(CAP), self.dz.min(CAP)],
-            [self.lx, self.ly, self.lz],
-        ]
     }
 
     #[inline]

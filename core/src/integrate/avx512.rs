@@ -3,7 +3,8 @@
 //! The scalar walk spends most of a step on the branch that picks the axis to cross: it
 //! mispredicts often, as the axes interleave irregularly. Here that choice is three
 //! compares into lane masks, and eight rays share every instruction. A lane that ends its
-//! ray takes the chunk's next one, so lanes stay busy however ray lengths differ.
+//! ray takes its next one, so lanes stay busy however ray lengths differ; the set-up of new
+//! rays (`Dda::new`) is vectorised too, for all lanes that need one at once.
 //!
 //! Per lane the walk is [`Dda::step`] exactly (same crossings, same ties, same end voxel).
 //! A voxel is its bit index in the thread's [`DenseBits`], so a step is one add and a mark
@@ -11,122 +12,135 @@
 
 use super::dense::{DenseBits, DenseBox};
 use super::Ray;
+#[cfg(doc)]
 use crate::raycast::Dda;
+use crate::raycast::T_ONE;
 use std::arch::x86_64::*;
+use std::ops::Range;
 
-// Rows of the lane state: crossings (next, between, last) per axis, index increments per
-// axis, bit index, steps left.
-const TX: usize = 0;
-const TY: usize = 1;
-const TZ: usize = 2;
-const DX: usize = 3;
-const DY: usize = 4;
-const DZ: usize = 5;
-const LX: usize = 6;
-const LY: usize = 7;
-const LZ: usize = 8;
-const MX: usize = 9;
-const MY: usize = 10;
-const MZ: usize = 11;
-const P: usize = 12;
-const REM: usize = 13;
+/// Cap on `t` between crossings. An axis with a larger one crosses at most once (t = 1 is
+/// 2^60), so the cap only changes sums that [`Dda::step`] never uses, and it keeps
+/// `t + between` from overflowing, which `step` avoids by saturating.
+const T_CAP: u64 = 1 << 62;
 
-/// One lane's ray as the walk needs it.
-struct Lane {
-    /// Bit index of the start voxel.
-    p: u64,
-    /// Per-axis index increments; crossings (next, between, last) as `Dda::crossings`.
-    inc: [u64; 3],
-    cross: [[u64; 3]; 3],
-    steps: u32,
-    hit: bool,
-}
-
-/// Walk the rays of `lanes` from `origin`, lane `l` those of `lanes[l]` in turn, setting
-/// their free and hit bits in `bits`; returns voxels visited. The same voxels and count as
-/// `super::cast_chunk`.
+/// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
+/// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
+/// count as `super::cast_chunk`.
 ///
 /// Feed the lanes from far apart in direction. Lanes on neighbouring rays OR into the same
 /// word one after another near the sensor, and each OR then waits for the last: fed
 /// neighbouring rays, the walk ran 2.3x slower (random 500k 6 m, one thread).
-#[target_feature(enable = "avx512f")]
+#[target_feature(enable = "avx512f,avx512dq")]
 pub(super) fn cast_chunk(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
-    lanes: [&[Ray]; 8],
+    rays: &[Ray],
+    ranges: [Range<usize>; 8],
 ) -> u64 {
-    let mut steps = 0u64;
-    let mut next = [0usize; 8];
-    let mut take = |bits: &mut DenseBits, l: usize| -> Option<Lane> {
-        while let Some(r) = lanes[l].get(next[l]) {
-            next[l] += 1;
-            let dda = Dda::new(origin, r.end);
-            let n = dda.steps();
-            steps += u64::from(n) + 1;
-            let p = dbox.index(dda.voxel());
-            if n == 0 {
-                if r.hit {
-                    bits.set_hit(p);
-                }
-                continue;
-            }
-            let [sx, sy, sz] = dda.direction();
-            let [ix, iy, iz] = dbox.strides();
-            return Some(Lane {
-                p,
-                inc: [
-                    (i64::from(sx) * ix) as u64,
-                    (i64::from(sy) * iy) as u64,
-                    (i64::from(sz) * iz) as u64,
-                ],
-                cross: dda.crossings(),
-                steps: n,
-                hit: r.hit,
-            });
-        }
-        None
-    };
-
-    // Lane state between runs of the inner loop, one array element per lane.
-    let mut st = [[0u64; 8]; 14];
-    let mut hit = [false; 8];
-    let mut active: __mmask8 = 0;
-    let load_lane = |st: &mut [[u64; 8]; 14], hit: &mut [bool; 8], l: usize, n: Lane| {
-        for (a, v) in [TX, TY, TZ].into_iter().zip(n.cross[0]) {
-            st[a][l] = v;
-        }
-        for (a, v) in [DX, DY, DZ].into_iter().zip(n.cross[1]) {
-            st[a][l] = v;
-        }
-        for (a, v) in [LX, LY, LZ].into_iter().zip(n.cross[2]) {
-            st[a][l] = v;
-        }
-        for (a, v) in [MX, MY, MZ].into_iter().zip(n.inc) {
-            st[a][l] = v;
-        }
-        st[P][l] = n.p;
-        st[REM][l] = u64::from(n.steps);
-        hit[l] = n.hit;
-    };
-    for l in 0..8 {
-        if let Some(lane) = take(bits, l) {
-            load_lane(&mut st, &mut hit, l, lane);
-            active |= 1 << l;
-        }
-    }
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
-    let sink = _mm512_set1_epi64(dbox.sink() as i64);
     let never = _mm512_set1_epi64(-1);
-    while active != 0 {
-        let [mut tx, mut ty, mut tz, dx, dy, dz, lx, ly, lz, mx, my, mz, mut p, mut rem] =
-            st.map(from_array);
-        // Walk until a lane ends its ray; nothing in here calls out, so the state stays
-        // in registers.
+    let sink = _mm512_set1_epi64(dbox.sink() as i64);
+    // Every ray starts in the origin's voxel.
+    let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
+    let strides = dbox.strides();
+    // Per axis: the origin, its voxel's floor, the distance to the voxel's upper and lower
+    // faces, and the index stride.
+    let axes: [Axis; 3] = std::array::from_fn(|a| {
+        let s = origin[a].floor();
+        Axis {
+            o: _mm512_set1_pd(origin[a]),
+            s: _mm512_set1_pd(s),
+            up: _mm512_set1_pd(s + 1.0 - origin[a]),
+            down: _mm512_set1_pd(origin[a] - s),
+            stride: _mm512_set1_epi64(strides[a]),
+        }
+    });
+    let (mut tx, mut ty, mut tz) = (never, never, never);
+    let (mut dx, mut dy, mut dz) = (zero, zero, zero);
+    let (mut lx, mut ly, mut lz) = (zero, zero, zero);
+    let (mut mx, mut my, mut mz) = (zero, zero, zero);
+    let (mut p, mut rem) = (zero, zero);
+    let mut hit: __mmask8 = 0;
+    let mut cur = from_array(ranges.clone().map(|r| r.start as u64));
+    let lim = from_array(ranges.map(|r| r.end as u64));
+    let mut steps = zero;
+    let mut active: __mmask8 = 0xff;
+    let mut need: __mmask8 = 0xff;
+    loop {
+        // Give each lane in `need` its next ray that takes a step; rays that end in their
+        // start voxel are done here (a hit at most).
+        while need != 0 {
+            let avail = need & _mm512_cmplt_epu64_mask(cur, lim);
+            active &= !(need & !avail);
+            if avail == 0 {
+                break;
+            }
+            let at = _mm512_slli_epi64::<2>(cur); // Ray is four 8-byte words
+            let base = rays.as_ptr().cast::<u8>();
+            // SAFETY: lanes in `avail` have cur < lim <= rays.len(), so every word read is
+            // inside `rays`: `end` is words 0..3 and `key`/`hit` word 3 of a `Ray`
+            // (repr(C), every byte initialised, see `Ray`). Other lanes read nothing.
+            let (ex, ey, ez, flags) = unsafe {
+                (
+                    _mm512_mask_i64gather_pd::<8>(_mm512_setzero_pd(), avail, at, base.cast()),
+                    _mm512_mask_i64gather_pd::<8>(
+                        _mm512_setzero_pd(),
+                        avail,
+                        _mm512_add_epi64(at, one),
+                        base.cast(),
+                    ),
+                    _mm512_mask_i64gather_pd::<8>(
+                        _mm512_setzero_pd(),
+                        avail,
+                        _mm512_add_epi64(at, _mm512_set1_epi64(2)),
+                        base.cast(),
+                    ),
+                    _mm512_mask_i64gather_epi64::<8>(
+                        zero,
+                        avail,
+                        _mm512_add_epi64(at, _mm512_set1_epi64(3)),
+                        base.cast(),
+                    ),
+                )
+            };
+            cur = _mm512_mask_add_epi64(cur, avail, cur, one);
+            let [x, y, z] =
+                [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
+            let n = _mm512_add_epi64(_mm512_add_epi64(x.n, y.n), z.n);
+            steps = _mm512_mask_add_epi64(steps, avail, steps, _mm512_add_epi64(n, one));
+            let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
+            let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
+            if empty & ray_hit != 0 {
+                bits.set_hit(start);
+            }
+            let k = avail & !empty;
+            tx = _mm512_mask_mov_epi64(tx, k, x.t);
+            ty = _mm512_mask_mov_epi64(ty, k, y.t);
+            tz = _mm512_mask_mov_epi64(tz, k, z.t);
+            dx = _mm512_mask_mov_epi64(dx, k, x.d);
+            dy = _mm512_mask_mov_epi64(dy, k, y.d);
+            dz = _mm512_mask_mov_epi64(dz, k, z.d);
+            lx = _mm512_mask_mov_epi64(lx, k, x.last);
+            ly = _mm512_mask_mov_epi64(ly, k, y.last);
+            lz = _mm512_mask_mov_epi64(lz, k, z.last);
+            mx = _mm512_mask_mov_epi64(mx, k, x.inc);
+            my = _mm512_mask_mov_epi64(my, k, y.inc);
+            mz = _mm512_mask_mov_epi64(mz, k, z.inc);
+            p = _mm512_mask_set1_epi64(p, k, start as i64);
+            rem = _mm512_mask_mov_epi64(rem, k, n);
+            hit = (hit & !k) | (ray_hit & k);
+            need = empty;
+        }
+        if active == 0 {
+            break;
+        }
+        // Walk until a lane ends its ray.
         let done = loop {
-            // Mark the current voxels free; a lane without a ray marks the sink bit. Through
-            // memory, not lane extracts: those compete with the walk for the vector port.
+            // Mark the current voxels free; a lane without a ray marks the sink bit.
+            // Through memory, not lane extracts: those compete with the walk for the
+            // vector port.
             let mut at = [0u64; 8];
             // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
             unsafe {
@@ -157,22 +171,77 @@ pub(super) fn cast_chunk(
                 break done;
             }
         };
-        for (a, v) in [TX, TY, TZ, P, REM].into_iter().zip([tx, ty, tz, p, rem]) {
-            st[a] = to_array(v);
+        if done & hit != 0 {
+            let end = to_array(p);
+            for l in BitLanes(done & hit) {
+                bits.set_hit(end[l]);
+            }
         }
-        for l in BitLanes(done) {
-            if hit[l] {
-                bits.set_hit(st[P][l]);
-            }
-            match take(bits, l) {
-                Some(lane) => {
-                    load_lane(&mut st, &mut hit, l, lane);
-                }
-                None => active &= !(1 << l),
-            }
+        need = done;
+    }
+    to_array(steps).iter().sum()
+}
+
+/// Per-axis constants of the rays' set-up: all rays start at the same origin.
+struct Axis {
+    o: __m512d,
+    s: __m512d,
+    up: __m512d,
+    down: __m512d,
+    stride: __m512i,
+}
+
+/// One axis of eight rays' set-up, as `Dda::new` computes it (with `between` capped).
+struct AxisSetup {
+    /// Crossings: next, between (capped), last; `t` is `never` for an axis without any.
+    t: __m512i,
+    d: __m512i,
+    last: __m512i,
+    /// Index increment per step along the axis, and the steps.
+    inc: __m512i,
+    n: __m512i,
+}
+
+impl Axis {
+    /// Lane by lane the same arithmetic as `raycast::axis`, in the same order, so the
+    /// results are bit for bit those of `Dda::new`.
+    #[inline(always)]
+    fn setup(&self, e: __m512d) -> AxisSetup {
+        // SAFETY: only called from `cast_chunk`, which requires AVX-512F and DQ.
+        unsafe { self.setup_impl(e) }
+    }
+
+    #[target_feature(enable = "avx512f,avx512dq")]
+    fn setup_impl(&self, e: __m512d) -> AxisSetup {
+        const FLOOR: i32 = _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC;
+        let t = _mm512_roundscale_pd::<FLOOR>(e);
+        let n = _mm512_cvttpd_epu64(_mm512_abs_pd(_mm512_sub_pd(t, self.s)));
+        let some = _mm512_cmpneq_epi64_mask(n, _mm512_setzero_si512());
+        let up = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(t, self.s);
+        let inv = _mm512_div_pd(_mm512_set1_pd(1.0), _mm512_abs_pd(_mm512_sub_pd(e, self.o)));
+        let face = _mm512_mask_blend_pd(up, self.down, self.up);
+        let t0 = _mm512_cvttpd_epu64(_mm512_mul_pd(
+            _mm512_mul_pd(face, inv),
+            _mm512_set1_pd(T_ONE),
+        ));
+        // Uncapped, `d` exceeds the cap only when `n` is 1, where `last` does not use it.
+        let d = _mm512_min_epu64(
+            _mm512_cvttpd_epu64(_mm512_mul_pd(inv, _mm512_set1_pd(T_ONE))),
+            _mm512_set1_epi64(T_CAP as i64),
+        );
+        let last = _mm512_add_epi64(
+            t0,
+            _mm512_mullo_epi64(d, _mm512_sub_epi64(n, _mm512_set1_epi64(1))),
+        );
+        let stride = _mm512_mask_sub_epi64(self.stride, !up, _mm512_setzero_si512(), self.stride);
+        AxisSetup {
+            t: _mm512_mask_mov_epi64(_mm512_set1_epi64(-1), some, t0),
+            d,
+            last: _mm512_maskz_mov_epi64(some, last),
+            inc: _mm512_maskz_mov_epi64(some, stride),
+            n,
         }
     }
-    steps
 }
 
 #[inline(always)]
