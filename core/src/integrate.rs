@@ -347,14 +347,15 @@ impl Integrator {
             let t0 = Instant::now();
             report.skipped_nonfinite = prepare_rays(rays, frame, &tf, origin, range_units, mode);
             report.rays = rays.len() as u64;
-            report.cut_rays = rays.par_iter().filter(|r| !r.hit).count() as u64;
-            let (lo, hi) = bounds(rays, origin);
+            let (lo, hi, cut) = bounds(rays, origin);
+            report.cut_rays = cut;
             let dense_box = dense_box(lo, hi, sparse_only);
             report.dense = dense_box.is_some();
             // The dense walk needs no order: its grids stay in cache whatever the rays'
             // directions, and its lanes only need to be far apart in direction, which the
             // eighths of a sensor's scan order are (sorting took half of its prepare time).
             if !report.dense {
+                set_direction_keys(rays, origin);
                 rays.par_sort_unstable_by_key(|r| r.key);
             }
             let chunks = rays.len().div_ceil(RAY_CHUNK);
@@ -422,6 +423,11 @@ fn direction_key(d: [f64; 3]) -> u32 {
     (spread16(qu) | spread16(qv) << 1).min(SKIPPED - 1)
 }
 
+fn set_direction_keys(rays: &mut [Ray], origin: [f64; 3]) {
+    rays.par_iter_mut()
+        .for_each(|r| r.key = direction_key([0, 1, 2].map(|a| r.end[a] - origin[a])));
+}
+
 /// The key of a ray from a non-finite point, never a direction's key.
 const SKIPPED: u32 = u32::MAX;
 
@@ -448,6 +454,7 @@ fn prepare_rays(
     // Below this squared length a ray surely ends within range; above it, the same
     // comparison as the reference, `sqrt(len2) <= range_units`, decides.
     let surely_in = range_units * range_units * (1.0 - 1e-9);
+    // Direction keys are only needed to sort for the sparse walk; they are computed then.
     let make = |p: &[f32; 3]| -> Ray {
         if !p.iter().all(|c| c.is_finite()) {
             return Ray::new([0.0; 3], SKIPPED, false);
@@ -465,7 +472,7 @@ fn prepare_rays(
                 origin[2] + d[2] * s,
             ];
         }
-        Ray::new(e, direction_key(d), hit)
+        Ray::new(e, 0, hit)
     };
     // An indexed map collects straight into `rays`; non-finite points are rare, so they
     // are dropped afterwards.
@@ -495,6 +502,7 @@ fn prepare_rays(
         }
         RayMode::Bundle { threshold } => {
             let vox = |r: &Ray| (r.end.map(|c| c.floor() as i64), r.hit);
+            set_direction_keys(rays, origin);
             rays.par_sort_unstable_by_key(|r| (vox(r), r.key));
             let mut out = Vec::with_capacity(rays.len());
             let mut i = 0;
@@ -521,16 +529,34 @@ fn prepare_rays(
     skipped
 }
 
-/// Voxel bounds (inclusive) of the origin and all ray ends.
-fn bounds(rays: &[Ray], origin: [f64; 3]) -> (VoxelCoord, VoxelCoord) {
-    let o = units_to_voxel(origin).expect("origin checked");
-    rays.par_iter()
-        .map(|r| {
-            let v =
-                units_to_voxel(r.end).expect("ray ends lie within max range of a checked origin");
-            (v, v)
-        })
-        .reduce(|| (o, o), |a, b| (a.0.min(b.0), a.1.max(b.1)))
+/// Voxel bounds (inclusive) of the origin and all ray ends, and the rays cut at max range,
+/// in one pass. Bounds are taken on the ends in voxel units and floored once: floor is
+/// monotone, so that is the bounds of the ends' voxels.
+fn bounds(rays: &[Ray], origin: [f64; 3]) -> (VoxelCoord, VoxelCoord, u64) {
+    let (lo, hi, cut) = rays
+        .par_iter()
+        .fold(
+            || (origin, origin, 0u64),
+            |(lo, hi, cut), r| {
+                (
+                    [0, 1, 2].map(|a| lo[a].min(r.end[a])),
+                    [0, 1, 2].map(|a| hi[a].max(r.end[a])),
+                    cut + u64::from(!r.hit),
+                )
+            },
+        )
+        .reduce(
+            || (origin, origin, 0),
+            |a, b| {
+                (
+                    [0, 1, 2].map(|i| a.0[i].min(b.0[i])),
+                    [0, 1, 2].map(|i| a.1[i].max(b.1[i])),
+                    a.2 + b.2,
+                )
+            },
+        );
+    let voxel = |u| units_to_voxel(u).expect("ray ends lie within max range of a checked origin");
+    (voxel(lo), voxel(hi), cut)
 }
 
 /// The dense box for a frame over voxels `lo..=hi`, if the dense walk can take it: the
