@@ -138,9 +138,11 @@ pub(super) fn cast_chunk(
         }
         // Walk until a lane ends its ray.
         let done = loop {
-            // Mark the current voxels free; a lane without a ray marks the sink bit.
-            // Through memory, not lane extracts: those compete with the walk for the
-            // vector port.
+            // Mark the current voxels free; a lane without a ray marks the sink bit. One
+            // vector of bit indices, split into word and bit by scalar shifts: extracting
+            // vectors of words and of bits took twice the lane extracts, which compete with
+            // the walk for the vector port (the compiler extracts rather than reloads `at`;
+            // forcing the reload was slower still).
             let mut at = [0u64; 8];
             // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
             unsafe {
