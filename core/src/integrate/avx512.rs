@@ -64,7 +64,7 @@ pub(super) fn cast_chunk(
     let (mut p, mut rem) = (zero, zero);
     let mut hit: __mmask8 = 0;
     let mut cur = from_array(ranges.clone().map(|r| r.start as u64));
-    let lim = from_array(ranges.map(|r| r.end as u64));
+    let mut lim = from_array(ranges.map(|r| r.end as u64));
     let mut steps = zero;
     let mut active: __mmask8 = 0xff;
     let mut need: __mmask8 = 0xff;
@@ -72,6 +72,10 @@ pub(super) fn cast_chunk(
         // Give each lane in `need` its next ray that takes a step; rays that end in their
         // start voxel are done here (a hit at most).
         while need != 0 {
+            let dry = need & _mm512_cmpge_epu64_mask(cur, lim);
+            if dry != 0 {
+                (cur, lim) = share(cur, lim, dry);
+            }
             let avail = need & _mm512_cmplt_epu64_mask(cur, lim);
             active &= !(need & !avail);
             if avail == 0 {
@@ -182,6 +186,29 @@ pub(super) fn cast_chunk(
         need = done;
     }
     to_array(steps).iter().sum()
+}
+
+/// Give each lane in `dry` (whose rays are used up) the second half of the rays left to the
+/// lane with the most, if it has two or more; returns the new cursors and limits. Lanes'
+/// ranges can differ much in ray length (the eighth of a scan that sees the far wall
+/// against the one that sees the floor): without sharing, the lanes done first would idle
+/// until the task's longest range was walked.
+#[inline(never)]
+fn share(cur: __m512i, lim: __m512i, dry: __mmask8) -> (__m512i, __m512i) {
+    let (mut c, mut l) = (to_array(cur), to_array(lim));
+    for d in BitLanes(dry) {
+        let (j, left) = (0..8)
+            .map(|j| (j, l[j].saturating_sub(c[j])))
+            .max_by_key(|&(_, left)| left)
+            .expect("eight lanes");
+        if left < 2 {
+            break;
+        }
+        let mid = c[j] + left / 2;
+        (c[d], l[d]) = (mid, l[j]);
+        l[j] = mid;
+    }
+    (from_array(c), from_array(l))
 }
 
 /// Per-axis constants of the rays' set-up: all rays start at the same origin.
