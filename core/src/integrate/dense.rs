@@ -7,14 +7,17 @@
 //! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
 //! thread walked which ray.
 
-use super::{BrickCache, FrameMarks};
+use super::{BrickCache, FrameMarks, Ray};
 use crate::coord::VoxelCoord;
+use crate::raycast::Dda;
 use rayon::prelude::*;
+use std::ops::Range;
 use std::sync::atomic::Ordering::Relaxed;
 
 /// Largest dense grid per thread, in 64-bit words of free marks (hit marks take as many
-/// again): 4 MiB, a box of about 320^3 voxels (16 m of range at 0.1 m). Beyond this, or
-/// without AVX-512, frames take the sparse walk.
+/// again): 4 MiB, a box of about 320^3 voxels (16 m of range at 0.1 m). Beyond this,
+/// frames take the sparse walk. Each pool thread keeps its grids' memory between frames:
+/// up to 8 MiB per thread.
 pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 19;
 
 /// A frame's voxel box as a row-major bit grid: x fastest, rows padded to whole words,
@@ -57,6 +60,12 @@ impl DenseBox {
         let d = v - self.lo;
         debug_assert!(d.x >= 0 && d.y >= 0 && d.z >= 0);
         d.x as u64 + self.n[0] * (d.y as u64 + self.n[1] * d.z as u64)
+    }
+
+    /// The voxel at a bit index inside the box.
+    pub(super) fn voxel(&self, index: u64) -> VoxelCoord {
+        let (x, yz) = (index % self.n[0], index / self.n[0]);
+        self.lo + VoxelCoord::new(x as i32, (yz % self.n[1]) as i32, (yz / self.n[1]) as i32)
     }
 
     /// Bit index change of one voxel step along x, y and z.
@@ -107,6 +116,55 @@ impl DenseBits {
     pub(super) fn set_hit(&mut self, index: u64) {
         self.hit[(index / 64) as usize] |= 1 << (index % 64);
     }
+}
+
+/// Walk the rays `rays[ranges[l]]` from `origin` one at a time, setting their free and hit
+/// bits in `bits`; returns voxels visited. The dense walk where the build has no AVX-512:
+/// the same voxels as `avx512::cast_chunk`. As in the sparse walk, all steps but the last
+/// two skip the check for an axis past its last crossing (`Dda::step_far_crossing`).
+pub(super) fn cast_chunk(
+    bits: &mut DenseBits,
+    dbox: &DenseBox,
+    origin: [f64; 3],
+    rays: &[Ray],
+    ranges: [Range<usize>; 8],
+) -> u64 {
+    let mut steps = 0;
+    let [ix, iy, iz] = dbox.strides();
+    for r in ranges.into_iter().flat_map(|g| &rays[g]) {
+        let mut dda = Dda::new(origin, r.end);
+        let n = dda.steps();
+        steps += u64::from(n) + 1;
+        let mut p = dbox.index(dda.voxel());
+        if n > 2 {
+            let [sx, sy, sz] = dda.direction();
+            let inc =
+                [i64::from(sx) * ix, i64::from(sy) * iy, i64::from(sz) * iz].map(|v| v as u64);
+            for _ in 2..n {
+                bits.or_free(p);
+                let (cx, cy, _) = dda.step_far_crossing();
+                p = p.wrapping_add(if cx {
+                    inc[0]
+                } else if cy {
+                    inc[1]
+                } else {
+                    inc[2]
+                });
+            }
+            let v = dbox.voxel(p);
+            (dda.x, dda.y, dda.z) = (v.x, v.y, v.z);
+            dda.settle();
+        }
+        while dda.steps() > 0 {
+            bits.or_free(p);
+            dda.step();
+            p = dbox.index(dda.voxel());
+        }
+        if r.hit {
+            bits.set_hit(p);
+        }
+    }
+    steps
 }
 
 /// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
