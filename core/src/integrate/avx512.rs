@@ -12,6 +12,7 @@
 
 use super::dense::{DenseBits, DenseBox};
 use super::Ray;
+use crate::mask::BitIter;
 #[cfg(doc)]
 use crate::raycast::Dda;
 use crate::raycast::T_ONE;
@@ -179,7 +180,7 @@ pub(super) fn cast_chunk(
         };
         if done & hit != 0 {
             let end = to_array(p);
-            for l in BitLanes(done & hit) {
+            for l in BitIter(u64::from(done & hit)) {
                 bits.set_hit(end[l]);
             }
         }
@@ -196,7 +197,7 @@ pub(super) fn cast_chunk(
 #[inline(never)]
 fn share(cur: __m512i, lim: __m512i, dry: __mmask8) -> (__m512i, __m512i) {
     let (mut c, mut l) = (to_array(cur), to_array(lim));
-    for d in BitLanes(dry) {
+    for d in BitIter(u64::from(dry)) {
         let (j, left) = (0..8)
             .map(|j| (j, l[j].saturating_sub(c[j])))
             .max_by_key(|&(_, left)| left)
@@ -283,20 +284,4 @@ fn from_array(a: [u64; 8]) -> __m512i {
 fn to_array(v: __m512i) -> [u64; 8] {
     // SAFETY: __m512i and [u64; 8] are both 64 plain bytes; every bit pattern is valid.
     unsafe { std::mem::transmute(v) }
-}
-
-/// The set lanes of a mask, lowest first.
-struct BitLanes(__mmask8);
-
-impl Iterator for BitLanes {
-    type Item = usize;
-    #[inline(always)]
-    fn next(&mut self) -> Option<usize> {
-        if self.0 == 0 {
-            return None;
-        }
-        let l = self.0.trailing_zeros() as usize;
-        self.0 &= self.0 - 1;
-        Some(l)
-    }
 }
