@@ -485,6 +485,8 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         assert!(u(r, "rays") <= n && u(r, "voxel_steps") > u(r, "rays"));
         assert!(u(r, "occupied") > 1000 && u(r, "free") > u(r, "occupied"));
         assert!(u(r, "memory_bytes") > 0);
+        // A room seen from inside: a small box, walked dense.
+        assert_eq!(r["walk"], "dense", "{r}");
     }
     // Same map for any thread count; one ray per end voxel casts fewer rays.
     for mode in ["exact", "unique_end"] {

@@ -15,10 +15,10 @@ use std::ops::Range;
 use std::sync::atomic::Ordering::Relaxed;
 
 /// Largest dense grid per thread, in 64-bit words of free marks (hit marks take as many
-/// again): 4 MiB, a box of about 320^3 voxels (16 m of range at 0.1 m). Beyond this,
+/// again): 32 MiB, a box of about 640^3 voxels (30 m of range at 0.1 m). Beyond this,
 /// frames take the sparse walk. Each pool thread keeps its grids' memory between frames:
-/// up to 8 MiB per thread.
-pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 19;
+/// up to 64 MiB per thread.
+pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 22;
 
 /// A frame's voxel box as a row-major bit grid: x fastest, rows padded to whole words,
 /// every edge a multiple of 8 from a brick-aligned corner, so a brick's row of 8 voxels is
