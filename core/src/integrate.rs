@@ -349,9 +349,10 @@ impl Integrator {
             report.cut_rays = cut_rays;
             let dense_box = match walk {
                 Walk::Sparse => None,
-                // The dense walk's set-up and merge cost about as much per word of its grid
-                // as 4 steps of the sparse walk save (15 against 4-10 ns against 1.5-2.5):
-                // a frame with few rays in a big box walks sparse.
+                // Zeroing and merging the dense grids cost about 15 ns per word, and a dense
+                // step saves 4-8 ns against a sparse one (1.5-2.5 against 4-10 ns): walk
+                // dense when the grid has at most a quarter as many words as the walk has
+                // steps. A few rays in a big box walk sparse.
                 Walk::Auto => {
                     dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps)
                 }
