@@ -10,7 +10,7 @@
 //!      threads. There are no per-thread grids, so there is nothing to merge: this is what
 //!      keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread grids made the
 //!      merge dominate.
-//!    - *dense*, when the frame's box is small (about 16 m of range at 0.1 m): each thread
+//!    - *dense*, when the frame's box is small (about 30 m of range at 0.1 m): each thread
 //!      walks into its own bit grid over the whole box (`dense`), eight rays at a time, one
 //!      per vector lane, where the build has AVX-512 (`avx512`), one at a time otherwise.
 //!      Such grids are small, so merging them into the [`FrameMarks`] is cheap. The walk is
