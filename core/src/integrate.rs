@@ -13,8 +13,9 @@
 //!    - *dense*, when the frame's box is small (about 30 m of range at 0.1 m): each thread
 //!      walks into its own bit grid over the whole box (`dense`), eight rays at a time, one
 //!      per vector lane, where the build has AVX-512 (`avx512`), one at a time otherwise.
-//!      Such grids are small, so merging them into the [`FrameMarks`] is cheap. The walk is
-//!      2-4x faster than the sparse one with AVX-512, 1.3-2x without.
+//!      The grids are OR-ed into the [`FrameMarks`] afterwards; a frame walks dense only
+//!      when its rays are many enough to pay for zeroing and merging them. The walk is 2-4x
+//!      faster than the sparse one with AVX-512, 1.3-2x without.
 //! 3. **Merge**: the touched bricks, sorted spatially, get their map leaves (created if
 //!    new) in one sequential pass.
 //! 4. **Update** (parallel over leaf chunks): one log-odds update per touched voxel, hit
