@@ -1037,7 +1037,7 @@ impl FrameMarks {
             .enumerate()
             .filter_map(|(c, e)| {
                 let b = e.load(Relaxed);
-                (b != 0).then_some((c, b - 1))
+                (b != 0).then(|| (c, b - 1))
             })
             .flat_map(move |(c, b)| {
                 let cell = VoxelCoord::new(
