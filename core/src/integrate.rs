@@ -370,27 +370,24 @@ impl Integrator {
             let chunks = rays.len().div_ceil(RAY_CHUNK);
             marks.reset(lo, hi, chunks + dense_box.map_or(0, |b| b.brick_rows()));
             let t1 = Instant::now();
-            let mut merge_dense = Duration::ZERO;
-            report.voxel_steps = match dense_box {
+            report.voxel_steps = match &dense_box {
                 None => rays
                     .par_chunks(RAY_CHUNK)
                     .map(|chunk| cast_chunk(marks, origin, chunk))
                     .sum(),
-                Some(b) => {
-                    let steps = cast_dense(dense, &b, frame_no, origin, rays, walk);
-                    let t = Instant::now();
-                    let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
-                    let live: Vec<&dense::DenseBits> = guards
-                        .iter()
-                        .map(|g| &**g)
-                        .filter(|g| g.frame() == frame_no)
-                        .collect();
-                    dense::merge(marks, &b, &live);
-                    merge_dense = t.elapsed();
-                    steps
-                }
+                Some(b) => cast_dense(dense, b, frame_no, origin, rays, walk),
             };
-            let t2 = Instant::now() - merge_dense;
+            let t2 = Instant::now();
+            if let Some(b) = &dense_box {
+                // The threads that walked this frame have its marks; the others' are stale.
+                let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
+                let live: Vec<&dense::DenseBits> = guards
+                    .iter()
+                    .map(|g| &**g)
+                    .filter(|g| g.frame() == frame_no)
+                    .collect();
+                dense::merge(marks, b, &live);
+            }
             let items = merge(marks, map);
             let t3 = Instant::now();
             report.touched_leaves = items.len() as u64;

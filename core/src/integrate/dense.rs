@@ -109,13 +109,18 @@ impl DenseBits {
     /// Mark the voxel at bit `index` free.
     #[inline(always)]
     pub(super) fn or_free(&mut self, index: u64) {
-        self.free[(index / 64) as usize] |= 1 << (index % 64);
+        set_bit(&mut self.free, index);
     }
 
     #[inline]
     pub(super) fn set_hit(&mut self, index: u64) {
-        self.hit[(index / 64) as usize] |= 1 << (index % 64);
+        set_bit(&mut self.hit, index);
     }
+}
+
+#[inline(always)]
+fn set_bit(words: &mut [u64], index: u64) {
+    words[(index / 64) as usize] |= 1 << (index % 64);
 }
 
 /// Walk the rays `rays[ranges[l]]` from `origin` one at a time, setting their free and hit
