@@ -339,14 +339,15 @@ impl Integrator {
         };
         pool.install(|| {
             let t0 = Instant::now();
-            report.skipped_nonfinite = prepare_rays(rays, frame, &tf, origin, range_units, mode);
+            let (skipped, extent) = prepare_rays(rays, frame, &tf, origin, range_units, mode);
+            report.skipped_nonfinite = skipped;
             report.rays = rays.len() as u64;
             let Extent {
                 lo,
                 hi,
                 cut_rays,
                 steps,
-            } = bounds(rays, origin);
+            } = extent;
             report.cut_rays = cut_rays;
             let dense_box = match walk {
                 Walk::Sparse => None,
@@ -446,7 +447,8 @@ fn spread16(x: u32) -> u32 {
     (x | x << 1) & 0x5555_5555
 }
 
-/// Fill `rays` from the frame; returns the number of non-finite points skipped.
+/// Fill `rays` from the frame; returns the number of non-finite points skipped and the
+/// rays' extent.
 fn prepare_rays(
     rays: &mut Vec<Ray>,
     frame: &Frame<'_>,
@@ -454,7 +456,7 @@ fn prepare_rays(
     origin: [f64; 3],
     range_units: f64,
     mode: RayMode,
-) -> u64 {
+) -> (u64, Extent) {
     let rot = frame.pose.rotation.to_rotation_matrix().into_inner();
     let t = frame.pose.translation.vector;
     // Below this squared length a ray surely ends within range; above it, the same
@@ -480,16 +482,33 @@ fn prepare_rays(
         }
         Ray::new(e, 0, hit)
     };
-    // An indexed map collects straight into `rays`; non-finite points are rare, so they
-    // are dropped afterwards.
-    rays.clear();
-    rays.par_extend(frame.points.par_iter().map(make));
-    let skipped = rays.par_iter().filter(|r| r.key == SKIPPED).count() as u64;
+    // One pass writes the rays and sums up their extent: a frame's rays (16 MB for 500k
+    // points) outgrow the cache, and passes of their own to count the skipped points and
+    // take the bounds cost a third of the prepare phase (structured 500k 6 m: 7.8 ms, of
+    // which 1.4 ms bounds and 0.5 ms counting, 2 threads). `rays` keeps its length from
+    // frame to frame, so `resize` writes only where this frame has more points than the
+    // last.
+    let n = frame.points.len();
+    rays.truncate(n);
+    rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
+    let sums = rays
+        .par_chunks_mut(RAY_CHUNK)
+        .zip(frame.points.par_chunks(RAY_CHUNK))
+        .map(|(out, pts)| {
+            let mut sum = ExtentSum::new(origin);
+            for (r, p) in out.iter_mut().zip(pts) {
+                *r = make(p);
+                sum.add(r);
+            }
+            sum
+        })
+        .reduce(|| ExtentSum::new(origin), ExtentSum::merge);
+    let skipped = sums.skipped;
     if skipped > 0 {
         rays.retain(|r| r.key != SKIPPED);
     }
     match mode {
-        RayMode::Exact => {}
+        RayMode::Exact => return (skipped, sums.extent()),
         RayMode::Subsample { factor } => {
             let f = f64::from(factor);
             let mut seen = HashSet::with_capacity(rays.len());
@@ -532,48 +551,84 @@ fn prepare_rays(
             *rays = out;
         }
     }
-    skipped
+    (skipped, bounds(rays, origin))
 }
 
-/// Voxel bounds (inclusive) of the origin and all ray ends, the rays cut at max range, and
-/// about how many voxel steps the walk will take, in one pass. Bounds are taken on the ends
-/// in voxel units and floored once: floor is monotone, so that is the bounds of the ends'
-/// voxels.
+/// [`Extent`] of `rays`, in one pass.
 fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
-    let (lo, hi, cut, length) = rays
-        .par_iter()
-        .fold(
-            || (origin, origin, 0u64, 0.0),
-            |(lo, hi, cut, length), r| {
-                (
-                    [0, 1, 2].map(|a| lo[a].min(r.end[a])),
-                    [0, 1, 2].map(|a| hi[a].max(r.end[a])),
-                    cut + u64::from(!r.hit),
-                    length + (0..3).map(|a| (r.end[a] - origin[a]).abs()).sum::<f64>(),
-                )
-            },
-        )
-        .reduce(
-            || (origin, origin, 0, 0.0),
-            |a, b| {
-                (
-                    [0, 1, 2].map(|i| a.0[i].min(b.0[i])),
-                    [0, 1, 2].map(|i| a.1[i].max(b.1[i])),
-                    a.2 + b.2,
-                    a.3 + b.3,
-                )
-            },
-        );
-    let voxel = |u| units_to_voxel(u).expect("ray ends lie within max range of a checked origin");
-    Extent {
-        lo: voxel(lo),
-        hi: voxel(hi),
-        cut_rays: cut,
-        steps: length,
+    rays.par_chunks(RAY_CHUNK)
+        .map(|c| {
+            let mut sum = ExtentSum::new(origin);
+            c.iter().for_each(|r| sum.add(r));
+            sum
+        })
+        .reduce(|| ExtentSum::new(origin), ExtentSum::merge)
+        .extent()
+}
+
+/// [`Extent`] being summed up over rays; skipped rays (non-finite points) are counted
+/// apart. Bounds are taken on the ends in voxel units and floored once: floor is monotone,
+/// so that is the bounds of the ends' voxels.
+#[derive(Clone, Copy)]
+struct ExtentSum {
+    origin: [f64; 3],
+    lo: [f64; 3],
+    hi: [f64; 3],
+    cut: u64,
+    length: f64,
+    skipped: u64,
+}
+
+impl ExtentSum {
+    fn new(origin: [f64; 3]) -> Self {
+        ExtentSum {
+            origin,
+            lo: origin,
+            hi: origin,
+            cut: 0,
+            length: 0.0,
+            skipped: 0,
+        }
+    }
+
+    #[inline]
+    fn add(&mut self, r: &Ray) {
+        if r.key == SKIPPED {
+            self.skipped += 1;
+            return;
+        }
+        for a in 0..3 {
+            self.lo[a] = self.lo[a].min(r.end[a]);
+            self.hi[a] = self.hi[a].max(r.end[a]);
+            self.length += (r.end[a] - self.origin[a]).abs();
+        }
+        self.cut += u64::from(!r.hit);
+    }
+
+    fn merge(a: Self, b: Self) -> Self {
+        ExtentSum {
+            origin: a.origin,
+            lo: [0, 1, 2].map(|i| a.lo[i].min(b.lo[i])),
+            hi: [0, 1, 2].map(|i| a.hi[i].max(b.hi[i])),
+            cut: a.cut + b.cut,
+            length: a.length + b.length,
+            skipped: a.skipped + b.skipped,
+        }
+    }
+
+    fn extent(&self) -> Extent {
+        let voxel =
+            |u| units_to_voxel(u).expect("ray ends lie within max range of a checked origin");
+        Extent {
+            lo: voxel(self.lo),
+            hi: voxel(self.hi),
+            cut_rays: self.cut,
+            steps: self.length,
+        }
     }
 }
 
-/// What `bounds` finds out about a frame's rays.
+/// What [`ExtentSum`] finds out about a frame's rays.
 struct Extent {
     /// Voxel bounds (inclusive) of the origin and all ray ends.
     lo: VoxelCoord,

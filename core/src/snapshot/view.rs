@@ -91,6 +91,10 @@ struct LeafRef {
 #[derive(Clone, Copy, Debug)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
+    /// The table section's slots and the leaves section's entries, sliced once at open so
+    /// a lookup is one bounds check per read.
+    table: &'a [[u8; 4]],
+    leaves: &'a [[u8; ENTRY_SIZE]],
     /// The mask records (the masks section without its padding).
     masks: &'a [u8],
     header: Header,
@@ -171,10 +175,13 @@ impl<'a> SnapshotView<'a> {
             max: h.clamp_max,
             threshold: h.threshold,
         };
-        let masks_at = h.masks_offset as usize;
+        // In bounds: every section was checked to lie inside total_len <= bytes.len().
+        let sub = |off: u64, len: u64| &bytes[off as usize..(off + len) as usize];
         let v = SnapshotView {
             bytes: &bytes[..h.total_len as usize],
-            masks: &bytes[masks_at..masks_at + h.masks_len as usize],
+            table: bytemuck::cast_slice(sub(h.table_offset, 4 * cap)),
+            leaves: bytemuck::cast_slice(sub(h.leaves_offset, ENTRY_SIZE as u64 * n)),
+            masks: sub(h.masks_offset, h.masks_len),
             header: h,
             tf,
             q,
@@ -183,7 +190,7 @@ impl<'a> SnapshotView<'a> {
         // least one slot is empty, so probing always terminates.
         let mut empty = 0u64;
         for s in 0..cap {
-            match v.u32_at(h.table_offset + 4 * s) {
+            match v.slot(s) {
                 0 => empty += 1,
                 e if u64::from(e) > n => {
                     return Err(SnapshotError::BadIndex("table entry beyond leaf_count"))
@@ -266,20 +273,17 @@ impl<'a> SnapshotView<'a> {
         self.header.flags & FLAG_VALUES != 0
     }
 
+    /// Table slot `s`: leaf index + 1, or 0 (empty).
     #[inline]
-    fn u32_at(&self, off: u64) -> u32 {
-        let o = off as usize;
-        self.bytes
-            .get(o..o + 4)
-            .map_or(0, |b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    fn slot(&self, s: u64) -> u32 {
+        self.table.get(s as usize).map_or(0, |b| u32::from_le_bytes(*b))
     }
 
     #[inline]
     fn entry(&self, i: u64) -> LeafEntry {
-        let at = (self.header.leaves_offset + ENTRY_SIZE as u64 * i) as usize;
-        self.bytes
-            .get(at..at + ENTRY_SIZE)
-            .map_or(LeafEntry::zeroed(), bytemuck::pod_read_unaligned)
+        self.leaves
+            .get(i as usize)
+            .map_or(LeafEntry::zeroed(), |b| bytemuck::pod_read_unaligned(b))
     }
 
     /// The leaf with origin `o`.
@@ -294,7 +298,7 @@ impl<'a> SnapshotView<'a> {
         let cap = self.header.table_capacity;
         // Bounded: validated tables have an empty slot; the bound guards nothing else.
         for _ in 0..cap {
-            let e = self.u32_at(self.header.table_offset + 4 * s);
+            let e = self.slot(s);
             if e == 0 {
                 return None;
             }
@@ -392,7 +396,7 @@ impl<'a> SnapshotView<'a> {
             }
         }
         for (s, v) in slot.iter().zip(voxels) {
-            let e = self.u32_at(h.table_offset + 4 * s);
+            let e = self.slot(*s);
             if v.is_some() && e != 0 {
                 let entry = ENTRY_SIZE as u64 * u64::from(e - 1);
                 prefetch(self.bytes, h.leaves_offset + entry);
