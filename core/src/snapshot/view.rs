@@ -276,7 +276,9 @@ impl<'a> SnapshotView<'a> {
     /// Table slot `s`: leaf index + 1, or 0 (empty).
     #[inline]
     fn slot(&self, s: u64) -> u32 {
-        self.table.get(s as usize).map_or(0, |b| u32::from_le_bytes(*b))
+        self.table
+            .get(s as usize)
+            .map_or(0, |b| u32::from_le_bytes(*b))
     }
 
     #[inline]
