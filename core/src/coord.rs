@@ -71,7 +71,7 @@ pub const MAX_VOXEL_INDEX: f64 = (1u32 << 30) as f64;
 /// Points closer than this (in voxel units) to a voxel face count as lying on it. This
 /// absorbs the decimal rounding of `x / resolution` (2.3 / 0.1 = 22.999999999999996)
 /// without affecting any physically meaningful position.
-const FACE_SNAP: f64 = 1e-9;
+pub(crate) const FACE_SNAP: f64 = 1e-9;
 
 /// Errors in grid or sensor-model parameters.
 #[derive(Clone, Debug, PartialEq)]
