@@ -376,7 +376,7 @@ impl Integrator {
                     .par_chunks(RAY_CHUNK)
                     .map(|chunk| cast_chunk(marks, origin, chunk))
                     .sum(),
-                Some(b) => cast_dense(dense, b, frame_no, origin, rays, walk),
+                Some(b) => cast_dense(dense, b, frame_no, origin, rays, steps, walk),
             };
             let t2 = Instant::now();
             if let Some(b) = &dense_box {
@@ -714,6 +714,7 @@ fn cast_dense(
     frame_no: u64,
     origin: [f64; 3],
     rays: &[Ray],
+    steps: f64,
     walk: Walk,
 ) -> u64 {
     // Lane l of every task walks the l-th eighth of the rays: in a sensor's scan order (or
@@ -726,6 +727,12 @@ fn cast_dense(
             .min(rays.len());
         start..end.max(start)
     };
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    ))]
+    let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
     (0..eighth.div_ceil(RAY_CHUNK))
         .into_par_iter()
         .map(|c| {
@@ -741,9 +748,11 @@ fn cast_dense(
             if walk != Walk::DenseScalar {
                 // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
                 // crate (the cfg above), so every CPU that runs this code has them.
-                return unsafe { avx512::cast_chunk(&mut bits, dbox, origin, rays, ranges) };
+                return unsafe {
+                    avx512::cast_chunk(&mut bits, dbox, origin, rays, ranges, refill_at)
+                };
             }
-            let _ = walk;
+            let _ = (walk, steps);
             dense::cast_chunk(&mut bits, dbox, origin, rays, ranges)
         })
         .sum()
@@ -1384,10 +1393,18 @@ mod tests {
     #[test]
     fn dense_and_sparse_walks_agree() {
         let mut rng = Rng(29);
-        let mut frames: Vec<_> = [(5, 2.0), (3000, 4.0), (20000, 9.0), (4000, 45.0)]
-            .into_iter()
-            .map(|(n, radius)| random_frame(&mut rng, n, radius))
-            .collect();
+        // Short rays and long (lanes refill three at a time or one, see
+        // `avx512::refill_at`), and a box too big for the dense grid.
+        let mut frames: Vec<_> = [
+            (5, 2.0),
+            (3000, 4.0),
+            (20000, 9.0),
+            (3000, 25.0),
+            (4000, 45.0),
+        ]
+        .into_iter()
+        .map(|(n, radius)| random_frame(&mut rng, n, radius))
+        .collect();
         // Rays that end in the sensor's voxel, or along an axis.
         let (pose, _) = random_frame(&mut rng, 0, 1.0);
         let inv = pose.inverse();
@@ -1459,7 +1476,10 @@ mod tests {
             let dense = run(walk);
             let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
             if walk != Walk::Auto {
-                assert_eq!(took_dense, [true, true, true, false, true, true, true]);
+                assert_eq!(
+                    took_dense,
+                    [true, true, true, true, false, true, true, true]
+                );
             }
             for (d, s) in dense.iter().zip(&sparse) {
                 let strip = |r: &(u64, u64, u64, u64, u64, bool)| (r.0, r.1, r.2, r.3, r.4);

@@ -25,12 +25,21 @@ use std::ops::Range;
 /// `t + between` from overflowing, which `step` avoids by saturating.
 const T_CAP: u64 = 1 << 62;
 
-/// Lanes that end their rays before any is given a new one. The set-up of new rays is one
-/// vectorised pass, as dear for one lane as for eight; waiting for three ends makes it a
-/// third as frequent at the price of idle lanes. Ray phase, one thread, min of 45 runs
-/// (noisy VM): structured 500k 6 m 59.7 -> 54.8 ms, random 69.6 -> 67.5 ms; waiting for
-/// two or five ends was slower than for three.
-const REFILL_AT: u32 = 3;
+/// Lanes that end their rays before any is given a new one, for rays of `mean_steps` voxel
+/// steps on average. The set-up of new rays is one vectorised pass, as dear for one lane
+/// as for eight (about five steps' time); waiting for three ends makes it a third as
+/// frequent, but lanes idle meanwhile, for longer the longer the rays. Ray phase, one
+/// thread, min of 45 runs (noisy VM): structured 500k 6 m (62 steps a ray) 59.7 -> 54.8
+/// ms, random 500k 6 m 69.6 -> 67.5 ms; waiting for two or five ends was slower than for
+/// three. With the 590 steps a ray of structured 500k 60 m, waiting for three was slower
+/// (one run: 522 -> 757 ms), as idle lanes cost more than set-ups save past about 200.
+pub(super) fn refill_at(mean_steps: f64) -> u32 {
+    if mean_steps <= 150.0 {
+        3
+    } else {
+        1
+    }
+}
 
 /// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
 /// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
@@ -46,6 +55,7 @@ pub(super) fn cast_chunk(
     origin: [f64; 3],
     rays: &[Ray],
     ranges: [Range<usize>; 8],
+    refill_at: u32,
 ) -> u64 {
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
@@ -151,9 +161,8 @@ pub(super) fn cast_chunk(
         if live == 0 {
             break;
         }
-        // Refill when REFILL_AT lanes have ended their rays (or all have): the set-up costs
-        // about as much for one lane as for eight.
-        let wait = REFILL_AT.min(live.count_ones());
+        // Refill when `refill_at` lanes have ended their rays (or all have).
+        let wait = refill_at.min(live.count_ones());
         let mut ended: __mmask8 = 0;
         // Walk until `wait` lanes have ended their rays. An ended lane walks on, marking
         // nothing, until the refill.
