@@ -358,7 +358,9 @@ impl Integrator {
                 Walk::Auto => {
                     dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps)
                 }
-                Walk::Dense | Walk::DenseScalar => dense::DenseBox::new(lo, hi),
+                Walk::Dense | Walk::DenseScalar | Walk::DenseTestFirst => {
+                    dense::DenseBox::new(lo, hi)
+                }
             };
             report.dense = dense_box.is_some();
             // The dense walk needs no order: its grids stay in cache whatever the rays'
@@ -704,6 +706,9 @@ enum Walk {
     Dense,
     /// Dense one ray at a time, even where the build has AVX-512.
     DenseScalar,
+    /// Dense, testing each mark before writing it on every frame (see
+    /// `avx512::cast_chunk`), where the build has AVX-512.
+    DenseTestFirst,
 }
 
 /// Walk all rays into the pool threads' dense marks for frame `frame_no`; returns voxels
@@ -749,7 +754,19 @@ fn cast_dense(
                 // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
                 // crate (the cfg above), so every CPU that runs this code has them.
                 return unsafe {
-                    avx512::cast_chunk(&mut bits, dbox, origin, rays, ranges, refill_at)
+                    avx512::cast_chunk(
+                        &mut bits,
+                        dbox,
+                        origin,
+                        rays,
+                        ranges,
+                        refill_at,
+                        if walk == Walk::DenseTestFirst {
+                            f64::INFINITY
+                        } else {
+                            steps / (dbox.words() as f64 * 64.0)
+                        },
+                    )
                 };
             }
             let _ = (walk, steps);
@@ -1394,12 +1411,14 @@ mod tests {
     fn dense_and_sparse_walks_agree() {
         let mut rng = Rng(29);
         // Short rays and long (lanes refill three at a time or one, see
-        // `avx512::refill_at`), and a box too big for the dense grid.
+        // `avx512::refill_at`), many rays in a small box (most marks repeat, see
+        // `avx512::cast_chunk`), and a box too big for the dense grid.
         let mut frames: Vec<_> = [
             (5, 2.0),
             (3000, 4.0),
             (20000, 9.0),
             (3000, 25.0),
+            (40000, 0.5),
             (4000, 45.0),
         ]
         .into_iter()
@@ -1472,13 +1491,18 @@ mod tests {
         };
         let sparse = run(Walk::Sparse);
         assert!(sparse.iter().flat_map(|g| &g.2).all(|r| !r.5));
-        for walk in [Walk::Dense, Walk::DenseScalar, Walk::Auto] {
+        for walk in [
+            Walk::Dense,
+            Walk::DenseScalar,
+            Walk::DenseTestFirst,
+            Walk::Auto,
+        ] {
             let dense = run(walk);
             let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
             if walk != Walk::Auto {
                 assert_eq!(
                     took_dense,
-                    [true, true, true, true, false, true, true, true]
+                    [true, true, true, true, true, false, true, true, true]
                 );
             }
             for (d, s) in dense.iter().zip(&sparse) {

@@ -11,7 +11,7 @@
 //! A voxel is its bit index in the thread's [`DenseBits`], so a step is one add and a mark
 //! one OR into memory that stays in cache: there are no brick changes to handle.
 
-use super::dense::{DenseBits, DenseBox};
+use super::dense::{set_bit, DenseBits, DenseBox};
 use super::{Ray, RayMaker, SKIPPED};
 use crate::mask::BitIter;
 #[cfg(doc)]
@@ -56,11 +56,22 @@ pub(super) fn cast_chunk(
     rays: &[Ray],
     ranges: [Range<usize>; 8],
     refill_at: u32,
+    steps_per_voxel: f64,
 ) -> u64 {
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
     let never = _mm512_set1_epi64(-1);
     let sink = _mm512_set1_epi64(dbox.sink() as i64);
+    let (free, hits) = bits.words_mut();
+    let free_len = _mm512_set1_epi64(free.len() as i64);
+    // Whether nearly all marks will find their bit set already, as in a scan with many more
+    // steps than its box has voxels (97-99.6% of the marks of the 500k 6 m workloads
+    // repeat). Those are tested first, eight with one gather, and only new ones written.
+    // Min of 3 runs, 2 threads, ray phase: structured 500k 6 m (117 steps per box voxel)
+    // 32.5 -> 22.7 ms, random 500k 6 m (18) 39.0 -> 37.2 ms. It pays only when nearly no
+    // lane writes: at 12 steps per voxel (structured 50k 6 m, structured 500k 60 m) it was
+    // 5-20% slower, at 1.8 (random 50k 6 m) twice as slow.
+    let repeats = steps_per_voxel >= 16.0;
     // Every ray starts in the origin's voxel.
     let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
     let strides = dbox.strides();
@@ -137,7 +148,7 @@ pub(super) fn cast_chunk(
             let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
             let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
             if empty & ray_hit != 0 {
-                bits.set_hit(start);
+                set_bit(hits, start);
             }
             let k = avail & !empty;
             tx = _mm512_mask_mov_epi64(tx, k, x.t);
@@ -167,18 +178,44 @@ pub(super) fn cast_chunk(
         // Walk until `wait` lanes have ended their rays. An ended lane walks on, marking
         // nothing, until the refill.
         loop {
-            // Mark the current voxels free; a lane without a ray marks the sink bit. One
-            // vector of bit indices, split into word and bit by scalar shifts: extracting
-            // vectors of words and of bits took twice the lane extracts, which compete with
-            // the walk for the vector port (the compiler extracts rather than reloads `at`;
-            // forcing the reload was slower still).
-            let mut at = [0u64; 8];
-            // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
-            unsafe {
-                _mm512_storeu_si512(at.as_mut_ptr().cast(), _mm512_mask_mov_epi64(sink, live, p))
-            };
-            for &q in &at {
-                bits.or_free(q);
+            // Mark the current voxels free.
+            if repeats {
+                // Most already are: the words are read with one gather and only lanes whose
+                // bit is not yet set write.
+                let word = _mm512_srli_epi64::<6>(p);
+                let bit = _mm512_sllv_epi64(one, _mm512_and_si512(p, _mm512_set1_epi64(63)));
+                if _mm512_mask_cmpge_epu64_mask(live, word, free_len) != 0 {
+                    outside_the_box();
+                }
+                // SAFETY: the lanes read, those in `live`, have `word < free.len()` (checked
+                // just above), so every read is inside `free`.
+                let words = unsafe {
+                    _mm512_mask_i64gather_epi64::<8>(zero, live, word, free.as_ptr().cast())
+                };
+                let unset = _mm512_mask_testn_epi64_mask(live, words, bit);
+                if unset != 0 {
+                    let (word, bit) = (to_array(word), to_array(bit));
+                    for l in BitIter(u64::from(unset)) {
+                        free[word[l] as usize] |= bit[l];
+                    }
+                }
+            } else {
+                // Every lane ORs its bit in; a lane without a ray marks the sink bit. One
+                // vector of bit indices, split into word and bit by scalar shifts:
+                // extracting vectors of words and of bits took twice the lane extracts,
+                // which compete with the walk for the vector port (the compiler extracts
+                // rather than reloads `at`; forcing the reload was slower still).
+                let mut at = [0u64; 8];
+                // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
+                unsafe {
+                    _mm512_storeu_si512(
+                        at.as_mut_ptr().cast(),
+                        _mm512_mask_mov_epi64(sink, live, p),
+                    )
+                };
+                for &q in &at {
+                    set_bit(free, q);
+                }
             }
             // Step: the axis whose crossing comes first (ties x, y, z). An axis past its
             // last crossing gets t = never, so it is never first again.
@@ -205,7 +242,7 @@ pub(super) fn cast_chunk(
         if ended & hit != 0 {
             let end = to_array(ends);
             for l in BitIter(u64::from(ended & hit)) {
-                bits.set_hit(end[l]);
+                set_bit(hits, end[l]);
             }
         }
         need = ended;
@@ -287,6 +324,13 @@ pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usiz
         }
     }
     n
+}
+
+/// A walk stepped outside its box: a bug, stopped before any read outside the marks.
+#[cold]
+#[inline(never)]
+fn outside_the_box() -> ! {
+    panic!("dense walk left its box");
 }
 
 /// Give each lane in `dry` (whose rays are used up) the second half of the rays left to the

@@ -116,10 +116,15 @@ impl DenseBits {
     pub(super) fn set_hit(&mut self, index: u64) {
         set_bit(&mut self.hit, index);
     }
+
+    /// The free and the hit words, for walks that mark them directly.
+    pub(super) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
+        (&mut self.free, &mut self.hit)
+    }
 }
 
 #[inline(always)]
-fn set_bit(words: &mut [u64], index: u64) {
+pub(super) fn set_bit(words: &mut [u64], index: u64) {
     words[(index / 64) as usize] |= 1 << (index % 64);
 }
 
