@@ -115,8 +115,8 @@ const _: () = assert!(std::mem::offset_of!(Header, checksum) == 152);
 /// Table slots for `n` leaves. A snapshot that fits in cache is read at the speed of its
 /// probes: each extra probe is a dependent load and a mispredicted branch. Up to
 /// [`SPACIOUS_TABLE_LEAVES`] leaves (a table of at most 256 KiB) the load factor is 1/4;
-/// point queries on the 6 m workloads' snapshots went from 51-58 to 38-44 ns (random,
-/// 2,320 leaves) and from 31-42 to 20-31 ns (structured, 416 leaves), for 10 bytes more
+/// point queries on the 6 m workloads' snapshots went from 51-58 to 35-50 ns (random,
+/// 2,320 leaves) and from 31-40 to 20-31 ns (structured, 416 leaves), for 10 bytes more
 /// per leaf. Bigger snapshots miss cache on every lookup whatever the load, so there it is
 /// about 2/3 (6 bytes per leaf), with no power-of-two rounding.
 pub fn table_capacity_for(n: u64) -> u64 {
