@@ -50,6 +50,14 @@ impl DenseBox {
 
     /// A bit index outside the box whose marks are ignored, for walkers that must mark
     /// something in every lane.
+    #[cfg_attr(
+        not(all(
+            target_arch = "x86_64",
+            target_feature = "avx512f",
+            target_feature = "avx512dq"
+        )),
+        allow(dead_code)
+    )]
     pub(super) fn sink(&self) -> u64 {
         self.words() as u64 * 64
     }
@@ -117,7 +125,15 @@ impl DenseBits {
         set_bit(&mut self.hit, index);
     }
 
-    /// The free and the hit words, for walks that mark them directly.
+    /// The free and the hit words, for walks that mark them directly (the AVX-512 one).
+    #[cfg_attr(
+        not(all(
+            target_arch = "x86_64",
+            target_feature = "avx512f",
+            target_feature = "avx512dq"
+        )),
+        allow(dead_code)
+    )]
     pub(super) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
         (&mut self.free, &mut self.hit)
     }
