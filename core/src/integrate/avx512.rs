@@ -43,7 +43,8 @@ pub(super) fn refill_at(mean_steps: f64) -> u32 {
 
 /// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
 /// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
-/// count as `super::cast_chunk`.
+/// count as `super::cast_chunk`. `refill_at` is [`refill_at`] for the frame's rays, and
+/// `steps_per_voxel` the frame's estimated steps per voxel of its box.
 ///
 /// Feed the lanes from far apart in direction. Lanes on neighbouring rays OR into the same
 /// word one after another near the sensor, and each OR then waits for the last: fed
@@ -66,8 +67,9 @@ pub(super) fn cast_chunk(
     // lane writes: at 12 steps per voxel (structured 50k 6 m, structured 500k 60 m) it was
     // 5-20% slower, at 1.8 (random 50k 6 m) twice as slow.
     let test_first = steps_per_voxel >= 16.0;
-    // Each choice is its own compiled loop: with the choices as run-time flags the loop
-    // kept the work of both, and walked long rays up to 1.6x slower (structured 50k 60 m).
+    // Each choice is its own compiled loop, so that the loop for long rays with new marks
+    // does no more work than before these choices existed (as run-time flags, every loop
+    // kept the work of all of them).
     let a = (bits, dbox, origin, rays, ranges, refill_at);
     match (refill_at > 1, test_first) {
         (false, false) => walk::<false, false>(a),
