@@ -114,31 +114,13 @@ impl DenseBits {
         self.frame
     }
 
-    /// Mark the voxel at bit `index` free.
-    #[inline(always)]
-    pub(super) fn or_free(&mut self, index: u64) {
-        set_bit(&mut self.free, index);
-    }
-
-    #[inline]
-    pub(super) fn set_hit(&mut self, index: u64) {
-        set_bit(&mut self.hit, index);
-    }
-
-    /// The free and the hit words, for walks that mark them directly (the AVX-512 one).
-    #[cfg_attr(
-        not(all(
-            target_arch = "x86_64",
-            target_feature = "avx512f",
-            target_feature = "avx512dq"
-        )),
-        allow(dead_code)
-    )]
+    /// The free and the hit words, which the walks mark with [`set_bit`].
     pub(super) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
         (&mut self.free, &mut self.hit)
     }
 }
 
+/// Set bit `index` of `words`.
 #[inline(always)]
 pub(super) fn set_bit(words: &mut [u64], index: u64) {
     words[(index / 64) as usize] |= 1 << (index % 64);
@@ -157,6 +139,7 @@ pub(super) fn cast_chunk(
 ) -> u64 {
     let mut steps = 0;
     let [ix, iy, iz] = dbox.strides();
+    let (free, hits) = bits.words_mut();
     for r in ranges.into_iter().flat_map(|g| &rays[g]) {
         let mut dda = Dda::new(origin, r.end);
         let n = dda.steps();
@@ -167,7 +150,7 @@ pub(super) fn cast_chunk(
             let inc =
                 [i64::from(sx) * ix, i64::from(sy) * iy, i64::from(sz) * iz].map(|v| v as u64);
             for _ in 2..n {
-                bits.or_free(p);
+                set_bit(free, p);
                 let (cx, cy, _) = dda.step_far_crossing();
                 p = p.wrapping_add(if cx {
                     inc[0]
@@ -182,12 +165,12 @@ pub(super) fn cast_chunk(
             dda.settle();
         }
         while dda.steps() > 0 {
-            bits.or_free(p);
+            set_bit(free, p);
             dda.step();
             p = dbox.index(dda.voxel());
         }
         if r.hit {
-            bits.set_hit(p);
+            set_bit(hits, p);
         }
     }
     steps
