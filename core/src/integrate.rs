@@ -474,9 +474,7 @@ fn prepare_rays(
         .zip(frame.points.par_chunks(RAY_CHUNK))
         .map(|(out, pts)| {
             maker.make_all(out, pts);
-            let mut sum = ExtentSum::new(origin);
-            out.iter().for_each(|r| sum.add(r));
-            sum
+            ExtentSum::of(origin, out)
         })
         .reduce(|| ExtentSum::new(origin), ExtentSum::merge);
     let skipped = sums.skipped;
@@ -612,11 +610,7 @@ impl RayMaker {
 /// [`Extent`] of `rays`, in one pass.
 fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
-        .map(|c| {
-            let mut sum = ExtentSum::new(origin);
-            c.iter().for_each(|r| sum.add(r));
-            sum
-        })
+        .map(|c| ExtentSum::of(origin, c))
         .reduce(|| ExtentSum::new(origin), ExtentSum::merge)
         .extent()
 }
@@ -644,6 +638,13 @@ impl ExtentSum {
             length: 0.0,
             skipped: 0,
         }
+    }
+
+    /// The sum over `rays`.
+    fn of(origin: [f64; 3], rays: &[Ray]) -> Self {
+        let mut sum = ExtentSum::new(origin);
+        rays.iter().for_each(|r| sum.add(r));
+        sum
     }
 
     #[inline]
@@ -737,7 +738,10 @@ fn cast_dense(
         target_feature = "avx512f",
         target_feature = "avx512dq"
     ))]
-    let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
+    let (refill_at, test_first) = (
+        avx512::refill_at(steps / rays.len().max(1) as f64),
+        walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
+    );
     (0..eighth.div_ceil(RAY_CHUNK))
         .into_par_iter()
         .map(|c| {
@@ -754,19 +758,7 @@ fn cast_dense(
                 // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
                 // crate (the cfg above), so every CPU that runs this code has them.
                 return unsafe {
-                    avx512::cast_chunk(
-                        &mut bits,
-                        dbox,
-                        origin,
-                        rays,
-                        ranges,
-                        refill_at,
-                        if walk == Walk::DenseTestFirst {
-                            f64::INFINITY
-                        } else {
-                            steps / (dbox.words() as f64 * 64.0)
-                        },
-                    )
+                    avx512::cast_chunk(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
                 };
             }
             let _ = (walk, steps);

@@ -41,10 +41,22 @@ pub(super) fn refill_at(mean_steps: f64) -> u32 {
     }
 }
 
+/// Whether marks are tested before they are written, for a frame of `steps_per_voxel`
+/// estimated steps per voxel of its box: whether nearly all of them will find their bit
+/// set already, as in a scan with many more steps than its box has voxels (97-99.6% of the
+/// marks of the 500k 6 m workloads repeat). Those are tested first, eight with one gather,
+/// and only new ones written. Min of 3 runs, 2 threads, ray phase: structured 500k 6 m
+/// (117 steps per box voxel) 32.5 -> 22.7 ms, random 500k 6 m (18) 39.0 -> 37.2 ms. It
+/// pays only when nearly no lane writes: at 12 steps per voxel (structured 50k 6 m,
+/// structured 500k 60 m) it was 5-20% slower, at 1.8 (random 50k 6 m) twice as slow.
+pub(super) fn test_first(steps_per_voxel: f64) -> bool {
+    steps_per_voxel >= 16.0
+}
+
 /// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
 /// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
-/// count as `super::cast_chunk`. `refill_at` is [`refill_at`] for the frame's rays, and
-/// `steps_per_voxel` the frame's estimated steps per voxel of its box.
+/// count as `super::cast_chunk`. `refill_at` and `test_first` are [`refill_at`] and
+/// [`test_first`] for the frame (tests force the latter).
 ///
 /// Feed the lanes from far apart in direction. Lanes on neighbouring rays OR into the same
 /// word one after another near the sensor, and each OR then waits for the last: fed
@@ -57,16 +69,8 @@ pub(super) fn cast_chunk(
     rays: &[Ray],
     ranges: [Range<usize>; 8],
     refill_at: u32,
-    steps_per_voxel: f64,
+    test_first: bool,
 ) -> u64 {
-    // Whether nearly all marks will find their bit set already, as in a scan with many more
-    // steps than its box has voxels (97-99.6% of the marks of the 500k 6 m workloads
-    // repeat). Those are tested first, eight with one gather, and only new ones written.
-    // Min of 3 runs, 2 threads, ray phase: structured 500k 6 m (117 steps per box voxel)
-    // 32.5 -> 22.7 ms, random 500k 6 m (18) 39.0 -> 37.2 ms. It pays only when nearly no
-    // lane writes: at 12 steps per voxel (structured 50k 6 m, structured 500k 60 m) it was
-    // 5-20% slower, at 1.8 (random 50k 6 m) twice as slow.
-    let test_first = steps_per_voxel >= 16.0;
     // Each choice is its own compiled loop, so that the loop for long rays with new marks
     // does no more work than before these choices existed (as run-time flags, every loop
     // kept the work of all of them).
