@@ -14,6 +14,7 @@
 
 use crate::coord::VoxelCoord;
 use crate::mask::{BitIter, Mask512};
+use crate::pages::{Zeroed, HUGE_PAGE};
 use hashbrown::HashMap;
 
 /// log2 of a leaf's edge in voxels.
@@ -26,11 +27,14 @@ pub const INTERNAL_LOG2: u32 = 4;
 pub const INTERNAL_TOTAL_LOG2: u32 = LEAF_LOG2 + INTERNAL_LOG2;
 /// Children (leaves) per internal node.
 pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
-/// Leaves per pool chunk (576 KiB of `Leaf<i8>`). Each chunk is its own zeroed
-/// allocation, above the allocator's mmap threshold: with 256 leaves a 60 m frame made
-/// 7000 mmap calls in the merge; 1024 cut the random 500k 60 m merge from 133-195 to
-/// 111-118 ms (1 and 2 threads, interleaved runs).
-const POOL_CHUNK: usize = 1024;
+/// Leaves per pool chunk: as many `Leaf<i8>`, in whole [`UPDATE_SPAN`]s, as fill one
+/// huge page (3584 of 3640). Each chunk is its own mapping ([`Zeroed`]): with chunks of 256
+/// leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the random 500k 60 m
+/// merge from 133-195 to 111-118 ms (1 and 2 threads, interleaved runs).
+const POOL_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Leaf<i8>>() / UPDATE_SPAN * UPDATE_SPAN;
+/// Leaves per parallel task of [`LeafPool::par_update`].
+const UPDATE_SPAN: usize = 512;
+const _: () = assert!(POOL_CHUNK >= UPDATE_SPAN);
 
 /// In-leaf offset of a voxel.
 #[inline]
@@ -90,7 +94,7 @@ struct Internal {
 
 /// Leaves in zeroed chunks of [`POOL_CHUNK`]; indices are stable for the pool's life.
 pub struct LeafPool<V> {
-    chunks: Vec<Box<[Leaf<V>]>>,
+    chunks: Vec<Zeroed<Leaf<V>>>,
     len: usize,
 }
 
@@ -104,8 +108,7 @@ impl<V: GridValue> LeafPool<V> {
 
     fn push_zeroed(&mut self) -> u32 {
         if self.len == self.chunks.len() * POOL_CHUNK {
-            self.chunks
-                .push(bytemuck::allocation::zeroed_slice_box(POOL_CHUNK));
+            self.chunks.push(Zeroed::new(POOL_CHUNK));
         }
         self.len += 1;
         (self.len - 1) as u32
@@ -144,27 +147,32 @@ impl<V: GridValue> LeafPool<V> {
             items.windows(2).all(|w| w[0].0 < w[1].0),
             "par_update: leaf indices must be strictly increasing"
         );
-        // Split `items` into one run per chunk, then hand each run its chunk.
+        // Split `items` into one run per span of leaves, then hand each run its span.
         let mut runs: Vec<(usize, &[(u32, T)])> = Vec::new();
         let mut rest = items;
         while let Some(first) = rest.first() {
-            let c = first.0 as usize / POOL_CHUNK;
-            let n = rest.partition_point(|it| (it.0 as usize) / POOL_CHUNK == c);
+            let c = first.0 as usize / UPDATE_SPAN;
+            let n = rest.partition_point(|it| (it.0 as usize) / UPDATE_SPAN == c);
             runs.push((c, &rest[..n]));
             rest = &rest[n..];
         }
-        let mut chunk_refs: Vec<Option<&mut Box<[Leaf<V>]>>> =
-            self.chunks.iter_mut().map(Some).collect();
-        type Work<'w, V, T> = Vec<(&'w mut Box<[Leaf<V>]>, &'w [(u32, T)])>;
+        // Chunks hold whole spans, so span k is the k-th of all chunks' spans.
+        let mut spans: Vec<Option<&mut [Leaf<V>]>> = self
+            .chunks
+            .iter_mut()
+            .flat_map(|c| c.chunks_mut(UPDATE_SPAN))
+            .map(Some)
+            .collect();
+        type Work<'w, V, T> = Vec<(&'w mut [Leaf<V>], &'w [(u32, T)])>;
         let work: Work<'_, V, T> = runs
             .into_iter()
-            .map(|(c, run)| (chunk_refs[c].take().expect("one run per chunk"), run))
+            .map(|(c, run)| (spans[c].take().expect("one run per span"), run))
             .collect();
         work.into_par_iter()
-            .with_max_len(4)
-            .map(|(chunk, run)| {
+            .with_max_len(8)
+            .map(|(span, run)| {
                 run.iter()
-                    .map(|(i, t)| f(&mut chunk[*i as usize % POOL_CHUNK], t))
+                    .map(|(i, t)| f(&mut span[*i as usize % UPDATE_SPAN], t))
                     .sum::<u64>()
             })
             .sum()

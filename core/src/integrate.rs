@@ -29,11 +29,13 @@ use crate::grid::{leaf_offset, Leaf};
 use crate::map::OccupancyMap;
 use crate::mask::BitIter;
 use crate::model::QuantizedModel;
+use crate::pages::{Zeroed, HUGE_PAGE};
 use crate::raycast::Dda;
 use hashbrown::HashSet;
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering::*};
+use std::ops::Range;
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering::*};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -371,7 +373,12 @@ impl Integrator {
                 rays.par_sort_unstable_by_key(|r| r.key);
             }
             let chunks = rays.len().div_ceil(RAY_CHUNK);
-            marks.reset(lo, hi, chunks + dense_box.map_or(0, |b| b.brick_rows()));
+            marks.reset(
+                lo,
+                hi,
+                chunks + dense_box.map_or(0, |b| b.brick_rows()),
+                rayon::current_num_threads(),
+            );
             let t1 = Instant::now();
             report.voxel_steps = match &dense_box {
                 None => rays
@@ -777,7 +784,7 @@ fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 #[inline(never)]
 fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let mut steps = 0u64;
-    let mut cache = BrickCache::default();
+    let mut cache = marks.cache();
     for r in rays {
         let mut dda = Dda::new(origin, r.end);
         let n = dda.steps();
@@ -832,7 +839,7 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
                 let moved = p ^ was;
                 plane &= ((moved >> (2 * F) != 0) as u64).wrapping_sub(1);
                 if moved & BRICK != 0 {
-                    marks.or_free(&mut cache, brick, &local);
+                    cache.or_free(brick, &local);
                     local = [0; 8];
                     plane = 0;
                     brick = unpack(p).shr(3);
@@ -849,7 +856,7 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
             dda.step();
             plane &= ((dda.z != z) as u64).wrapping_sub(1);
             if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
-                marks.or_free(&mut cache, brick, &local);
+                cache.or_free(brick, &local);
                 local = [0; 8];
                 plane = 0;
                 brick = dda.voxel().shr(3);
@@ -858,10 +865,10 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         // A ray's last step may enter a brick only to end there: nothing free to mark, and
         // a slot would give the map an empty leaf.
         if local != [0; 8] {
-            marks.or_free(&mut cache, brick, &local);
+            cache.or_free(brick, &local);
         }
         if r.hit {
-            marks.set_hit(&mut cache, dda.voxel());
+            cache.set_hit(dda.voxel());
         }
     }
     steps
@@ -931,15 +938,25 @@ fn merge(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(u32, (u32, bool))> 
 /// Bricks per coarse-cell edge (a coarse cell is 16^3 bricks, 128^3 voxels).
 const CELL_LOG2: u32 = 4;
 const CELL_ENTRIES: usize = 1 << (3 * CELL_LOG2);
-const SLOT_CHUNK: usize = 4096;
-const BLOCK_CHUNK: usize = 16;
-const RESERVED: u32 = u32::MAX;
+/// Pool chunks of one huge page each (see [`Zeroed`]).
+const SLOT_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Slot>();
+const BLOCK_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Block>();
 
 /// Free and hit marks of one 8x8x8 brick, bit `x | y << 3 | z << 6` as in a leaf.
-#[derive(Default)]
+#[derive(bytemuck::Zeroable)]
 struct Slot {
     free: [AtomicU64; 8],
     hit: [AtomicU64; 8],
+}
+
+impl Slot {
+    /// OR `other`'s marks into this one's. Only between phases, when no walk writes.
+    fn absorb(&self, other: &Slot) {
+        let pairs = self.free.iter().zip(&other.free);
+        for (w, o) in pairs.chain(self.hit.iter().zip(&other.hit)) {
+            w.store(w.load(Relaxed) | o.load(Relaxed), Relaxed);
+        }
+    }
 }
 
 // A coarse cell covers exactly one grid internal node, and both number their 16^3
@@ -948,13 +965,8 @@ struct Slot {
 const _: () = assert!(3 + CELL_LOG2 == crate::grid::INTERNAL_TOTAL_LOG2);
 
 /// The brick entries of one coarse cell: slot id + 1, or 0.
+#[derive(bytemuck::Zeroable)]
 struct Block([AtomicU32; CELL_ENTRIES]);
-
-impl Default for Block {
-    fn default() -> Self {
-        Block(std::array::from_fn(|_| AtomicU32::new(0)))
-    }
-}
 
 impl Zero for Block {
     fn zero(&self) {
@@ -962,8 +974,8 @@ impl Zero for Block {
     }
 }
 
-/// Pool items: all-zero by default, and zeroed in place.
-trait Zero: Default + Send + Sync {
+/// Pool items: valid all-zero, and zeroed in place.
+trait Zero: bytemuck::Zeroable + Send + Sync {
     fn zero(&self);
 }
 
@@ -979,7 +991,7 @@ impl Zero for Slot {
 /// A growable pool of zero-initialised `T`, handed out by id from any thread. Ids and
 /// storage persist across frames; `clear` re-zeroes what was used.
 struct Pool<T, const CHUNK: usize> {
-    chunks: Vec<OnceLock<Box<[T]>>>,
+    chunks: Vec<OnceLock<Zeroed<T>>>,
     next: AtomicU32,
 }
 
@@ -1008,7 +1020,7 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
 
     /// Reserve `n` consecutive ids at once; each must be initialised with `get_or_init`
     /// before use. Ids reserved but never used stay zero, and are cleared like used ones.
-    fn reserve_ids(&self, n: u32) -> std::ops::Range<u32> {
+    fn reserve_ids(&self, n: u32) -> Range<u32> {
         let first = self.next.fetch_add(n, Relaxed);
         first..first + n
     }
@@ -1017,9 +1029,9 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
     fn get_or_init(&self, id: u32) -> &T {
         let id = id as usize;
         let new_chunk = || {
-            let items: Box<[T]> = (0..CHUNK).map(|_| T::default()).collect();
-            // Zeroes may come as untouched pages (calloc), which map to the shared zero page
-            // on their first read; the first write then copies it and flushes the TLBs of
+            let items = Zeroed::<T>::new(CHUNK);
+            // The zeroes come as untouched pages, which map to the shared zero page on
+            // their first read; the first write then copies it and flushes the TLBs of
             // every core running the process. Writing them now gets private pages at once.
             items.iter().for_each(T::zero);
             items
@@ -1052,57 +1064,60 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
     }
 }
 
-/// Return the id stored in `entry` (as id + 1), allocating it on first use. Concurrent
-/// callers agree on one id: the first reserves the entry, the others wait for it.
+/// The id stored in a lane's `entry` (as id + 1), allocated on first use. No other task
+/// writes the lane meanwhile, so a plain load and store suffice.
 #[inline]
 fn claim(entry: &AtomicU32, alloc: impl FnOnce() -> u32) -> u32 {
-    let mut cur = entry.load(Acquire);
-    if cur == 0 {
-        match entry.compare_exchange(0, RESERVED, Acquire, Acquire) {
-            Ok(_) => {
-                let id = alloc();
-                entry.store(id + 1, Release);
-                return id;
-            }
-            Err(c) => cur = c,
+    match entry.load(Relaxed) {
+        0 => {
+            let id = alloc();
+            entry.store(id + 1, Relaxed);
+            id
         }
+        e => e - 1,
     }
-    let mut spins = 0u32;
-    while cur == RESERVED {
-        spins += 1;
-        if spins > 64 {
-            std::thread::yield_now();
-        } else {
-            std::hint::spin_loop();
-        }
-        cur = entry.load(Acquire);
-    }
-    cur - 1
 }
 
-/// The per-frame mark table: a dense array of coarse cells over the frame's bounding box,
-/// each pointing to a block of brick entries, each pointing to a [`Slot`]. Only touched
-/// bricks get a slot; slots are contiguous, so the merge pass walks a compact list.
+/// The per-frame mark tables, one per *lane*: a dense array of coarse cells over the
+/// frame's bounding box, each pointing to a block of brick entries, each pointing to a
+/// [`Slot`]. Only touched bricks get a slot; slots are contiguous, so the merge pass walks
+/// a compact list.
+///
+/// A lane is written by one task at a time: [`FrameMarks::cache`] takes one, and dropping
+/// the cache gives it back. So marks are plain read-modify-writes, not locked ones. A
+/// locked OR holds back every later load until its cache line arrives; at 60 m, where most
+/// marks miss cache, that was a quarter of the walk. A brick walked from several lanes
+/// has a slot in each, and [`FrameMarks::bricks_in_order`] ORs them into one. The lanes
+/// cost little: rayon gives each thread long runs of neighbouring chunks, and rays sorted
+/// by direction, so the lanes share bricks only near the sensor.
 #[derive(Default)]
 struct FrameMarks {
     lo: VoxelCoord,
     cells_dim: [usize; 3],
+    /// Coarse cells of the box.
+    ncells: usize,
+    /// Lane l's cells are `cells[l * ncells..][..ncells]`: block id + 1, or 0.
     cells: Vec<AtomicU32>,
+    /// Whether each lane is held by a live [`BrickCache`].
+    taken: Vec<AtomicBool>,
     blocks: Pool<Block, BLOCK_CHUNK>,
     slots: Pool<Slot, SLOT_CHUNK>,
 }
 
-/// A thread's recent lookups: the last block, and a direct-mapped cache of bricks (by the
-/// low bits of their coordinates) to slots. Sorted rays revisit the same bricks near the
-/// sensor over and over; a hit here skips the table walk.
+/// A task's hold on one lane of the [`FrameMarks`], with its recent lookups: the last
+/// block, and a direct-mapped cache of bricks (by the low bits of their coordinates) to
+/// slots. Sorted rays revisit the same bricks near the sensor over and over; a hit here
+/// skips the table walk.
 struct BrickCache<'a> {
+    marks: &'a FrameMarks,
+    lane: usize,
     cell: usize,
     block: Option<u32>,
     bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
-    /// Slot ids this thread has reserved and not yet used: one shared counter increment
+    /// Slot ids this task has reserved and not yet used: one shared counter increment
     /// per SLOT_BATCH new bricks instead of one per brick, which at 60 m (a new slot every
     /// few steps) made the two threads fight over the counter's cache line.
-    spare_slots: std::ops::Range<u32>,
+    spare_slots: Range<u32>,
 }
 
 const SLOT_BATCH: u32 = 16;
@@ -1111,35 +1126,58 @@ const RAY_CHUNK: usize = 512;
 
 const BRICK_CACHE: usize = 512;
 
-impl Default for BrickCache<'_> {
-    fn default() -> Self {
-        Self {
-            cell: 0,
-            block: None,
-            bricks: [None; BRICK_CACHE],
-            spare_slots: 0..0,
-        }
-    }
-}
-
 #[inline]
 fn brick_cache_index(b: VoxelCoord) -> usize {
     ((b.x & 7) | (b.y & 7) << 3 | (b.z & 7) << 6) as usize
 }
 
 impl FrameMarks {
-    /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast in `chunks` calls of
-    /// `cast_chunk` (each may leave up to a batch of reserved slot ids unused).
-    fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, chunks: usize) {
+    /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast in `chunks` tasks (each may
+    /// leave up to a batch of reserved slot ids unused) on `lanes` threads.
+    fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, chunks: usize, lanes: usize) {
+        let lanes = lanes.max(1);
         self.lo = lo.shr(3 + CELL_LOG2).shl(3 + CELL_LOG2);
         let d = hi.shr(3 + CELL_LOG2) - lo.shr(3 + CELL_LOG2);
         self.cells_dim = [d.x as usize + 1, d.y as usize + 1, d.z as usize + 1];
-        let ncells = self.cells_dim.iter().product::<usize>();
+        self.ncells = self.cells_dim.iter().product::<usize>();
         self.cells.clear();
-        self.cells.resize_with(ncells, || AtomicU32::new(0));
-        self.blocks.reserve(ncells);
+        self.cells
+            .resize_with(self.ncells * lanes, || AtomicU32::new(0));
+        self.taken.clear();
+        self.taken.resize_with(lanes, || AtomicBool::new(false));
+        self.blocks.reserve(self.ncells * lanes);
         self.slots
-            .reserve(ncells * CELL_ENTRIES + chunks * SLOT_BATCH as usize);
+            .reserve(self.ncells * lanes * CELL_ENTRIES + chunks * SLOT_BATCH as usize);
+    }
+
+    /// Take a free lane for one task. Each thread holds at most one cache at a time and
+    /// there are as many lanes as threads, so one is free; the thread's own index is tried
+    /// first, so that a thread keeps finding its own blocks.
+    fn cache(&self) -> BrickCache<'_> {
+        let n = self.taken.len();
+        let first = rayon::current_thread_index().unwrap_or(0);
+        let mut i = 0;
+        let lane = loop {
+            let l = (first + i) % n;
+            if self.taken[l]
+                .compare_exchange(false, true, Acquire, Relaxed)
+                .is_ok()
+            {
+                break l;
+            }
+            i += 1;
+            if i % n == 0 {
+                std::thread::yield_now();
+            }
+        };
+        BrickCache {
+            marks: self,
+            lane,
+            cell: 0,
+            block: None,
+            bricks: [None; BRICK_CACHE],
+            spare_slots: 0..0,
+        }
     }
 
     fn used_slots(&self) -> u32 {
@@ -1151,118 +1189,124 @@ impl FrameMarks {
     }
 
     /// Every touched brick as (origin voxel, slot), in (z, y, x) order of cells and, within
-    /// a cell, of bricks. Call between frames' phases, when no claim is in flight.
+    /// a cell, of bricks; a brick with slots in several lanes gets the others' marks ORed
+    /// into the first. Call between a frame's phases, when no cache is live.
     fn bricks_in_order(&self) -> impl Iterator<Item = (VoxelCoord, u32)> + '_ {
         let [dx, dy, _] = self.cells_dim;
+        let (n, lanes) = (self.ncells, self.taken.len());
         let m = (1 << CELL_LOG2) - 1;
-        self.cells
-            .iter()
-            .enumerate()
-            .filter_map(|(c, e)| {
-                let b = e.load(Relaxed);
-                (b != 0).then(|| (c, b - 1))
+        (0..n)
+            .filter_map(move |c| {
+                let blocks: Vec<&Block> = (0..lanes)
+                    .filter_map(|l| match self.cells[l * n + c].load(Relaxed) {
+                        0 => None,
+                        b => Some(self.blocks.get(b - 1)),
+                    })
+                    .collect();
+                (!blocks.is_empty()).then_some((c, blocks))
             })
-            .flat_map(move |(c, b)| {
+            .flat_map(move |(c, blocks)| {
                 let cell = VoxelCoord::new(
                     (c % dx) as i32,
                     (c / dx % dy) as i32,
                     (c / (dx * dy)) as i32,
                 );
                 let base = self.lo + cell.shl(3 + CELL_LOG2);
-                self.blocks
-                    .get(b)
-                    .0
-                    .iter()
-                    .enumerate()
-                    .filter_map(move |(e, s)| {
-                        let s = s.load(Relaxed);
-                        let at = VoxelCoord::new(
-                            (e & m) as i32,
-                            (e >> CELL_LOG2 & m) as i32,
-                            (e >> (2 * CELL_LOG2)) as i32,
-                        );
-                        (s != 0).then(|| (base + at.shl(3), s - 1))
-                    })
+                (0..CELL_ENTRIES).filter_map(move |e| {
+                    let mut ids = blocks
+                        .iter()
+                        .map(|b| b.0[e].load(Relaxed))
+                        .filter(|&s| s != 0);
+                    let first = ids.next()? - 1;
+                    let slot = self.slots.get(first);
+                    ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
+                    let at = VoxelCoord::new(
+                        (e & m) as i32,
+                        (e >> CELL_LOG2 & m) as i32,
+                        (e >> (2 * CELL_LOG2)) as i32,
+                    );
+                    Some((base + at.shl(3), first))
+                })
             })
-    }
-
-    #[inline]
-    fn slot_for<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord) -> &'a Slot {
-        let ci = brick_cache_index(brick);
-        if let Some((b, slot)) = cache.bricks[ci] {
-            if b == brick {
-                return slot;
-            }
-        }
-        let slot = self.slot_lookup(cache, brick);
-        cache.bricks[ci] = Some((brick, slot));
-        slot
-    }
-
-    #[inline(never)]
-    fn slot_lookup<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord) -> &'a Slot {
-        let r = brick - self.lo.shr(3);
-        let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
-        let cell = (x >> CELL_LOG2)
-            + self.cells_dim[0] * ((y >> CELL_LOG2) + self.cells_dim[1] * (z >> CELL_LOG2));
-        let block = match cache.block {
-            Some(b) if cache.cell == cell => b,
-            _ => {
-                let b = claim(&self.cells[cell], || self.blocks.alloc());
-                cache.cell = cell;
-                cache.block = Some(b);
-                b
-            }
-        };
-        let m = (1 << CELL_LOG2) - 1;
-        let e = (x & m) | (y & m) << CELL_LOG2 | (z & m) << (2 * CELL_LOG2);
-        let entry = &self.blocks.get(block).0[e];
-        let s = claim(entry, || {
-            if cache.spare_slots.is_empty() {
-                cache.spare_slots = self.slots.reserve_ids(SLOT_BATCH);
-            }
-            let id = cache.spare_slots.next().expect("refilled above");
-            self.slots.get_or_init(id);
-            id
-        });
-        self.slots.get(s)
-    }
-
-    #[inline]
-    fn or_free<'a>(&'a self, cache: &mut BrickCache<'a>, brick: VoxelCoord, bits: &[u64; 8]) {
-        let slot = self.slot_for(cache, brick);
-        // Read first: near the sensor other rays have set these bits already, and plain
-        // loads are far cheaper than locked read-modify-writes. One branch for the whole
-        // brick is predictable where per-word branches are not.
-        let missing = slot
-            .free
-            .iter()
-            .zip(bits)
-            .fold(0, |m, (w, &b)| m | (b & !w.load(Relaxed)));
-        if missing != 0 {
-            for (w, &b) in slot.free.iter().zip(bits) {
-                if b & !w.load(Relaxed) != 0 {
-                    w.fetch_or(b, Relaxed);
-                }
-            }
-        }
-    }
-
-    #[inline]
-    fn set_hit<'a>(&'a self, cache: &mut BrickCache<'a>, v: VoxelCoord) {
-        let slot = self.slot_for(cache, v.shr(3));
-        let i = leaf_offset(v);
-        let bit = 1u64 << (i & 63);
-        let w = &slot.hit[i >> 6];
-        if w.load(Relaxed) & bit == 0 {
-            w.fetch_or(bit, Relaxed);
-        }
     }
 
     /// Zero everything this frame used, keeping the memory for the next.
     fn clear_used(&mut self) {
         self.slots.clear();
         self.blocks.clear();
+    }
+}
+
+impl<'a> BrickCache<'a> {
+    #[inline]
+    fn slot_for(&mut self, brick: VoxelCoord) -> &'a Slot {
+        let ci = brick_cache_index(brick);
+        if let Some((b, slot)) = self.bricks[ci] {
+            if b == brick {
+                return slot;
+            }
+        }
+        let slot = self.slot_lookup(brick);
+        self.bricks[ci] = Some((brick, slot));
+        slot
+    }
+
+    #[inline(never)]
+    fn slot_lookup(&mut self, brick: VoxelCoord) -> &'a Slot {
+        let marks = self.marks;
+        let r = brick - marks.lo.shr(3);
+        let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
+        let cell = (x >> CELL_LOG2)
+            + marks.cells_dim[0] * ((y >> CELL_LOG2) + marks.cells_dim[1] * (z >> CELL_LOG2));
+        let block = match self.block {
+            Some(b) if self.cell == cell => b,
+            _ => {
+                let b = claim(&marks.cells[self.lane * marks.ncells + cell], || {
+                    marks.blocks.alloc()
+                });
+                self.cell = cell;
+                self.block = Some(b);
+                b
+            }
+        };
+        let m = (1 << CELL_LOG2) - 1;
+        let e = (x & m) | (y & m) << CELL_LOG2 | (z & m) << (2 * CELL_LOG2);
+        let entry = &marks.blocks.get(block).0[e];
+        let spare = &mut self.spare_slots;
+        let s = claim(entry, || {
+            if Range::is_empty(spare) {
+                *spare = marks.slots.reserve_ids(SLOT_BATCH);
+            }
+            let id = spare.next().expect("refilled above");
+            marks.slots.get_or_init(id);
+            id
+        });
+        marks.slots.get(s)
+    }
+
+    /// OR a brick's free marks into its slot: plain loads and stores, no test first, as
+    /// the lane is this task's alone and the line is about to be read anyway.
+    #[inline]
+    fn or_free(&mut self, brick: VoxelCoord, bits: &[u64; 8]) {
+        let slot = self.slot_for(brick);
+        for (w, &b) in slot.free.iter().zip(bits) {
+            w.store(w.load(Relaxed) | b, Relaxed);
+        }
+    }
+
+    #[inline]
+    fn set_hit(&mut self, v: VoxelCoord) {
+        let slot = self.slot_for(v.shr(3));
+        let i = leaf_offset(v);
+        let w = &slot.hit[i >> 6];
+        w.store(w.load(Relaxed) | 1u64 << (i & 63), Relaxed);
+    }
+}
+
+impl Drop for BrickCache<'_> {
+    fn drop(&mut self) {
+        // Release: the next task to take this lane, on any thread, sees these marks.
+        self.marks.taken[self.lane].store(false, Release);
     }
 }
 
@@ -1399,6 +1443,41 @@ mod tests {
     /// sparse walk (one ray at a time into shared bricks) give the same map, steps and report,
     /// on frames with fewer rays than lanes, rays ending in their start voxel, rays cut at
     /// max range, negative coordinates, and a frame too big for the dense box.
+    #[test]
+    fn lanes_are_held_one_cache_each_and_merge_their_marks() {
+        let mut marks = FrameMarks::default();
+        let lo = VoxelCoord::new(-300, 0, 0);
+        marks.reset(lo, VoxelCoord::new(300, 15, 15), 4, 2);
+        // Bricks (voxel coordinates >> 3) at both ends of the box and one in between.
+        let shared = VoxelCoord::new(-1, 1, 0);
+        let (only_a, only_b) = (VoxelCoord::new(-37, 0, 0), VoxelCoord::new(37, 1, 1));
+        let mut a = marks.cache();
+        let mut b = marks.cache();
+        assert_ne!(a.lane, b.lane);
+        let a_lane = a.lane;
+        a.or_free(shared, &[1, 0, 0, 0, 0, 0, 0, 1 << 63]);
+        a.or_free(only_a, &[0, 2, 0, 0, 0, 0, 0, 0]);
+        b.or_free(shared, &[4, 0, 0, 0, 0, 0, 0, 0]);
+        b.set_hit(shared.shl(3) + VoxelCoord::new(7, 7, 7));
+        b.or_free(only_b, &[0, 0, 8, 0, 0, 0, 0, 0]);
+        drop(a);
+        assert_eq!(marks.cache().lane, a_lane, "a dropped cache frees its lane");
+        drop(b);
+        let bricks: Vec<_> = marks.bricks_in_order().collect();
+        let origins: Vec<_> = bricks.iter().map(|&(o, _)| o).collect();
+        assert_eq!(origins, [only_a.shl(3), shared.shl(3), only_b.shl(3)]);
+        let words = |s: u32| {
+            let slot = marks.slot(s);
+            let load = |w: &[AtomicU64; 8]| w.each_ref().map(|x| x.load(Relaxed));
+            (load(&slot.free), load(&slot.hit))
+        };
+        let (free, hit) = words(bricks[1].1);
+        assert_eq!(free, [5, 0, 0, 0, 0, 0, 0, 1 << 63]);
+        assert_eq!(hit, [0, 0, 0, 0, 0, 0, 0, 1 << 63]);
+        assert_eq!(words(bricks[0].1).0, [0, 2, 0, 0, 0, 0, 0, 0]);
+        assert_eq!(words(bricks[2].1).0, [0, 0, 8, 0, 0, 0, 0, 0]);
+    }
+
     #[test]
     fn dense_and_sparse_walks_agree() {
         let mut rng = Rng(29);

@@ -27,6 +27,7 @@ pub mod io;
 pub mod map;
 pub mod mask;
 pub mod model;
+mod pages;
 pub mod raycast;
 pub mod snapshot;
 pub mod wire;

@@ -7,7 +7,7 @@
 //! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
 //! thread walked which ray.
 
-use super::{BrickCache, FrameMarks, Ray};
+use super::{FrameMarks, Ray};
 use crate::coord::VoxelCoord;
 use crate::raycast::Dda;
 use rayon::prelude::*;
@@ -184,7 +184,7 @@ pub(super) fn merge(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
     (0..dbox.brick_rows()).into_par_iter().for_each(|r| {
         let (by, bz) = (r % nby, r / nby);
-        let mut cache = BrickCache::default();
+        let mut cache = marks.cache();
         for wx in 0..row_words {
             // Word (wx) of the 64 rows of this brick row: [z][y].
             let mut free = [[0u64; 8]; 8];
@@ -216,7 +216,7 @@ pub(super) fn merge(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
                 }
                 let origin = dbox.lo
                     + VoxelCoord::new((wx * 64 + k * 8) as i32, (by * 8) as i32, (bz * 8) as i32);
-                let slot = marks.slot_for(&mut cache, origin.shr(3));
+                let slot = cache.slot_for(origin.shr(3));
                 // Each brick belongs to one row, and only this pass writes slots: plain
                 // stores suffice.
                 for (w, v) in slot.free.iter().zip(f) {

@@ -1,0 +1,131 @@
+//! Big zeroed arrays mapped straight from the kernel and advised onto 2 MiB pages.
+//!
+//! The map's leaf pool and the frame marks' pools hold hundreds of MiB at 60 m and are
+//! read in no cache-friendly order. On 4 KiB pages nearly every such access also misses
+//! the TLB, and a fresh map's first writes fault once per 4 KiB. Each [`Zeroed`] is its own
+//! anonymous mapping, aligned to 2 MiB and advised `MADV_HUGEPAGE`, so that where the
+//! kernel has transparent huge pages set to `madvise` (the usual default) or `always`, it
+//! backs the array with 2 MiB pages. Where it has not, this is an ordinary zeroed array.
+
+use std::ptr::NonNull;
+
+/// Bytes of a huge page.
+pub(crate) const HUGE_PAGE: usize = 2 << 20;
+
+/// A fixed-length array of all-zero `T`, owned like a `Box<[T]>`.
+pub(crate) struct Zeroed<T> {
+    ptr: NonNull<T>,
+    len: usize,
+    /// The whole mapping (start, bytes), or (null, 0) for an empty array.
+    map: (*mut libc::c_void, usize),
+}
+
+// SAFETY: a `Zeroed<T>` owns its elements exclusively, as a `Box<[T]>` does; the raw
+// pointers are only the address of that memory.
+unsafe impl<T: Send> Send for Zeroed<T> {}
+// SAFETY: as above; shared access hands out only `&[T]`.
+unsafe impl<T: Sync> Sync for Zeroed<T> {}
+
+impl<T: bytemuck::Zeroable> Zeroed<T> {
+    /// `len` zeroed elements. Aborts like any allocation when the memory is not there.
+    pub(crate) fn new(len: usize) -> Self {
+        const {
+            assert!(!std::mem::needs_drop::<T>());
+            assert!(std::mem::align_of::<T>() <= 4096);
+        }
+        let layout = std::alloc::Layout::array::<T>(len).expect("array size overflows");
+        if layout.size() == 0 {
+            return Zeroed {
+                ptr: NonNull::dangling(),
+                len,
+                map: (std::ptr::null_mut(), 0),
+            };
+        }
+        let used = layout.size().next_multiple_of(HUGE_PAGE);
+        // One huge page more than needed, so that an aligned run of `used` bytes fits.
+        let map_len = used + HUGE_PAGE;
+        // SAFETY: a new private anonymous mapping, which touches no existing memory.
+        let p = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                map_len,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+                -1,
+                0,
+            )
+        };
+        if p == libc::MAP_FAILED {
+            std::alloc::handle_alloc_error(layout);
+        }
+        let skip = (p as usize).next_multiple_of(HUGE_PAGE) - p as usize;
+        // SAFETY: skip < HUGE_PAGE, so the run [p + skip, p + skip + used) lies inside the
+        // mapping of used + HUGE_PAGE bytes.
+        let start = unsafe { p.cast::<u8>().add(skip) };
+        #[cfg(target_os = "linux")]
+        // SAFETY: advice on part of our own mapping; it never changes contents, and a
+        // refusal (no transparent huge pages) leaves ordinary pages, so the result is
+        // ignored.
+        unsafe {
+            libc::madvise(start.cast(), used, libc::MADV_HUGEPAGE);
+        }
+        Zeroed {
+            ptr: NonNull::new(start.cast()).expect("mmap returned a non-null address"),
+            len,
+            map: (p, map_len),
+        }
+    }
+}
+
+impl<T> std::ops::Deref for Zeroed<T> {
+    type Target = [T];
+
+    #[inline]
+    fn deref(&self) -> &[T] {
+        // SAFETY: `ptr` is page-aligned (enough for T, checked in `new`) or dangling for a
+        // zero-size array; the `len` elements lie in our mapping, whose fresh pages read as
+        // zero, a valid T (T: Zeroable); `&self` guarantees no `&mut` to them is live.
+        unsafe { std::slice::from_raw_parts(self.ptr.as_ptr(), self.len) }
+    }
+}
+
+impl<T> std::ops::DerefMut for Zeroed<T> {
+    #[inline]
+    fn deref_mut(&mut self) -> &mut [T] {
+        // SAFETY: as in `deref`, and `&mut self` makes this the only access.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.as_ptr(), self.len) }
+    }
+}
+
+impl<T> Drop for Zeroed<T> {
+    fn drop(&mut self) {
+        if self.map.1 != 0 {
+            // SAFETY: unmaps exactly the mapping `new` made, once; T has no drop glue, and
+            // no reference into it outlives `self`.
+            unsafe {
+                libc::munmap(self.map.0, self.map.1);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn zeroed_arrays_are_zero_aligned_and_writable() {
+        for len in [0usize, 1, 1000, HUGE_PAGE / 8 + 1] {
+            let mut a = Zeroed::<u64>::new(len);
+            assert_eq!(a.len(), len);
+            assert!(a.iter().all(|&x| x == 0));
+            if len > 0 {
+                assert_eq!(a.as_ptr() as usize % HUGE_PAGE, 0);
+                a[len - 1] = 7;
+                a[0] += 1;
+                assert_eq!(a[len - 1], if len == 1 { 8 } else { 7 });
+                assert_eq!(a.iter().sum::<u64>(), 8);
+            }
+        }
+    }
+}
