@@ -6,10 +6,11 @@
 //!    neighbouring memory.
 //! 2. **Raycast** (parallel over chunks of rays), one of two walks with the same result:
 //!    - *sparse*: each ray is walked with the exact DDA; its marks are gathered per 8x8x8
-//!      brick in registers and OR-ed into one per-frame [`FrameMarks`] table shared by all
-//!      threads. There are no per-thread grids, so there is nothing to merge: this is what
-//!      keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread grids made the
-//!      merge dominate.
+//!      brick in registers and OR-ed into the per-frame [`FrameMarks`], sparse tables of
+//!      touched bricks only, one per thread. Threads walk rays of different directions, so
+//!      their tables share bricks only near the sensor, and there is no grid to merge:
+//!      this is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread
+//!      dense grids made the merge dominate.
 //!    - *dense*, when the frame's box is small (about 30 m of range at 0.1 m): each thread
 //!      walks into its own bit grid over the whole box (`dense`), eight rays at a time, one
 //!      per vector lane, where the build has AVX-512 (`avx512`), one at a time otherwise.

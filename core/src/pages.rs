@@ -16,7 +16,8 @@ pub(crate) const HUGE_PAGE: usize = 2 << 20;
 pub(crate) struct Zeroed<T> {
     ptr: NonNull<T>,
     len: usize,
-    /// The whole mapping (start, bytes), or (null, 0) for an empty array.
+    /// The whole mapping (start, bytes), or (null, 0) when the array is a `Box<[T]>` from
+    /// the global allocator (leaked into `ptr`, `len`).
     map: (*mut libc::c_void, usize),
 }
 
@@ -27,16 +28,29 @@ unsafe impl<T: Send> Send for Zeroed<T> {}
 unsafe impl<T: Sync> Sync for Zeroed<T> {}
 
 impl<T: bytemuck::Zeroable> Zeroed<T> {
-    /// `len` zeroed elements. Aborts like any allocation when the memory is not there.
+    /// `len` zeroed elements on huge pages where the kernel grants them. Aborts like any
+    /// allocation when the memory is not there.
     pub(crate) fn new(len: usize) -> Self {
+        Self::map(len, true)
+    }
+
+    /// `len` zeroed elements from the global allocator: for an array that may stay mostly
+    /// unused, where a huge page would fault in (and zero) 2 MiB on its first write, and
+    /// where memory a freed array held may be handed back at once.
+    pub(crate) fn new_small_pages(len: usize) -> Self {
+        Self::map(len, false)
+    }
+
+    fn map(len: usize, huge: bool) -> Self {
         const {
             assert!(!std::mem::needs_drop::<T>());
             assert!(std::mem::align_of::<T>() <= 4096);
         }
         let layout = std::alloc::Layout::array::<T>(len).expect("array size overflows");
-        if layout.size() == 0 {
+        if !huge || layout.size() == 0 {
+            let heap: Box<[T]> = bytemuck::allocation::zeroed_slice_box(len);
             return Zeroed {
-                ptr: NonNull::dangling(),
+                ptr: NonNull::new(Box::into_raw(heap).cast()).expect("a box is non-null"),
                 len,
                 map: (std::ptr::null_mut(), 0),
             };
@@ -82,9 +96,10 @@ impl<T> std::ops::Deref for Zeroed<T> {
 
     #[inline]
     fn deref(&self) -> &[T] {
-        // SAFETY: `ptr` is page-aligned (enough for T, checked in `new`) or dangling for a
-        // zero-size array; the `len` elements lie in our mapping, whose fresh pages read as
-        // zero, a valid T (T: Zeroable); `&self` guarantees no `&mut` to them is live.
+        // SAFETY: `ptr` and `len` are those of a `Box<[T]>` we own, or `ptr` is page-aligned
+        // (enough for T, checked in `map`) and the `len` elements lie in our mapping, whose
+        // fresh pages read as zero, a valid T (T: Zeroable); `&self` guarantees no `&mut`
+        // to them is live.
         unsafe { std::slice::from_raw_parts(self.ptr.as_ptr(), self.len) }
     }
 }
@@ -100,11 +115,16 @@ impl<T> std::ops::DerefMut for Zeroed<T> {
 impl<T> Drop for Zeroed<T> {
     fn drop(&mut self) {
         if self.map.1 != 0 {
-            // SAFETY: unmaps exactly the mapping `new` made, once; T has no drop glue, and
+            // SAFETY: unmaps exactly the mapping `map` made, once; T has no drop glue, and
             // no reference into it outlives `self`.
             unsafe {
                 libc::munmap(self.map.0, self.map.1);
             }
+        } else {
+            let slice = std::ptr::slice_from_raw_parts_mut(self.ptr.as_ptr(), self.len);
+            // SAFETY: `ptr` and `len` came from `Box::into_raw` in `map` and are given
+            // back once, here.
+            drop(unsafe { Box::from_raw(slice) });
         }
     }
 }
@@ -115,11 +135,16 @@ mod tests {
 
     #[test]
     fn zeroed_arrays_are_zero_aligned_and_writable() {
-        for len in [0usize, 1, 1000, HUGE_PAGE / 8 + 1] {
-            let mut a = Zeroed::<u64>::new(len);
+        for (len, huge) in [
+            (0usize, true),
+            (1, true),
+            (1000, false),
+            (HUGE_PAGE / 8 + 1, true),
+        ] {
+            let mut a = Zeroed::<u64>::map(len, huge);
             assert_eq!(a.len(), len);
             assert!(a.iter().all(|&x| x == 0));
-            if len > 0 {
+            if len > 0 && huge {
                 assert_eq!(a.as_ptr() as usize % HUGE_PAGE, 0);
                 a[len - 1] = 7;
                 a[0] += 1;
