@@ -14,6 +14,7 @@
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::{Ray, RayMaker, SKIPPED};
 use crate::mask::BitIter;
+use crate::model::QuantizedModel;
 #[cfg(doc)]
 use crate::raycast::Dda;
 use crate::raycast::T_ONE;
@@ -466,4 +467,39 @@ fn from_array(a: [u64; 8]) -> __m512i {
 fn to_array(v: __m512i) -> [u64; 8] {
     // SAFETY: __m512i and [u64; 8] are both 64 plain bytes; every bit pattern is valid.
     unsafe { std::mem::transmute(v) }
+}
+
+/// `super::observe` in one masked saturating add, clamp and store: the 64 values of a leaf
+/// word take their observation at once instead of one set bit at a time. The same values:
+/// an i8 add saturates only beyond the clamps, which are within i8. Random 500k 60 m, 2
+/// threads, update phase: see the README.
+#[cfg(target_feature = "avx512bw")]
+#[inline]
+pub(super) fn observe<const FRESH: bool>(
+    values: &mut [i8; 64],
+    any: u64,
+    hit: u64,
+    q: &QuantizedModel,
+) {
+    // SAFETY: this module is only compiled where the build enables AVX-512F (and DQ) for
+    // the whole crate, and this function where it enables BW too.
+    unsafe { observe_impl::<FRESH>(values, any, hit, q) }
+}
+
+#[cfg(target_feature = "avx512bw")]
+#[target_feature(enable = "avx512f,avx512bw")]
+fn observe_impl<const FRESH: bool>(values: &mut [i8; 64], any: u64, hit: u64, q: &QuantizedModel) {
+    let delta = _mm512_mask_blend_epi8(hit, _mm512_set1_epi8(q.miss), _mm512_set1_epi8(q.hit));
+    let old = if FRESH {
+        _mm512_setzero_si512()
+    } else {
+        // SAFETY: reads the 64 bytes of `values`.
+        unsafe { _mm512_loadu_si512(values.as_ptr().cast()) }
+    };
+    let new = _mm512_max_epi8(
+        _mm512_min_epi8(_mm512_adds_epi8(old, delta), _mm512_set1_epi8(q.max)),
+        _mm512_set1_epi8(q.min),
+    );
+    // SAFETY: writes bytes of `values` only, those whose bit is set in `any`.
+    unsafe { _mm512_mask_storeu_epi8(values.as_mut_ptr(), any, new) };
 }
