@@ -907,9 +907,7 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u
     n
 }
 
-/// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
-/// where set in `hit` too. `FRESH`: the values are all zero, and are not read (see
-/// [`apply`]).
+// `observe` is `avx512::observe` where the build has AVX-512BW, `observe_scalar` elsewhere.
 #[cfg(all(
     target_arch = "x86_64",
     target_feature = "avx512f",

@@ -6,6 +6,8 @@
 //! anonymous mapping, aligned to 2 MiB and advised `MADV_HUGEPAGE`, so that where the
 //! kernel has transparent huge pages set to `madvise` (the usual default) or `always`, it
 //! backs the array with 2 MiB pages. Where it has not, this is an ordinary zeroed array.
+//! An array that may stay mostly unused comes from the global allocator instead
+//! ([`Zeroed::from_allocator`]).
 
 use std::ptr::NonNull;
 
@@ -31,17 +33,17 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
     /// `len` zeroed elements on huge pages where the kernel grants them. Aborts like any
     /// allocation when the memory is not there.
     pub(crate) fn new(len: usize) -> Self {
-        Self::map(len, true)
+        Self::alloc(len, true)
     }
 
     /// `len` zeroed elements from the global allocator: for an array that may stay mostly
     /// unused, where a huge page would fault in (and zero) 2 MiB on its first write, and
     /// where memory a freed array held may be handed back at once.
-    pub(crate) fn new_small_pages(len: usize) -> Self {
-        Self::map(len, false)
+    pub(crate) fn from_allocator(len: usize) -> Self {
+        Self::alloc(len, false)
     }
 
-    fn map(len: usize, huge: bool) -> Self {
+    fn alloc(len: usize, huge: bool) -> Self {
         const {
             assert!(!std::mem::needs_drop::<T>());
             assert!(std::mem::align_of::<T>() <= 4096);
@@ -97,7 +99,7 @@ impl<T> std::ops::Deref for Zeroed<T> {
     #[inline]
     fn deref(&self) -> &[T] {
         // SAFETY: `ptr` and `len` are those of a `Box<[T]>` we own, or `ptr` is page-aligned
-        // (enough for T, checked in `map`) and the `len` elements lie in our mapping, whose
+        // (enough for T, checked in `alloc`) and the `len` elements lie in our mapping, whose
         // fresh pages read as zero, a valid T (T: Zeroable); `&self` guarantees no `&mut`
         // to them is live.
         unsafe { std::slice::from_raw_parts(self.ptr.as_ptr(), self.len) }
@@ -115,14 +117,14 @@ impl<T> std::ops::DerefMut for Zeroed<T> {
 impl<T> Drop for Zeroed<T> {
     fn drop(&mut self) {
         if self.map.1 != 0 {
-            // SAFETY: unmaps exactly the mapping `map` made, once; T has no drop glue, and
+            // SAFETY: unmaps exactly the mapping `alloc` made, once; T has no drop glue, and
             // no reference into it outlives `self`.
             unsafe {
                 libc::munmap(self.map.0, self.map.1);
             }
         } else {
             let slice = std::ptr::slice_from_raw_parts_mut(self.ptr.as_ptr(), self.len);
-            // SAFETY: `ptr` and `len` came from `Box::into_raw` in `map` and are given
+            // SAFETY: `ptr` and `len` came from `Box::into_raw` in `alloc` and are given
             // back once, here.
             drop(unsafe { Box::from_raw(slice) });
         }
@@ -141,11 +143,13 @@ mod tests {
             (1000, false),
             (HUGE_PAGE / 8 + 1, true),
         ] {
-            let mut a = Zeroed::<u64>::map(len, huge);
+            let mut a = Zeroed::<u64>::alloc(len, huge);
             assert_eq!(a.len(), len);
             assert!(a.iter().all(|&x| x == 0));
-            if len > 0 && huge {
-                assert_eq!(a.as_ptr() as usize % HUGE_PAGE, 0);
+            if len > 0 {
+                if huge {
+                    assert_eq!(a.as_ptr() as usize % HUGE_PAGE, 0);
+                }
                 a[len - 1] = 7;
                 a[0] += 1;
                 assert_eq!(a[len - 1], if len == 1 { 8 } else { 7 });

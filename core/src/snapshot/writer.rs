@@ -463,29 +463,26 @@ impl<'a> Plan<'a> {
 #[cfg(test)]
 mod tests {
     use super::fill_table;
+    use crate::test_rng::Rng;
 
     /// Every leaf lands once, and probing from its home reaches it before an empty slot,
     /// also when homes crowd the table's end and the leaves wrap around to its start.
     #[test]
     fn table_fill_is_a_linear_probing_table() {
-        let mut seed = 1u64;
-        let mut next = move |n: u64| {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) % n
-        };
+        let mut rng = Rng(1);
         let mut wrapped_some = false;
         for trial in 0..2000u64 {
-            let cap = 1 + next(40);
-            let n = next(cap);
+            let cap = rng.i(1, 40) as u64;
+            let n = rng.i(0, cap as i32 - 1) as u64;
             // Half the trials put every home in the last quarter of the table.
             let lo = if trial % 2 == 0 {
                 0
             } else {
                 cap - cap.div_ceil(4)
             };
-            let homes: Vec<u64> = (0..n).map(|_| lo + next(cap - lo)).collect();
+            let homes: Vec<u64> = (0..n)
+                .map(|_| rng.i(lo as i32, cap as i32 - 1) as u64)
+                .collect();
             let mut order: Vec<u64> = homes
                 .iter()
                 .enumerate()
