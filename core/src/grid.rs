@@ -27,6 +27,21 @@ pub const INTERNAL_LOG2: u32 = 4;
 pub const INTERNAL_TOTAL_LOG2: u32 = LEAF_LOG2 + INTERNAL_LOG2;
 /// Children (leaves) per internal node.
 pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
+/// Leaves per block: the 8x8x8 leaves (64^3 voxels) that snapshots index together, eight
+/// to an internal node.
+pub const BLOCK_LEAVES: usize = 512;
+
+/// Origin (minimum corner) of the block holding `v`.
+#[inline]
+pub fn block_origin(v: VoxelCoord) -> VoxelCoord {
+    VoxelCoord::new(v.x & !63, v.y & !63, v.z & !63)
+}
+
+/// In-block index of the leaf holding `v`: its leaf coordinates mod 8, x | y << 3 | z << 6.
+#[inline]
+pub fn leaf_in_block(v: VoxelCoord) -> usize {
+    ((v.x >> 3 & 7) | (v.y >> 3 & 7) << 3 | (v.z >> 3 & 7) << 6) as usize
+}
 /// Leaves per pool chunk: as many `Leaf<i8>`, in whole [`UPDATE_SPAN`]s, as fill one
 /// huge page (3584 of 3640). Each chunk is its own mapping ([`Zeroed`]): with chunks of 256
 /// leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the random 500k 60 m
@@ -306,9 +321,12 @@ impl<V: GridValue> Grid<V> {
             .flat_map(move |node| self.node_leaves(node))
     }
 
-    /// Every leaf in block order: internal nodes by origin (z, y, x), and within one the
-    /// leaves by origin (z, y, x). The order depends only on which leaves exist, not on the
-    /// order they were made in, and costs a sort of the internal nodes only.
+    /// Every leaf in block order: internal nodes by origin (z, y, x); within one, its eight
+    /// blocks of [`BLOCK_LEAVES`] leaves (64^3 voxels) by origin (z, y, x); within a block,
+    /// the leaves by origin (z, y, x). So each block's leaves come together, in the order of
+    /// their in-block index ([`leaf_in_block`]), which is what snapshots index by. The order
+    /// depends only on which leaves exist, not on the order they were made in, and costs a
+    /// sort of the internal nodes only.
     pub fn leaves_in_block_order(&self) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
         self.internals_in_block_order()
             .into_iter()
@@ -338,21 +356,21 @@ impl<V: GridValue> Grid<V> {
         &'a self,
         node: &'a Internal,
     ) -> impl Iterator<Item = (VoxelCoord, &'a Leaf<V>)> + 'a {
-        // Child index x | y << 4 | z << 8: ascending is (z, y, x) order.
-        node.child_mask
-            .iter()
-            .enumerate()
-            .flat_map(move |(wi, &w)| {
-                BitIter(w).map(move |b| {
-                    let ci = wi * 64 + b;
-                    let m = (1 << INTERNAL_LOG2) - 1;
-                    let c = ci as i32;
-                    let o = node.origin
-                        + VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2))
-                            .shl(LEAF_LOG2);
-                    (o, self.leaves.get(node.children[ci]))
-                })
+        // Child index x | y << 4 | z << 8 (x, y, z in leaves, 0..16): a block's row of 8
+        // leaves along x at (y, z) is one byte of the child mask.
+        (0..8 * BLOCK_LEAVES / 8).flat_map(move |row| {
+            let (block, r) = (row / 64, row % 64);
+            let (bx, by, bz) = (block & 1, block >> 1 & 1, block >> 2);
+            let (y, z) = (by * 8 + (r & 7), bz * 8 + (r >> 3));
+            let at = y << 4 | z << 8 | bx * 8;
+            let bits = (node.child_mask[at / 64] >> (at % 64)) & 0xFF;
+            BitIter(bits).map(move |b| {
+                let ci = at + b;
+                let o = node.origin
+                    + VoxelCoord::new((bx * 8 + b) as i32, y as i32, z as i32).shl(LEAF_LOG2);
+                (o, self.leaves.get(node.children[ci]))
             })
+        })
     }
 
     /// Every active voxel as (coordinate, value), in no particular order.
@@ -492,6 +510,48 @@ mod tests {
         for p in pts {
             assert_eq!(acc.get(p), Some(1));
         }
+    }
+
+    /// Each leaf once; each block's leaves together and by in-block index; blocks of one
+    /// internal node by origin (z, y, x); the same as the parallel form.
+    #[test]
+    fn block_order_groups_blocks_and_sorts_within() {
+        let mut g = Grid::<i8>::new();
+        let mut rng = crate::test_rng::Rng(7);
+        let mut want = std::collections::BTreeSet::new();
+        for _ in 0..3000 {
+            let v = VoxelCoord::new(rng.i(-300, 300), rng.i(-300, 300), rng.i(-140, 140));
+            g.set(v, 1);
+            want.insert(leaf_origin(v));
+        }
+        let order: Vec<VoxelCoord> = g.leaves_in_block_order().map(|(o, _)| o).collect();
+        assert_eq!(order.len(), want.len());
+        assert_eq!(
+            order
+                .iter()
+                .copied()
+                .collect::<std::collections::BTreeSet<_>>(),
+            want
+        );
+        let key = |o: VoxelCoord| {
+            let b = block_origin(o);
+            (internal_key(o), (b.z, b.y, b.x), leaf_in_block(o))
+        };
+        let mut done = std::collections::HashSet::new();
+        for w in order.windows(2) {
+            let (a, b) = (key(w[0]), key(w[1]));
+            if a.0 == b.0 {
+                assert!(a < b, "{:?} before {:?}", w[0], w[1]);
+            }
+            if block_origin(w[0]) != block_origin(w[1]) {
+                assert!(done.insert(block_origin(w[0])), "block {:?} split", w[0]);
+            }
+        }
+        let par = g.filter_map_leaves_in_block_order(|o, _| Some(o));
+        assert_eq!(par, order);
+        let v = VoxelCoord::new(-65, 70, 200);
+        assert_eq!(block_origin(v), VoxelCoord::new(-128, 64, 192));
+        assert_eq!(leaf_in_block(v), 7 | 0 << 3 | 1 << 6);
     }
 
     #[test]

@@ -1,29 +1,38 @@
-//! The byte layout of a snapshot, version 3. All integers little-endian; every section
+//! The byte layout of a snapshot, version 4. All integers little-endian; every section
 //! starts on an 8-byte boundary.
 //!
 //! ```text
 //! offset  size                 what
-//! 0       160                  Header
-//! table   4 * table_capacity   u32 per slot: leaf index + 1, 0 = empty (linear probing)
-//! leaves  16 * leaf_count      LeafEntry: origin and mask kinds, record offset; block order
+//! 0       176                  Header
+//! table   4 * table_capacity   u32 per slot: block index + 1, 0 = empty (linear probing)
+//! blocks  80 * block_count     BlockEntry: origin, first leaf, which of its 512 leaves exist
+//! leaves  8 * leaf_count       LeafEntry: mask kinds and record offset; block by block,
+//!                              each block's leaves by in-block index
 //! masks   masks_len            one mask record per leaf (see `record`), in leaf order,
 //!                              zero-padded to a multiple of 8
 //! values  512 * leaf_count     i8 log-odds per voxel (only with FLAG_VALUES)
 //! ```
 //!
-//! Version 3 stores each leaf's masks in the smallest of a few O(1)-readable encodings
-//! (see `record`); version 2 stored a whole 64-byte mask or none. The entry that the table
-//! lookup loads already says how and where the leaf's masks are stored.
+//! A lookup hashes the voxel's block (64^3 voxels), reads which of the block's 8^3 leaves
+//! exist, and takes the leaf's entry at the block's first leaf plus the count of leaves
+//! before it (a rank over the block's presence bits). Version 3 hashed every leaf: a table
+//! slot and a 16-byte entry per leaf, scattered over pages so that each leaf a `first_hit`
+//! walk crossed cost two dependent cache and TLB misses on a large map. Here the table and
+//! blocks of a 60 m map are a few hundred kB and stay in cache; a leaf costs 8 bytes of
+//! entry, and neighbouring leaves' entries and records lie close together. Version 3 also
+//! stored each leaf's masks in the smallest of a few O(1)-readable encodings (see
+//! `record`), as this version does.
 
 use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"VXMSNAP\0";
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 /// The snapshot carries per-voxel log-odds.
 pub const FLAG_VALUES: u32 = 1;
 pub const HEADER_SIZE: usize = std::mem::size_of::<Header>();
 pub const VALUES_PER_LEAF: usize = 512;
-pub const ENTRY_SIZE: usize = 16;
+pub const ENTRY_SIZE: usize = std::mem::size_of::<LeafEntry>();
+pub const BLOCK_SIZE: usize = std::mem::size_of::<BlockEntry>();
 /// Bytes the masks section may hold: record offsets are `u32`.
 pub const MAX_MASKS_LEN: u64 = u32::MAX as u64;
 
@@ -31,39 +40,48 @@ pub const MAX_MASKS_LEN: u64 = u32::MAX as u64;
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct LeafEntry {
-    /// The leaf origin in voxels, whose coordinates are multiples of 8, with the known
-    /// mask's kind in the low 3 bits of x and the occupied mask's kind in those of y
-    /// (z's are zero). Use [`LeafEntry::origin`] and [`LeafEntry::kinds`].
-    pub key: [i32; 3],
     /// Byte offset of the leaf's mask record in the masks section.
     pub record: u32,
+    pub known_kind: u8,
+    pub occupied_kind: u8,
+    /// Zero.
+    pub reserved: [u8; 2],
 }
 
 impl LeafEntry {
-    pub fn new(origin: [i32; 3], known_kind: u8, occupied_kind: u8, record: u32) -> Self {
+    pub fn new(known_kind: u8, occupied_kind: u8, record: u32) -> Self {
         LeafEntry {
-            key: [
-                origin[0] | i32::from(known_kind & 7),
-                origin[1] | i32::from(occupied_kind & 7),
-                origin[2],
-            ],
             record,
+            known_kind,
+            occupied_kind,
+            reserved: [0; 2],
         }
-    }
-
-    #[inline]
-    pub fn origin(&self) -> [i32; 3] {
-        self.key.map(|c| c & !7)
     }
 
     /// (known kind, occupied kind).
     #[inline]
     pub fn kinds(&self) -> (u8, u8) {
-        ((self.key[0] & 7) as u8, (self.key[1] & 7) as u8)
+        (self.known_kind, self.occupied_kind)
     }
 }
 
-const _: () = assert!(std::mem::size_of::<LeafEntry>() == ENTRY_SIZE);
+const _: () = assert!(ENTRY_SIZE == 8);
+
+/// One block of 8x8x8 leaves in the `blocks` section.
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct BlockEntry {
+    /// Block origin in voxels: multiples of 64.
+    pub origin: [i32; 3],
+    /// Index of the block's first leaf; the blocks' leaves follow one another from 0.
+    pub first: u32,
+    /// Bit `i` (`grid::leaf_in_block`) set: the leaf is stored.
+    pub leaves: [u64; 8],
+}
+
+const _: () = assert!(BLOCK_SIZE == 80);
+/// Byte offset in a [`BlockEntry`] of its `leaves` words.
+pub const BLOCK_LEAVES_AT: usize = std::mem::offset_of!(BlockEntry, leaves);
 
 /// Fixed header at offset 0.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
@@ -89,9 +107,11 @@ pub struct Header {
     /// Inclusive voxel bounds of the known voxels (min > max when empty).
     pub bounds_min: [i32; 3],
     pub bounds_max: [i32; 3],
-    /// Slots in the leaf table: > leaf_count (about 1.5x), < 2^32.
+    /// Slots in the block table: > block_count, < 2^32.
     pub table_capacity: u64,
+    pub block_count: u64,
     pub table_offset: u64,
+    pub blocks_offset: u64,
     pub leaves_offset: u64,
     pub masks_offset: u64,
     /// Bytes of mask records (the section is zero-padded to a multiple of 8).
@@ -104,36 +124,24 @@ pub struct Header {
     pub reserved: u32,
 }
 
-const _: () = assert!(HEADER_SIZE == 160);
+const _: () = assert!(HEADER_SIZE == 176);
 const _: () = assert!(std::mem::offset_of!(Header, resolution) == 24);
 const _: () = assert!(std::mem::offset_of!(Header, bounds_min) == 72);
 const _: () = assert!(std::mem::offset_of!(Header, table_capacity) == 96);
-const _: () = assert!(std::mem::offset_of!(Header, masks_len) == 128);
-const _: () = assert!(std::mem::offset_of!(Header, total_len) == 144);
-const _: () = assert!(std::mem::offset_of!(Header, checksum) == 152);
+const _: () = assert!(std::mem::offset_of!(Header, masks_len) == 144);
+const _: () = assert!(std::mem::offset_of!(Header, total_len) == 160);
+const _: () = assert!(std::mem::offset_of!(Header, checksum) == 168);
 
-/// Table slots for `n` leaves. A snapshot that fits in cache is read at the speed of its
-/// probes: each extra probe is a dependent load and a mispredicted branch. Up to
-/// [`SPACIOUS_TABLE_LEAVES`] leaves (a table of at most 256 KiB) the load factor is 1/4;
-/// point queries on the 6 m workloads' snapshots went from 51-58 to 35-50 ns (random,
-/// 2,320 leaves) and from 31-40 to 20-31 ns (structured, 416 leaves), for 10 bytes more
-/// per leaf. Bigger snapshots miss cache on every lookup whatever the load, so there it is
-/// about 2/3 (6 bytes per leaf), with no power-of-two rounding.
+/// Table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its first
+/// probe. Blocks are few (a 60 m map has some thousands), so this costs 16 bytes a block.
 pub fn table_capacity_for(n: u64) -> u64 {
-    if n <= SPACIOUS_TABLE_LEAVES {
-        4 * n + 1
-    } else {
-        n + n / 2 + 1
-    }
+    4 * n + 1
 }
 
-/// The most leaves for which [`table_capacity_for`] trades bytes for probes.
-pub const SPACIOUS_TABLE_LEAVES: u64 = 1 << 14;
-
-/// Slot of a leaf origin in a table of `capacity` slots (before probing).
+/// Slot of a block origin in a table of `capacity` slots (before probing).
 #[inline]
 pub fn table_hash(o: [i32; 3], capacity: u64) -> u64 {
-    let k = |c: i32, m: u64| ((c >> 3) as u32 as u64).wrapping_mul(m);
+    let k = |c: i32, m: u64| ((c >> 6) as u32 as u64).wrapping_mul(m);
     let mut h = k(o[0], 0x9E37_79B1) ^ k(o[1], 0x85EB_CA77) ^ k(o[2], 0xC2B2_AE3D);
     h ^= h >> 29;
     h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -162,8 +170,8 @@ pub enum SnapshotError {
     BadHeader(&'static str),
     /// A section lies outside the buffer, overlaps the header or is misaligned.
     SectionOutOfBounds(&'static str),
-    /// The table points at a leaf that does not exist, or a leaf entry's kinds or mask
-    /// record are malformed.
+    /// The table points at a block that does not exist, the blocks do not name each leaf
+    /// once, or a leaf entry's kinds or mask record are malformed.
     BadIndex(&'static str),
     /// The map needs more mask bytes than a leaf entry can address.
     TooLarge,

@@ -1,8 +1,8 @@
 //! Compact, pointer-free occupancy snapshots and the zero-copy [`SnapshotView`].
 //!
 //! A snapshot is one contiguous little-endian buffer (the tree linearized, NanoVDB-style):
-//! a fixed [`layout::Header`], an open-addressing leaf table, leaf origins, per-leaf known
-//! and occupied masks, and optionally the per-voxel log-odds. [`writer::Plan`] sizes and
+//! a fixed [`layout::Header`], an open-addressing table of blocks (64^3 voxels) and which
+//! of their leaves exist, per-leaf known and occupied masks, and optionally the per-voxel log-odds. [`writer::Plan`] sizes and
 //! writes it straight into a caller's buffer (e.g. a loaned shared-memory sample);
 //! [`SnapshotView::open`] validates every offset and count once, after which every query
 //! is bounds-safe and never panics, whatever the bytes. See `docs/snapshot-format.md`.

@@ -310,7 +310,7 @@ fn corrupt_bytes_get_clear_errors() {
     assert_eq!(
         SnapshotView::open(&good[..10]).unwrap_err(),
         SnapshotError::Truncated {
-            needed: 160,
+            needed: layout::HEADER_SIZE as u64,
             got: 10
         }
     );
@@ -343,8 +343,16 @@ fn corrupt_bytes_get_clear_errors() {
         SnapshotError::BadHeader("leaf_count")
     );
     assert_eq!(
-        SnapshotView::open(&with(&|h| h.table_capacity = h.leaf_count)).unwrap_err(),
+        SnapshotView::open(&with(&|h| h.block_count = h.leaf_count + 1)).unwrap_err(),
+        SnapshotError::BadHeader("block_count")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.table_capacity = h.block_count)).unwrap_err(),
         SnapshotError::BadHeader("table_capacity")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.blocks_offset = h.total_len)).unwrap_err(),
+        SnapshotError::SectionOutOfBounds("blocks")
     );
     let bad_record = SnapshotError::BadIndex("leaf mask kinds or record malformed");
     assert_eq!(
@@ -353,20 +361,50 @@ fn corrupt_bytes_get_clear_errors() {
     );
     // A leaf entry whose record offset points past the masks section.
     let mut b = good.clone();
-    let at = h.leaves_offset as usize + 12;
+    let at = h.leaves_offset as usize;
     b[at..at + 4].copy_from_slice(&(u32::MAX - 4).to_le_bytes());
     assert_eq!(SnapshotView::open(&b).unwrap_err(), bad_record);
-    // An entry whose occupied kind names no encoding (6), and one with bits set in the
-    // low bits of its origin's z.
+    // An entry whose occupied kind names no encoding (6), and one with a reserved byte set.
     let mut b = good.clone();
-    let y = h.leaves_offset as usize + 4;
-    b[y] = b[y] & !7 | 6;
+    b[at + 5] = 6;
     assert_eq!(SnapshotView::open(&b).unwrap_err(), bad_record);
     let mut b = good.clone();
-    b[y + 4] |= 1;
+    b[at + 6] = 1;
     assert_eq!(
         SnapshotView::open(&b).unwrap_err(),
-        SnapshotError::BadIndex("leaf origin not a multiple of 8")
+        SnapshotError::BadIndex("leaf entry reserved bytes set")
+    );
+    // Blocks: a table slot naming no block, an origin off the 64-voxel lattice, a block
+    // whose leaves overlap its neighbour's, and blocks one leaf short.
+    assert!(h.block_count >= 2, "the test map spans several blocks");
+    let mut b = good.clone();
+    let slots = h.table_offset as usize..(h.table_offset + 4 * h.table_capacity) as usize;
+    let used = slots.step_by(4).find(|&s| b[s..s + 4] != [0; 4]).unwrap();
+    b[used..used + 4].copy_from_slice(&(h.block_count as u32 + 1).to_le_bytes());
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("table entry beyond block_count")
+    );
+    let block = |i: u64| (h.blocks_offset + layout::BLOCK_SIZE as u64 * i) as usize;
+    let mut b = good.clone();
+    b[block(1) + 8] ^= 32;
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("block origin not a multiple of 64")
+    );
+    let mut b = good.clone();
+    b[block(1) + 12] = b[block(1) + 12].wrapping_sub(1);
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("blocks' leaves out of sequence")
+    );
+    let last = block(h.block_count - 1) + layout::BLOCK_LEAVES_AT;
+    let mut b = good.clone();
+    let w = (last..last + 64).find(|&i| b[i] != 0).unwrap();
+    b[w] &= b[w] - 1; // clear its lowest set bit
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("blocks do not hold leaf_count leaves")
     );
     let mut flipped = good.clone();
     let last = flipped.len() - 1;

@@ -3,7 +3,8 @@
 use super::layout::*;
 use super::record::{self, MaskRef};
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{leaf_offset, leaf_origin, voxel_at};
+use crate::grid::{block_origin, leaf_in_block, leaf_offset, leaf_origin, voxel_at};
+use crate::mask::BitIter;
 use crate::model::{QuantizedModel, VoxelState};
 use bytemuck::Zeroable;
 
@@ -66,6 +67,26 @@ fn prefetch(bytes: &[u8], at: u64) {
     let _ = (bytes, at);
 }
 
+/// A block entry's origin.
+#[inline]
+fn block_origin_of(b: &[u8; BLOCK_SIZE]) -> [i32; 3] {
+    let c = |k: usize| i32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]);
+    [c(0), c(1), c(2)]
+}
+
+/// A block entry's first leaf.
+#[inline]
+fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
+    u32::from_le_bytes([b[12], b[13], b[14], b[15]])
+}
+
+/// Word `w` (< 8) of a block entry's leaf bits.
+#[inline]
+fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
+    let at = BLOCK_LEAVES_AT + 8 * (w & 7);
+    u64::from_le_bytes(b[at..at + 8].try_into().unwrap_or([0; 8]))
+}
+
 /// A leaf found in the table: its index (for the values section) and mask record.
 #[derive(Clone, Copy, Debug)]
 struct LeafRef {
@@ -91,9 +112,10 @@ struct LeafRef {
 #[derive(Clone, Copy, Debug)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
-    /// The table section's slots and the leaves section's entries, sliced once at open so
-    /// a lookup is one bounds check per read.
+    /// The table section's slots, the blocks and the leaves sections' entries, sliced once
+    /// at open so a lookup is one bounds check per read.
     table: &'a [[u8; 4]],
+    blocks: &'a [[u8; BLOCK_SIZE]],
     leaves: &'a [[u8; ENTRY_SIZE]],
     /// The mask records (the masks section without its padding).
     masks: &'a [u8],
@@ -138,8 +160,12 @@ impl<'a> SnapshotView<'a> {
         if n > u64::from(u32::MAX - 1) {
             return Err(SnapshotError::BadHeader("leaf_count"));
         }
+        let nb = h.block_count;
+        if nb > n {
+            return Err(SnapshotError::BadHeader("block_count"));
+        }
         let cap = h.table_capacity;
-        if cap <= n || cap >= 1 << 32 {
+        if cap <= nb || cap >= 1 << 32 {
             return Err(SnapshotError::BadHeader("table_capacity"));
         }
         if h.masks_len > MAX_MASKS_LEN {
@@ -158,6 +184,7 @@ impl<'a> SnapshotView<'a> {
             Ok(())
         };
         section("table", h.table_offset, cap.checked_mul(4))?;
+        section("blocks", h.blocks_offset, nb.checked_mul(BLOCK_SIZE as u64))?;
         section("leaves", h.leaves_offset, n.checked_mul(ENTRY_SIZE as u64))?;
         section("masks", h.masks_offset, Some(align8(h.masks_len)))?;
         if h.flags & FLAG_VALUES != 0 {
@@ -180,31 +207,51 @@ impl<'a> SnapshotView<'a> {
         let v = SnapshotView {
             bytes: &bytes[..h.total_len as usize],
             table: bytemuck::cast_slice(sub(h.table_offset, 4 * cap)),
+            blocks: bytemuck::cast_slice(sub(h.blocks_offset, BLOCK_SIZE as u64 * nb)),
             leaves: bytemuck::cast_slice(sub(h.leaves_offset, ENTRY_SIZE as u64 * n)),
             masks: sub(h.masks_offset, h.masks_len),
             header: h,
             tf,
             q,
         };
-        // Every table entry names an existing leaf; every origin is leaf-aligned; and at
-        // least one slot is empty, so probing always terminates.
+        // Every table entry names an existing block, and at least one slot is empty, so
+        // probing always terminates.
         let mut empty = 0u64;
         for s in 0..cap {
             match v.slot(s) {
                 0 => empty += 1,
-                e if u64::from(e) > n => {
-                    return Err(SnapshotError::BadIndex("table entry beyond leaf_count"))
+                e if u64::from(e) > nb => {
+                    return Err(SnapshotError::BadIndex("table entry beyond block_count"))
                 }
                 _ => {}
             }
         }
         if empty == 0 {
-            return Err(SnapshotError::BadIndex("leaf table has no empty slot"));
+            return Err(SnapshotError::BadIndex("block table has no empty slot"));
+        }
+        // Block origins are block-aligned, and the blocks' leaves follow one another from
+        // leaf 0 to the last: each leaf belongs to one block, and a rank stays in range.
+        let mut next = 0u64;
+        for b in v.blocks {
+            if block_origin_of(b).iter().any(|c| c & 63 != 0) {
+                return Err(SnapshotError::BadIndex("block origin not a multiple of 64"));
+            }
+            if u64::from(block_first(b)) != next {
+                return Err(SnapshotError::BadIndex("blocks' leaves out of sequence"));
+            }
+            next += (0..8)
+                .map(|w| u64::from(block_word(b, w).count_ones()))
+                .sum::<u64>();
+        }
+        if next != n {
+            return Err(SnapshotError::BadIndex(
+                "blocks do not hold leaf_count leaves",
+            ));
         }
         for i in 0..n {
             let e = v.entry(i);
-            if e.key[2] & 7 != 0 {
-                return Err(SnapshotError::BadIndex("leaf origin not a multiple of 8"));
+            if e.reserved != [0; 2] {
+                return Err(SnapshotError::BadIndex("leaf entry reserved bytes set"));
             }
             let (k, o) = e.kinds();
             if record::checked_len(v.masks, u64::from(e.record), k, o).is_none() {
@@ -288,15 +335,18 @@ impl<'a> SnapshotView<'a> {
             .map_or(LeafEntry::zeroed(), |b| bytemuck::pod_read_unaligned(b))
     }
 
-    /// The leaf with origin `o`.
+    /// The leaf holding voxel `v`.
     #[inline]
-    fn find_leaf(&self, o: [i32; 3]) -> Option<LeafRef> {
-        self.probe(o, table_hash(o, self.header.table_capacity))
+    fn find_leaf(&self, v: VoxelCoord) -> Option<LeafRef> {
+        let b = block_origin(v).to_array();
+        let block = self.probe(b, table_hash(b, self.header.table_capacity))?;
+        self.leaf_index(block, leaf_in_block(v))
+            .map(|i| self.leaf_ref(i))
     }
 
-    /// The leaf with origin `o`, probing the table from slot `s` (its hash).
+    /// The block with origin `b`, probing the table from slot `s` (its hash).
     #[inline]
-    fn probe(&self, o: [i32; 3], mut s: u64) -> Option<LeafRef> {
+    fn probe(&self, b: [i32; 3], mut s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
         let cap = self.header.table_capacity;
         // Bounded: validated tables have an empty slot; the bound guards nothing else.
         for _ in 0..cap {
@@ -304,18 +354,53 @@ impl<'a> SnapshotView<'a> {
             if e == 0 {
                 return None;
             }
-            let index = u64::from(e - 1);
-            let entry = self.entry(index);
-            if entry.origin() == o {
-                return Some(LeafRef {
-                    index,
-                    record: entry.record,
-                    kinds: entry.kinds(),
-                });
+            let block = self.blocks.get(e as usize - 1)?;
+            if block_origin_of(block) == b {
+                return Some(block);
             }
             s = if s + 1 == cap { 0 } else { s + 1 };
         }
         None
+    }
+
+    /// Index of leaf `j` (in-block index) of a block, if stored: the block's first plus
+    /// the number of its stored leaves before `j`.
+    #[inline]
+    fn leaf_index(&self, block: &[u8; BLOCK_SIZE], j: usize) -> Option<u64> {
+        let (w, bit) = (j / 64, j % 64);
+        let word = block_word(block, w);
+        if word >> bit & 1 == 0 {
+            return None;
+        }
+        let before: u32 = (0..w).map(|k| block_word(block, k).count_ones()).sum();
+        let rank = before + (word & ((1 << bit) - 1)).count_ones();
+        Some(u64::from(block_first(block)) + u64::from(rank))
+    }
+
+    #[inline]
+    fn leaf_ref(&self, index: u64) -> LeafRef {
+        let entry = self.entry(index);
+        LeafRef {
+            index,
+            record: entry.record,
+            kinds: entry.kinds(),
+        }
+    }
+
+    /// Every stored leaf as (origin, entry), in leaf order.
+    fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + '_ {
+        self.blocks.iter().flat_map(move |b| {
+            let origin = VoxelCoord::from_array(block_origin_of(b));
+            let first = u64::from(block_first(b));
+            (0..8)
+                .flat_map(move |w| BitIter(block_word(b, w)).map(move |bit| w * 64 + bit))
+                .enumerate()
+                .map(move |(k, j)| {
+                    let j = j as i32;
+                    let at = VoxelCoord::new(j & 7, j >> 3 & 7, j >> 6).shl(3);
+                    (origin + at, self.entry(first + k as u64))
+                })
+        })
     }
 
     /// The known and occupied masks of a leaf.
@@ -338,7 +423,7 @@ impl<'a> SnapshotView<'a> {
     /// State of a voxel.
     #[inline]
     pub fn state(&self, v: VoxelCoord) -> VoxelState {
-        match self.find_leaf(leaf_origin(v).to_array()) {
+        match self.find_leaf(v) {
             Some(l) => self.leaf_state(l, leaf_offset(v)),
             None => VoxelState::Unknown,
         }
@@ -387,32 +472,37 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// At most [`STATES_GROUP`] lookups, in stages: each stage's reads are independent of
-    /// one another and prefetched before the next stage needs them.
+    /// one another and prefetched before the next stage needs them. The table and blocks
+    /// are small and mostly in cache; the leaf entries and mask records are where the
+    /// misses are.
     fn states_group(&self, voxels: &[Option<VoxelCoord>], out: &mut Vec<VoxelState>) {
         let h = &self.header;
         let mut slot = [0u64; STATES_GROUP];
         for (s, v) in slot.iter_mut().zip(voxels) {
             if let Some(v) = v {
-                *s = table_hash(leaf_origin(*v).to_array(), h.table_capacity);
+                *s = table_hash(block_origin(*v).to_array(), h.table_capacity);
                 prefetch(self.bytes, h.table_offset + 4 * *s);
             }
         }
-        for (s, v) in slot.iter().zip(voxels) {
-            let e = self.slot(*s);
-            if v.is_some() && e != 0 {
-                let entry = ENTRY_SIZE as u64 * u64::from(e - 1);
-                prefetch(self.bytes, h.leaves_offset + entry);
-            }
+        let mut index = [None; STATES_GROUP];
+        for ((i, v), s) in index.iter_mut().zip(voxels).zip(slot) {
+            *i = v.and_then(|v| {
+                let block = self.probe(block_origin(v).to_array(), s)?;
+                let i = self.leaf_index(block, leaf_in_block(v))?;
+                prefetch(self.bytes, h.leaves_offset + ENTRY_SIZE as u64 * i);
+                Some(i)
+            });
         }
         let mut leaf = [None; STATES_GROUP];
-        for ((l, v), s) in leaf.iter_mut().zip(voxels).zip(slot) {
-            *l = v.and_then(|v| self.probe(leaf_origin(v).to_array(), s));
-            if let Some(l) = l {
+        for (l, i) in leaf.iter_mut().zip(index) {
+            *l = i.map(|index| {
+                let l = self.leaf_ref(index);
                 // A record spans one to three cache lines; the voxel's row is most often
                 // in the first two.
                 prefetch(self.masks, u64::from(l.record));
                 prefetch(self.masks, u64::from(l.record) + 64);
-            }
+                l
+            });
         }
         out.extend(voxels.iter().zip(leaf).map(|(v, l)| match (v, l) {
             (Some(v), Some(l)) => self.leaf_state(l, leaf_offset(*v)),
@@ -432,7 +522,7 @@ impl<'a> SnapshotView<'a> {
         if !self.has_values() {
             return None;
         }
-        let l = self.find_leaf(leaf_origin(v).to_array())?;
+        let l = self.find_leaf(v)?;
         let i = leaf_offset(v);
         if self.leaf_state(l, i) == VoxelState::Unknown {
             return None;
@@ -464,12 +554,25 @@ impl<'a> SnapshotView<'a> {
             Blocked,
             Mixed(LeafRef),
         }
-        let class = |lo: VoxelCoord| match self.find_leaf(lo.to_array()) {
-            None if unknown_blocks => Leaf::Blocked,
-            None => Leaf::Clear,
-            // Kinds 0: nothing occupied; all known.
-            Some(l) if l.kinds.1 == 0 && (!unknown_blocks || l.kinds.0 == 0) => Leaf::Clear,
-            Some(l) => Leaf::Mixed(l),
+        // The walk stays in one block for up to 8 leaves per axis: its table lookup is
+        // made once. (An origin that is no multiple of 64 matches no block.)
+        let mut block: ([i32; 3], Option<&[u8; BLOCK_SIZE]>) = ([1; 3], None);
+        let mut class = |lo: VoxelCoord| {
+            let b = block_origin(lo).to_array();
+            if b != block.0 {
+                block = (b, self.probe(b, table_hash(b, self.header.table_capacity)));
+            }
+            let leaf = block
+                .1
+                .and_then(|blk| self.leaf_index(blk, leaf_in_block(lo)))
+                .map(|i| self.leaf_ref(i));
+            match leaf {
+                None if unknown_blocks => Leaf::Blocked,
+                None => Leaf::Clear,
+                // Kinds 0: nothing occupied; all known.
+                Some(l) if l.kinds.1 == 0 && (!unknown_blocks || l.kinds.0 == 0) => Leaf::Clear,
+                Some(l) => Leaf::Mixed(l),
+            }
         };
         let mut d = crate::raycast::Dda::new(o, e);
         let mut leaf_key = leaf_origin(d.voxel());
@@ -541,7 +644,7 @@ impl<'a> SnapshotView<'a> {
                 let mut x = llo.x;
                 while x <= lhi.x {
                     let o = VoxelCoord::new(x, y, z);
-                    match self.find_leaf(o.to_array()) {
+                    match self.find_leaf(o) {
                         None if !unknown_is_free => return false,
                         None => {}
                         Some(l) => {
@@ -569,8 +672,7 @@ impl<'a> SnapshotView<'a> {
     /// Every leaf's occupancy masks, in leaf order. Occupied bits outside the known mask
     /// (possible only in corrupt bytes) are dropped.
     pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::map::LeafOccupancy> + '_ {
-        (0..self.leaf_count()).map(move |l| {
-            let e = self.entry(l);
+        self.stored_leaves().map(move |(origin, e)| {
             let (k, o) = self.masks_of(&e);
             let known = k.decode(self.masks);
             let mut occupied = o.decode(self.masks);
@@ -580,7 +682,7 @@ impl<'a> SnapshotView<'a> {
                 .zip(known.words)
                 .for_each(|(o, k)| *o &= k);
             crate::map::LeafOccupancy {
-                origin: VoxelCoord::from_array(e.origin()),
+                origin,
                 known,
                 occupied,
             }
@@ -589,13 +691,11 @@ impl<'a> SnapshotView<'a> {
 
     /// Occupied voxels, in leaf order.
     pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
-        (0..self.leaf_count())
-            .map(move |l| self.entry(l))
-            .filter(|e| e.kinds().1 != 0)
-            .flat_map(move |e| {
+        self.stored_leaves()
+            .filter(|(_, e)| e.kinds().1 != 0)
+            .flat_map(move |(origin, e)| {
                 let (k, o) = self.masks_of(&e);
                 let (known, occupied) = (k.decode(self.masks), o.decode(self.masks));
-                let origin = VoxelCoord::from_array(e.origin());
                 (0..8).flat_map(move |w| {
                     let bits = occupied.words[w] & known.words[w];
                     crate::mask::BitIter(bits).map(move |b| voxel_at(origin, w * 64 + b))

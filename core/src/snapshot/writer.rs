@@ -6,7 +6,7 @@
 use super::layout::*;
 use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
-use crate::grid::Leaf;
+use crate::grid::{block_origin, leaf_in_block, Leaf};
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
 use rayon::prelude::*;
@@ -153,6 +153,8 @@ pub struct Plan<'a> {
     leaves: Vec<PlannedLeaf<'a>>,
     keeps: Vec<Mask512>,
     meta: Meta,
+    /// The leaves' blocks, in leaf order.
+    blocks: Vec<BlockEntry>,
     table_capacity: u64,
     /// The masks section, already encoded, in pieces (in leaf order).
     records: Vec<Vec<u8>>,
@@ -160,11 +162,50 @@ pub struct Plan<'a> {
     sums: Sums,
 }
 
-/// Fill a zeroed table of `slots.len() / 4` slots with leaf `i` + 1 for each `home << 32 | i`
+/// Section offsets and the total length.
+struct Sections {
+    table: u64,
+    blocks: u64,
+    entries: u64,
+    masks: u64,
+    values: u64,
+    total: u64,
+}
+
+/// The blocks of `leaves`, which come block by block and within a block by in-block index
+/// (as [`crate::grid::Grid::leaves_in_block_order`] gives them).
+fn blocks_of(leaves: &[PlannedLeaf<'_>]) -> Vec<BlockEntry> {
+    let mut blocks: Vec<BlockEntry> = Vec::new();
+    for (i, p) in leaves.iter().enumerate() {
+        let origin = block_origin(p.origin).to_array();
+        let j = leaf_in_block(p.origin);
+        match blocks.last_mut() {
+            Some(b) if b.origin == origin => {
+                debug_assert!(
+                    b.leaves[j / 64] >> (j % 64) == 0,
+                    "leaves out of block order"
+                );
+                b.leaves[j / 64] |= 1 << (j % 64);
+            }
+            _ => {
+                let mut b = BlockEntry {
+                    origin,
+                    first: i as u32,
+                    leaves: [0; 8],
+                };
+                b.leaves[j / 64] |= 1 << (j % 64);
+                blocks.push(b);
+            }
+        }
+    }
+    blocks
+}
+
+/// Fill a zeroed table of `slots.len() / 4` slots with block `i` + 1 for each `home << 32 | i`
 /// of `order`, sorted. Each takes the first free slot from its home, which in this order is
 /// just past the last one filled; those pushed past the last slot wrap around to the first
 /// free ones, and the table is full from their homes to its end, so probing reaches them.
-/// Needs fewer leaves than slots.
+/// Needs fewer blocks than slots.
 fn fill_table(slots: &mut [u8], order: &[u64]) {
     let cap = (slots.len() / 4) as u64;
     let mut next = 0u64;
@@ -296,12 +337,14 @@ impl<'a> Plan<'a> {
             sums = Sums::add(sums, piece_sums);
             records.push(bytes);
         }
-        let table_capacity = table_capacity_for(leaves.len() as u64);
+        let blocks = blocks_of(&leaves);
+        let table_capacity = table_capacity_for(blocks.len() as u64);
         Self {
             map,
             leaves,
             keeps,
             meta,
+            blocks,
             table_capacity,
             records,
             masks_len: at,
@@ -313,10 +356,11 @@ impl<'a> Plan<'a> {
         self.leaves.len()
     }
 
-    fn sections(&self) -> (u64, u64, u64, u64, u64) {
+    fn sections(&self) -> Sections {
         let n = self.leaves.len() as u64;
         let table = HEADER_SIZE as u64;
-        let entries = align8(table + 4 * self.table_capacity);
+        let blocks = align8(table + 4 * self.table_capacity);
+        let entries = blocks + BLOCK_SIZE as u64 * self.blocks.len() as u64;
         let masks = entries + ENTRY_SIZE as u64 * n;
         let values_end = masks + align8(self.masks_len);
         let (values, total) = if self.meta.with_values {
@@ -324,18 +368,35 @@ impl<'a> Plan<'a> {
         } else {
             (0, values_end)
         };
-        (table, entries, masks, values, total)
+        Sections {
+            table,
+            blocks,
+            entries,
+            masks,
+            values,
+            total,
+        }
     }
 
     /// Bytes [`Plan::write`] needs.
     pub fn encoded_len(&self) -> usize {
-        self.sections().4 as usize
+        self.sections().total as usize
     }
 
     /// Write the snapshot into `buf[..encoded_len()]`; returns the length written.
     pub fn write(&self, buf: &mut [u8]) -> Result<usize, SnapshotError> {
-        let (table, entries, masks, values, total) = self.sections();
-        if self.masks_len > MAX_MASKS_LEN || self.table_capacity >= 1 << 32 {
+        let Sections {
+            table,
+            blocks,
+            entries,
+            masks,
+            values,
+            total,
+        } = self.sections();
+        if self.masks_len > MAX_MASKS_LEN
+            || self.table_capacity >= 1 << 32
+            || self.leaves.len() as u64 >= u64::from(u32::MAX)
+        {
             return Err(SnapshotError::TooLarge);
         }
         let total_us = total as usize;
@@ -348,22 +409,17 @@ impl<'a> Plan<'a> {
         let buf = &mut buf[..total_us];
         // Only the table (and its padding) is read before written; every other byte is
         // written below, so a reused sample needs no full clear.
-        buf[HEADER_SIZE..entries as usize].fill(0);
+        buf[HEADER_SIZE..blocks as usize].fill(0);
         let q = self.map.quantized();
         let cap = self.table_capacity;
-        // Leaves in order of their home slots (ties by index, so the table does not depend
-        // on scheduling), filled in one pass front to back (`fill_table`). Inserting in leaf
-        // order instead missed cache on nearly every slot (1.8 M random writes over 11 MB
-        // for the random 500k 60 m map).
-        let mut order: Vec<u64> = self
-            .leaves
-            .par_iter()
-            .with_min_len(PIECE)
-            .enumerate()
-            .map(|(i, p)| table_hash(p.origin.to_array(), cap) << 32 | i as u64)
+        // Blocks in order of their home slots (ties by index, so the table does not depend
+        // on scheduling), filled in one pass front to back (`fill_table`).
+        let mut order: Vec<u64> = (self.blocks.iter().enumerate())
+            .map(|(i, b)| table_hash(b.origin, cap) << 32 | i as u64)
             .collect();
-        order.par_sort_unstable();
+        order.sort_unstable();
         fill_table(&mut buf[table as usize..(table + 4 * cap) as usize], &order);
+        buf[blocks as usize..entries as usize].copy_from_slice(bytemuck::cast_slice(&self.blocks));
         // Cut the sections into disjoint pieces and write them in parallel.
         let (_, rest) = buf.split_at_mut(entries as usize);
         let (entry_bytes, rest) = rest.split_at_mut((masks - entries) as usize);
@@ -383,7 +439,7 @@ impl<'a> Plan<'a> {
             .for_each(|(out, leaves)| {
                 for (o, p) in out.chunks_exact_mut(ENTRY_SIZE).zip(leaves) {
                     let (k, occ) = p.kinds;
-                    let entry = LeafEntry::new(p.origin.to_array(), k, occ, p.record);
+                    let entry = LeafEntry::new(k, occ, p.record);
                     o.copy_from_slice(bytemuck::bytes_of(&entry));
                 }
             });
@@ -439,7 +495,9 @@ impl<'a> Plan<'a> {
             bounds_min: sums.lo,
             bounds_max: sums.hi,
             table_capacity: self.table_capacity,
+            block_count: self.blocks.len() as u64,
             table_offset: table,
+            blocks_offset: blocks,
             leaves_offset: entries,
             masks_offset: masks,
             masks_len: self.masks_len,
