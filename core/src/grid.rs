@@ -362,7 +362,7 @@ impl<V: GridValue> Grid<V> {
             let (block, r) = (row / 64, row % 64);
             let (bx, by, bz) = (block & 1, block >> 1 & 1, block >> 2);
             let (y, z) = (by * 8 + (r & 7), bz * 8 + (r >> 3));
-            let at = y << 4 | z << 8 | bx * 8;
+            let at = y << 4 | z << 8 | (bx * 8);
             let bits = (node.child_mask[at / 64] >> (at % 64)) & 0xFF;
             BitIter(bits).map(move |b| {
                 let ci = at + b;
@@ -551,7 +551,7 @@ mod tests {
         assert_eq!(par, order);
         let v = VoxelCoord::new(-65, 70, 200);
         assert_eq!(block_origin(v), VoxelCoord::new(-128, 64, 192));
-        assert_eq!(leaf_in_block(v), 7 | 0 << 3 | 1 << 6);
+        assert_eq!(leaf_in_block(v), 7 + (1 << 6)); // (7, 0, 1)
     }
 
     #[test]

@@ -195,70 +195,134 @@ impl Dda {
         }
     }
 
-    /// Jump to the first voxel outside the current grid leaf (the aligned 8x8x8 block), in
-    /// the state [`Dda::step_far`]s would reach, if that leaves at least the last two steps
-    /// to walk; returns whether it jumped. For walks that can pass a whole leaf at once.
-    ///
-    /// Exact: crossing `t`s are integers, so "the axis whose leaf face comes first (ties:
-    /// x, y, z)" and "the other axes' crossings before it" are integer comparisons and
-    /// divisions, with the same saturation as repeated `step_far`.
-    #[inline]
-    pub fn leave_leaf(&mut self) -> bool {
-        // Crossings along one axis to leave the leaf, and the t of the last of them.
-        let face = |v: i32, s: i32, t: u64, d: u64| -> (u64, u64) {
+    /// The leaves of this walk, from the current voxel's on (see [`LeafWalk`]).
+    pub fn leaves(&self) -> LeafWalk {
+        let exit = |v: i32, s: i32, t: u64, d: u64, l: u64| -> u64 {
             if s == 0 {
-                return (0, u64::MAX);
+                return u64::MAX;
             }
+            // Crossings to the leaf's face: the last of them leaves the leaf.
             let k = if s > 0 { 8 - (v & 7) } else { (v & 7) + 1 } as u64;
-            (k, t.saturating_add(d.saturating_mul(k - 1)))
+            let e = t.saturating_add(d.saturating_mul(k - 1));
+            if e > l {
+                u64::MAX
+            } else {
+                e
+            }
         };
-        let (kx, ex) = face(self.x, self.sx, self.tx, self.dx);
-        let (ky, ey) = face(self.y, self.sy, self.ty, self.dy);
-        let (kz, ez) = face(self.z, self.sz, self.tz, self.dz);
-        // Crossings of an axis at t < te, or at t <= te for an axis before the exit axis.
-        let before = |t: u64, d: u64, te: u64, first: bool| -> u64 {
-            if t > te || (t == te && !first) {
+        LeafWalk {
+            origin: crate::grid::leaf_origin(self.voxel()),
+            exit: [
+                exit(self.x, self.sx, self.tx, self.dx, self.lx),
+                exit(self.y, self.sy, self.ty, self.dy, self.ly),
+                exit(self.z, self.sz, self.tz, self.dz, self.lz),
+            ],
+            d8: [self.dx, self.dy, self.dz].map(|d| d.saturating_mul(8)),
+            last: [self.lx, self.ly, self.lz],
+            dir: [self.sx, self.sy, self.sz],
+            entry: None,
+        }
+    }
+
+    /// The state [`Dda::step`]s from this one reach just after the crossing at `t` on
+    /// `axis` (a crossing of this walk: a [`LeafWalk::entry`]). Crossings are taken in
+    /// order of `t`, ties by axis, so those made by then are each axis's crossings at
+    /// `t` or before, the later axes' only before: counted with a division per axis.
+    pub fn after_crossing(&self, t: u64, axis: usize) -> Dda {
+        let made = |t0: u64, d: u64, last: u64, upto: bool| -> u64 {
+            let lim = if upto { t } else { t.wrapping_sub(1) };
+            if t0 == u64::MAX || d == 0 || (!upto && t == 0) || t0 > lim.min(last) {
                 0
             } else {
-                (te - t - u64::from(!first)) / d + 1
+                (lim.min(last) - t0) / d + 1
             }
         };
-        let (cx, cy, cz) = if ex <= ey && ex <= ez {
-            (
-                kx,
-                before(self.ty, self.dy, ex, false),
-                before(self.tz, self.dz, ex, false),
-            )
-        } else if ey <= ez {
-            (
-                before(self.tx, self.dx, ey, true),
-                ky,
-                before(self.tz, self.dz, ey, false),
-            )
-        } else {
-            (
-                before(self.tx, self.dx, ez, true),
-                before(self.ty, self.dy, ez, true),
-                kz,
-            )
+        let cx = made(self.tx, self.dx, self.lx, true);
+        let cy = made(self.ty, self.dy, self.ly, axis >= 1);
+        let cz = made(self.tz, self.dz, self.lz, axis >= 2);
+        // After its last crossing an axis is done, as `step` marks it.
+        let next = |t0: u64, d: u64, last: u64, c: u64| {
+            let t = t0.saturating_add(d.saturating_mul(c));
+            if c > 0 && t > last {
+                u64::MAX
+            } else {
+                t
+            }
         };
-        if ex.min(ey).min(ez) == u64::MAX || cx + cy + cz + 2 > u64::from(self.steps) {
-            return false;
+        // Counts are at most the axis's crossings (< 2^32): no overflow.
+        Dda {
+            x: self.x + self.sx * cx as i32,
+            y: self.y + self.sy * cy as i32,
+            z: self.z + self.sz * cz as i32,
+            tx: next(self.tx, self.dx, self.lx, cx),
+            ty: next(self.ty, self.dy, self.ly, cy),
+            tz: next(self.tz, self.dz, self.lz, cz),
+            steps: self.steps - (cx + cy + cz) as u32,
+            ..self.clone()
         }
-        self.tx = self.tx.saturating_add(self.dx.saturating_mul(cx));
-        self.ty = self.ty.saturating_add(self.dy.saturating_mul(cy));
-        self.tz = self.tz.saturating_add(self.dz.saturating_mul(cz));
-        // Counts are at most 8 (within a leaf): no overflow.
-        self.x += self.sx * cx as i32;
-        self.y += self.sy * cy as i32;
-        self.z += self.sz * cz as i32;
-        self.steps -= (cx + cy + cz) as u32;
-        true
     }
 
     #[inline]
     pub fn voxel(&self) -> VoxelCoord {
         VoxelCoord::new(self.x, self.y, self.z)
+    }
+}
+
+/// The grid leaves (aligned 8x8x8 blocks of voxels) a [`Dda`] walk passes through, in
+/// order, without visiting their voxels: a walk that can pass most leaves whole (a line
+/// of sight over free space) steps these, and takes up the voxel walk
+/// ([`Dda::after_crossing`]) only in the leaves it has to look into. Each axis keeps the
+/// `t` of its next crossing out of the current leaf; the leaf is left by the first of
+/// them (ties: x, y, z), as the voxel walk leaves it.
+#[derive(Clone, Debug)]
+pub struct LeafWalk {
+    origin: VoxelCoord,
+    /// `t` of each axis's crossing out of the current leaf, u64::MAX if none.
+    exit: [u64; 3],
+    d8: [u64; 3],
+    last: [u64; 3],
+    dir: [i32; 3],
+    entry: Option<(u64, usize)>,
+}
+
+impl LeafWalk {
+    /// Origin of the current leaf.
+    #[inline]
+    pub fn origin(&self) -> VoxelCoord {
+        self.origin
+    }
+
+    /// The crossing (`t`, axis) that entered the current leaf; `None` in the first.
+    #[inline]
+    pub fn entry(&self) -> Option<(u64, usize)> {
+        self.entry
+    }
+
+    /// Move to the next leaf; `false` if the current one holds the end voxel.
+    #[inline]
+    pub fn advance(&mut self) -> bool {
+        let [ex, ey, ez] = self.exit;
+        let a = if ex <= ey && ex <= ez {
+            0
+        } else if ey <= ez {
+            1
+        } else {
+            2
+        };
+        let t = self.exit[a];
+        if t == u64::MAX {
+            return false;
+        }
+        let step = 8 * self.dir[a];
+        match a {
+            0 => self.origin.x += step,
+            1 => self.origin.y += step,
+            _ => self.origin.z += step,
+        }
+        let next = t.saturating_add(self.d8[a]);
+        self.exit[a] = if next > self.last[a] { u64::MAX } else { next };
+        self.entry = Some((t, a));
+        true
     }
 }
 
@@ -453,11 +517,12 @@ mod tests {
         }
     }
 
-    /// From every voxel of far walks, `leave_leaf` lands where stepping lands.
+    /// A leaf walk passes the leaves the voxel walk passes, in order, and the state after
+    /// each leaf's entry crossing is the one `step`s reach on entering it.
     #[test]
-    fn leave_leaf_lands_where_steps_land() {
+    fn leaf_walks_follow_the_voxel_walk() {
         let mut r = Rng(23);
-        let mut jumps = 0;
+        let mut entries = 0;
         for i in 0..6000 {
             let o = [0, 1, 2].map(|_| r.f() * 16.0 - 8.0);
             let mut e = [0, 1, 2].map(|k| o[k] + (r.f() * 2.0 - 1.0) * 60.0);
@@ -469,40 +534,40 @@ mod tests {
                     let q = |r: &mut Rng| ((r.f() * 64.0).floor() - 32.0) / 2.0;
                     let o2 = [q(&mut r), q(&mut r), q(&mut r)];
                     let e2 = [q(&mut r), q(&mut r), q(&mut r)];
-                    check_jumps(o2, e2, &mut jumps);
+                    entries += check_leaves(o2, e2);
                     continue;
                 }
                 // One face crossing on y, at t just below 1: a delta near the u64 limit.
                 5 => e[1] = o[1].floor() + 1.0 + 1e-9 * r.f(),
                 _ => {}
             }
-            check_jumps(o, e, &mut jumps);
+            entries += check_leaves(o, e);
         }
-        assert!(jumps > 10_000, "only {jumps} jumps exercised");
+        assert!(entries > 50_000, "only {entries} leaf entries checked");
     }
 
-    fn check_jumps(o: [f64; 3], e: [f64; 3], jumps: &mut u32) {
-        let mut d = Dda::new(o, e);
-        while d.steps() > 2 {
-            let mut jumped = d.clone();
-            let leaf = d.voxel().shr(3);
-            let mut stepped = d.clone();
-            while stepped.voxel().shr(3) == leaf && stepped.steps() > 2 {
-                stepped.step_far();
+    fn check_leaves(o: [f64; 3], e: [f64; 3]) -> u32 {
+        let start = Dda::new(o, e);
+        // The voxel walk's state on entering each leaf.
+        let mut d = start.clone();
+        let mut want = vec![d.clone()];
+        while d.steps() > 0 {
+            d.step();
+            if d.voxel().shr(3) != want.last().unwrap().voxel().shr(3) {
+                want.push(d.clone());
             }
-            let out = stepped.voxel().shr(3) != leaf;
-            assert_eq!(
-                jumped.leave_leaf(),
-                out,
-                "{o:?} -> {e:?} at {:?}",
-                d.voxel()
-            );
-            if out {
-                assert_eq!(jumped, stepped, "{o:?} -> {e:?} from {:?}", d.voxel());
-                *jumps += 1;
-            }
-            d.step_far();
         }
+        let mut leaves = start.leaves();
+        let mut got = vec![start.clone()];
+        assert_eq!(leaves.origin(), start.voxel().shr(3).shl(3));
+        while leaves.advance() {
+            let (t, axis) = leaves.entry().unwrap();
+            let at = start.after_crossing(t, axis);
+            assert_eq!(leaves.origin(), at.voxel().shr(3).shl(3), "{o:?} -> {e:?}");
+            got.push(at);
+        }
+        assert_eq!(got, want, "{o:?} -> {e:?}");
+        got.len() as u32 - 1
     }
 
     #[test]

@@ -548,7 +548,8 @@ impl<'a> SnapshotView<'a> {
         if (0..3).any(|k| (o[k] - e[k]).abs() > MAX_SEGMENT_VOXELS) {
             return Err(InvalidSegment::TooLong);
         }
-        // Leaves with no blocking voxel (most, on a large map) are passed in one jump.
+        // Leaves with no blocking voxel (most, on a large map) are passed whole, on the
+        // walk's leaves; the voxel walk is taken up only in leaves that have one.
         enum Leaf {
             Clear,
             Blocked,
@@ -574,39 +575,36 @@ impl<'a> SnapshotView<'a> {
                 Some(l) => Leaf::Mixed(l),
             }
         };
-        let mut d = crate::raycast::Dda::new(o, e);
-        let mut leaf_key = leaf_origin(d.voxel());
-        let mut leaf = class(leaf_key);
-        let mut settled = false;
+        let start = crate::raycast::Dda::new(o, e);
+        let mut leaves = start.leaves();
         loop {
-            let v = d.voxel();
-            if leaf_origin(v) != leaf_key {
-                leaf_key = leaf_origin(v);
-                leaf = class(leaf_key);
-            }
-            match leaf {
-                Leaf::Blocked => return Ok(Some(v)),
-                Leaf::Mixed(l) => {
+            let origin = leaves.origin();
+            let class = class(origin);
+            if !matches!(class, Leaf::Clear) {
+                // The voxel walk as it enters this leaf.
+                let mut d = match leaves.entry() {
+                    Some((t, axis)) => start.after_crossing(t, axis),
+                    None => start.clone(),
+                };
+                let Leaf::Mixed(l) = class else {
+                    return Ok(Some(d.voxel()));
+                };
+                loop {
+                    let v = d.voxel();
+                    if leaf_origin(v) != origin {
+                        break;
+                    }
                     let s = self.leaf_state(l, leaf_offset(v));
                     if s == VoxelState::Occupied || (unknown_blocks && s == VoxelState::Unknown) {
                         return Ok(Some(v));
                     }
-                }
-                Leaf::Clear => {
-                    if d.steps() > 2 && d.leave_leaf() {
-                        continue;
+                    if d.steps() == 0 {
+                        return Ok(None);
                     }
+                    d.step();
                 }
             }
-            if d.steps() > 2 {
-                d.step_far();
-            } else if d.steps() > 0 {
-                if !settled {
-                    d.settle();
-                    settled = true;
-                }
-                d.step();
-            } else {
+            if !leaves.advance() {
                 return Ok(None);
             }
         }
