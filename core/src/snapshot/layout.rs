@@ -5,7 +5,7 @@
 //! offset  size                 what
 //! 0       176                  Header
 //! table   4 * table_capacity   u32 per slot: block index + 1, 0 = empty (linear probing)
-//! blocks  80 * block_count     BlockEntry: origin, first leaf, which of its 512 leaves exist
+//! blocks  96 * block_count     BlockEntry: origin, first leaf, which of its 512 leaves exist
 //! leaves  8 * leaf_count       LeafEntry: mask kinds and record offset; block by block,
 //!                              each block's leaves by in-block index
 //! masks   masks_len            one mask record per leaf (see `record`), in leaf order,
@@ -75,11 +75,15 @@ pub struct BlockEntry {
     pub origin: [i32; 3],
     /// Index of the block's first leaf; the blocks' leaves follow one another from 0.
     pub first: u32,
+    /// `ranks[w]`: stored leaves in `leaves[..w]`, so a leaf's rank is one popcount.
+    pub ranks: [u16; 8],
     /// Bit `i` (`grid::leaf_in_block`) set: the leaf is stored.
     pub leaves: [u64; 8],
 }
 
-const _: () = assert!(BLOCK_SIZE == 80);
+const _: () = assert!(BLOCK_SIZE == 96);
+/// Byte offset in a [`BlockEntry`] of its `ranks`.
+pub const BLOCK_RANKS_AT: usize = std::mem::offset_of!(BlockEntry, ranks);
 /// Byte offset in a [`BlockEntry`] of its `leaves` words.
 pub const BLOCK_LEAVES_AT: usize = std::mem::offset_of!(BlockEntry, leaves);
 

@@ -398,10 +398,25 @@ fn corrupt_bytes_get_clear_errors() {
         SnapshotView::open(&b).unwrap_err(),
         SnapshotError::BadIndex("blocks' leaves out of sequence")
     );
-    let last = block(h.block_count - 1) + layout::BLOCK_LEAVES_AT;
     let mut b = good.clone();
-    let w = (last..last + 64).find(|&i| b[i] != 0).unwrap();
+    b[block(0) + layout::BLOCK_RANKS_AT + 2] ^= 1;
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("block rank miscounts its leaves")
+    );
+    // The last block one leaf short, its ranks recounted.
+    let last = block(h.block_count - 1);
+    let mut b = good.clone();
+    let bits = last + layout::BLOCK_LEAVES_AT;
+    let w = (bits..bits + 64).rev().find(|&i| b[i] != 0).unwrap();
     b[w] &= b[w] - 1; // clear its lowest set bit
+    let word = |b: &[u8], k: usize| u64::from_le_bytes(b[bits + 8 * k..][..8].try_into().unwrap());
+    let mut below = 0u16;
+    for k in 0..8 {
+        let at = last + layout::BLOCK_RANKS_AT + 2 * k;
+        b[at..at + 2].copy_from_slice(&below.to_le_bytes());
+        below += word(&b, k).count_ones() as u16;
+    }
     assert_eq!(
         SnapshotView::open(&b).unwrap_err(),
         SnapshotError::BadIndex("blocks do not hold leaf_count leaves")

@@ -80,6 +80,13 @@ fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
     u32::from_le_bytes([b[12], b[13], b[14], b[15]])
 }
 
+/// Stored leaves in words `..w` (< 8) of a block entry's leaf bits.
+#[inline]
+fn block_rank(b: &[u8; BLOCK_SIZE], w: usize) -> u16 {
+    let at = BLOCK_RANKS_AT + 2 * (w & 7);
+    u16::from_le_bytes([b[at], b[at + 1]])
+}
+
 /// Word `w` (< 8) of a block entry's leaf bits.
 #[inline]
 fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
@@ -229,8 +236,9 @@ impl<'a> SnapshotView<'a> {
         if empty == 0 {
             return Err(SnapshotError::BadIndex("block table has no empty slot"));
         }
-        // Block origins are block-aligned, and the blocks' leaves follow one another from
-        // leaf 0 to the last: each leaf belongs to one block, and a rank stays in range.
+        // Block origins are block-aligned, ranks count the leaf bits, and the blocks'
+        // leaves follow one another from leaf 0 to the last: each leaf belongs to one
+        // block, and a rank stays in range.
         let mut next = 0u64;
         for b in v.blocks {
             if block_origin_of(b).iter().any(|c| c & 63 != 0) {
@@ -239,9 +247,14 @@ impl<'a> SnapshotView<'a> {
             if u64::from(block_first(b)) != next {
                 return Err(SnapshotError::BadIndex("blocks' leaves out of sequence"));
             }
-            next += (0..8)
-                .map(|w| u64::from(block_word(b, w).count_ones()))
-                .sum::<u64>();
+            let mut below = 0u16;
+            for w in 0..8 {
+                if block_rank(b, w) != below {
+                    return Err(SnapshotError::BadIndex("block rank miscounts its leaves"));
+                }
+                below += block_word(b, w).count_ones() as u16;
+            }
+            next += u64::from(below);
         }
         if next != n {
             return Err(SnapshotError::BadIndex(
@@ -372,8 +385,7 @@ impl<'a> SnapshotView<'a> {
         if word >> bit & 1 == 0 {
             return None;
         }
-        let before: u32 = (0..w).map(|k| block_word(block, k).count_ones()).sum();
-        let rank = before + (word & ((1 << bit) - 1)).count_ones();
+        let rank = u32::from(block_rank(block, w)) + (word & ((1 << bit) - 1)).count_ones();
         Some(u64::from(block_first(block)) + u64::from(rank))
     }
 

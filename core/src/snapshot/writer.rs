@@ -191,11 +191,19 @@ fn blocks_of(leaves: &[PlannedLeaf<'_>]) -> Vec<BlockEntry> {
                 let mut b = BlockEntry {
                     origin,
                     first: i as u32,
+                    ranks: [0; 8],
                     leaves: [0; 8],
                 };
                 b.leaves[j / 64] |= 1 << (j % 64);
                 blocks.push(b);
             }
+        }
+    }
+    for b in &mut blocks {
+        let mut below = 0;
+        for (r, w) in b.ranks.iter_mut().zip(b.leaves) {
+            *r = below;
+            below += w.count_ones() as u16;
         }
     }
     blocks
