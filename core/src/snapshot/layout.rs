@@ -4,7 +4,8 @@
 //! ```text
 //! offset  size                 what
 //! 0       176                  Header
-//! table   4 * table_capacity   u32 per slot: block index + 1, 0 = empty (linear probing)
+//! table   4 * table_capacity   u32 per slot: block index + 1, 0 = empty; a dense 3D array
+//!                              over the blocks' bounds, or a hash table (linear probing)
 //! blocks  96 * block_count     BlockEntry: origin, first leaf, which of its 512 leaves exist
 //! leaves  8 * leaf_count       LeafEntry: mask kinds and record offset; block by block,
 //!                              each block's leaves by in-block index
@@ -29,6 +30,9 @@ pub const MAGIC: [u8; 8] = *b"VXMSNAP\0";
 pub const FORMAT_VERSION: u32 = 4;
 /// The snapshot carries per-voxel log-odds.
 pub const FLAG_VALUES: u32 = 1;
+/// The table is a dense array over the blocks' bounds (`index_lo`, `index_dims`), not a
+/// hash table.
+pub const FLAG_DENSE_INDEX: u32 = 2;
 pub const HEADER_SIZE: usize = std::mem::size_of::<Header>();
 pub const VALUES_PER_LEAF: usize = 512;
 pub const ENTRY_SIZE: usize = std::mem::size_of::<LeafEntry>();
@@ -111,9 +115,14 @@ pub struct Header {
     /// Inclusive voxel bounds of the known voxels (min > max when empty).
     pub bounds_min: [i32; 3],
     pub bounds_max: [i32; 3],
-    /// Slots in the block table: > block_count, < 2^32.
+    /// Slots in the block table, < 2^32: > block_count for a hash table, the product of
+    /// `index_dims` for a dense one.
     pub table_capacity: u64,
     pub block_count: u64,
+    /// With [`FLAG_DENSE_INDEX`]: the lowest block's coordinates (origin / 64) and the
+    /// array's size in blocks, x fastest; zero otherwise.
+    pub index_lo: [i32; 3],
+    pub index_dims: [u32; 3],
     pub table_offset: u64,
     pub blocks_offset: u64,
     pub leaves_offset: u64,
@@ -128,18 +137,38 @@ pub struct Header {
     pub reserved: u32,
 }
 
-const _: () = assert!(HEADER_SIZE == 176);
+const _: () = assert!(HEADER_SIZE == 200);
 const _: () = assert!(std::mem::offset_of!(Header, resolution) == 24);
 const _: () = assert!(std::mem::offset_of!(Header, bounds_min) == 72);
 const _: () = assert!(std::mem::offset_of!(Header, table_capacity) == 96);
-const _: () = assert!(std::mem::offset_of!(Header, masks_len) == 144);
-const _: () = assert!(std::mem::offset_of!(Header, total_len) == 160);
-const _: () = assert!(std::mem::offset_of!(Header, checksum) == 168);
+const _: () = assert!(std::mem::offset_of!(Header, index_lo) == 112);
+const _: () = assert!(std::mem::offset_of!(Header, table_offset) == 136);
+const _: () = assert!(std::mem::offset_of!(Header, masks_len) == 168);
+const _: () = assert!(std::mem::offset_of!(Header, total_len) == 184);
+const _: () = assert!(std::mem::offset_of!(Header, checksum) == 192);
 
-/// Table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its first
-/// probe. Blocks are few (a 60 m map has some thousands), so this costs 16 bytes a block.
+/// Hash table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its
+/// first probe. Blocks are few (a 60 m map has some thousands), so this costs 16 bytes a
+/// block. The writer uses a dense array instead when it has no more slots than this.
 pub fn table_capacity_for(n: u64) -> u64 {
     4 * n + 1
+}
+
+/// Block coordinates of a voxel: its block's origin / 64.
+#[inline]
+pub fn block_coords(v: [i32; 3]) -> [i32; 3] {
+    v.map(|c| c >> 6)
+}
+
+/// Slot of block coordinates `b` in a dense array over `lo` and `dims`, if inside.
+#[inline]
+pub fn dense_slot(b: [i32; 3], lo: [i32; 3], dims: [u32; 3]) -> Option<u64> {
+    let rel = |k: usize| {
+        let r = i64::from(b[k]) - i64::from(lo[k]);
+        (0..i64::from(dims[k])).contains(&r).then_some(r as u64)
+    };
+    let (x, y, z) = (rel(0)?, rel(1)?, rel(2)?);
+    Some((z * u64::from(dims[1]) + y) * u64::from(dims[0]) + x)
 }
 
 /// Slot of a block origin in a table of `capacity` slots (before probing).

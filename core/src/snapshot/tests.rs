@@ -346,9 +346,15 @@ fn corrupt_bytes_get_clear_errors() {
         SnapshotView::open(&with(&|h| h.block_count = h.leaf_count + 1)).unwrap_err(),
         SnapshotError::BadHeader("block_count")
     );
+    // The test map's blocks fill a dense index; its size must match the table's.
+    assert_ne!(h.flags & layout::FLAG_DENSE_INDEX, 0);
     assert_eq!(
-        SnapshotView::open(&with(&|h| h.table_capacity = h.block_count)).unwrap_err(),
-        SnapshotError::BadHeader("table_capacity")
+        SnapshotView::open(&with(&|h| h.table_capacity += 1)).unwrap_err(),
+        SnapshotError::BadHeader("index_dims")
+    );
+    assert_eq!(
+        SnapshotView::open(&with(&|h| h.flags &= !layout::FLAG_DENSE_INDEX)).unwrap_err(),
+        SnapshotError::BadHeader("index fields of a hash table")
     );
     assert_eq!(
         SnapshotView::open(&with(&|h| h.blocks_offset = h.total_len)).unwrap_err(),
@@ -379,11 +385,24 @@ fn corrupt_bytes_get_clear_errors() {
     assert!(h.block_count >= 2, "the test map spans several blocks");
     let mut b = good.clone();
     let slots = h.table_offset as usize..(h.table_offset + 4 * h.table_capacity) as usize;
-    let used = slots.step_by(4).find(|&s| b[s..s + 4] != [0; 4]).unwrap();
-    b[used..used + 4].copy_from_slice(&(h.block_count as u32 + 1).to_le_bytes());
+    let used: Vec<usize> = slots
+        .step_by(4)
+        .filter(|&s| b[s..s + 4] != [0; 4])
+        .collect();
+    b[used[0]..used[0] + 4].copy_from_slice(&(h.block_count as u32 + 1).to_le_bytes());
     assert_eq!(
         SnapshotView::open(&b).unwrap_err(),
         SnapshotError::BadIndex("table entry beyond block_count")
+    );
+    // Two blocks swapped in the dense index: each slot names a block elsewhere.
+    let mut b = good.clone();
+    let (s0, s1) = (used[0], used[1]);
+    let (e0, e1) = (b[s0..s0 + 4].to_vec(), b[s1..s1 + 4].to_vec());
+    b[s0..s0 + 4].copy_from_slice(&e1);
+    b[s1..s1 + 4].copy_from_slice(&e0);
+    assert_eq!(
+        SnapshotView::open(&b).unwrap_err(),
+        SnapshotError::BadIndex("dense index slot names another block")
     );
     let block = |i: u64| (h.blocks_offset + layout::BLOCK_SIZE as u64 * i) as usize;
     let mut b = good.clone();
@@ -546,9 +565,15 @@ proptest! {
     }
 
     #[test]
-    fn mutated_snapshots_never_panic(flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..8), cut in any::<usize>()) {
-        thread_local!(static GOOD: Vec<u8> = encode(&random_map(4, 1), Scope::Whole, true));
-        let mut b = GOOD.with(|g| g.clone());
+    fn mutated_snapshots_never_panic(flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..8), cut in any::<usize>(), hashed in any::<bool>()) {
+        // A dense index, and a hash table (one far leaf spreads the blocks).
+        thread_local!(static GOOD: [Vec<u8>; 2] = {
+            let mut map = random_map(4, 1);
+            let dense = encode(&map, Scope::Whole, true);
+            map.set_value(VoxelCoord::new(30_000, -7, 2), 90);
+            [dense, encode(&map, Scope::Whole, true)]
+        });
+        let mut b = GOOD.with(|g| g[usize::from(hashed)].clone());
         for (at, x) in flips {
             // Bias half the flips into the header, where the offsets live.
             let i = if at % 2 == 0 { at % layout::HEADER_SIZE } else { at % b.len() };
@@ -559,6 +584,68 @@ proptest! {
         }
         exercise(&b);
     }
+}
+
+/// A map whose blocks lie close together gets a dense index, one with far-apart parts a
+/// hash table; both answer like the map.
+#[test]
+fn dense_and_hashed_indexes_answer_like_the_map() {
+    let compact = random_map(11, 1);
+    let mut spread = random_map(11, 1);
+    let far = [[-50_000, 3, 9], [40_000, -70_000, 5], [8, 8, 90_000]];
+    for (i, o) in far.iter().enumerate() {
+        spread.set_value(VoxelCoord::from_array(*o), if i == 1 { 100 } else { -50 });
+    }
+    let tf = compact.transform();
+    for (map, dense) in [(&compact, true), (&spread, false)] {
+        let bytes = encode(map, Scope::Whole, false);
+        let view = SnapshotView::open_checked(&bytes).unwrap();
+        assert_eq!(view.header().flags & layout::FLAG_DENSE_INDEX != 0, dense);
+        let mut rng = Rng(5);
+        let mut voxels: Vec<VoxelCoord> = map.grid().active_voxels().map(|(v, _)| v).collect();
+        voxels.extend((0..20_000).map(|_| {
+            let mut c = || rng.i(-700, 700);
+            VoxelCoord::new(c(), c(), c())
+        }));
+        for o in far {
+            for d in [-65, -1, 0, 1, 64] {
+                voxels.push(VoxelCoord::new(o[0] + d, o[1], o[2] - d));
+            }
+        }
+        let mut batched = Vec::new();
+        view.states_of(voxels.iter().map(|v| Some(*v)), true, &mut batched);
+        for (v, b) in voxels.iter().zip(&batched) {
+            assert_eq!(view.state(*v), map.state(*v), "{v:?}");
+            assert_eq!(*b, map.state(*v), "{v:?}");
+        }
+        for _ in 0..2000 {
+            let mut p = || {
+                WorldPoint::new(
+                    rng.f() * 12.0 - 6.0,
+                    rng.f() * 12.0 - 6.0,
+                    rng.f() * 12.0 - 6.0,
+                )
+            };
+            let (a, b) = (p(), p());
+            let want = find_voxel(tf.point_to_units(&a), tf.point_to_units(&b), |v| {
+                (map.state(v) == VoxelState::Occupied).then_some(v)
+            });
+            assert_eq!(
+                view.first_hit(&a, &b, false).unwrap(),
+                want,
+                "{a:?} -> {b:?}"
+            );
+        }
+    }
+    // A hash table needs more slots than blocks, so that probing ends.
+    let mut bytes = encode(&spread, Scope::Whole, false);
+    let mut h: Header = bytemuck::pod_read_unaligned(&bytes[..layout::HEADER_SIZE]);
+    h.table_capacity = h.block_count;
+    bytes[..layout::HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&h));
+    assert_eq!(
+        SnapshotView::open(&bytes).unwrap_err(),
+        SnapshotError::BadHeader("table_capacity")
+    );
 }
 
 #[test]

@@ -116,7 +116,7 @@ struct LeafRef {
 /// assert_eq!(view.state(VoxelCoord::new(3, -2, 7)), VoxelState::Occupied);
 /// assert_eq!(view.state(VoxelCoord::new(0, 0, 0)), VoxelState::Unknown);
 /// ```
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
     /// The table section's slots, the blocks and the leaves sections' entries, sliced once
@@ -127,8 +127,20 @@ pub struct SnapshotView<'a> {
     /// The mask records (the masks section without its padding).
     masks: &'a [u8],
     header: Header,
+    /// The table is a dense array ([`FLAG_DENSE_INDEX`]).
+    dense: bool,
     tf: GridTransform,
     q: QuantizedModel,
+}
+
+/// The header and length, not the (possibly hundreds of MB of) bytes.
+impl std::fmt::Debug for SnapshotView<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SnapshotView")
+            .field("len", &self.bytes.len())
+            .field("header", &self.header)
+            .finish_non_exhaustive()
+    }
 }
 
 impl<'a> SnapshotView<'a> {
@@ -149,7 +161,7 @@ impl<'a> SnapshotView<'a> {
         if h.header_size as usize != HEADER_SIZE {
             return Err(SnapshotError::BadHeader("header_size"));
         }
-        if h.flags & !FLAG_VALUES != 0 {
+        if h.flags & !(FLAG_VALUES | FLAG_DENSE_INDEX) != 0 {
             return Err(SnapshotError::BadHeader("unknown flags"));
         }
         if h.total_len > got {
@@ -172,7 +184,20 @@ impl<'a> SnapshotView<'a> {
             return Err(SnapshotError::BadHeader("block_count"));
         }
         let cap = h.table_capacity;
-        if cap <= nb || cap >= 1 << 32 {
+        let dense = h.flags & FLAG_DENSE_INDEX != 0;
+        if dense {
+            let slots = h
+                .index_dims
+                .iter()
+                .map(|&d| u128::from(d))
+                .product::<u128>();
+            if h.index_dims.contains(&0) || slots != u128::from(cap) {
+                return Err(SnapshotError::BadHeader("index_dims"));
+            }
+        } else if h.index_lo != [0; 3] || h.index_dims != [0; 3] {
+            return Err(SnapshotError::BadHeader("index fields of a hash table"));
+        }
+        if (!dense && cap <= nb) || cap >= 1 << 32 {
             return Err(SnapshotError::BadHeader("table_capacity"));
         }
         if h.masks_len > MAX_MASKS_LEN {
@@ -218,24 +243,10 @@ impl<'a> SnapshotView<'a> {
             leaves: bytemuck::cast_slice(sub(h.leaves_offset, ENTRY_SIZE as u64 * n)),
             masks: sub(h.masks_offset, h.masks_len),
             header: h,
+            dense,
             tf,
             q,
         };
-        // Every table entry names an existing block, and at least one slot is empty, so
-        // probing always terminates.
-        let mut empty = 0u64;
-        for s in 0..cap {
-            match v.slot(s) {
-                0 => empty += 1,
-                e if u64::from(e) > nb => {
-                    return Err(SnapshotError::BadIndex("table entry beyond block_count"))
-                }
-                _ => {}
-            }
-        }
-        if empty == 0 {
-            return Err(SnapshotError::BadIndex("block table has no empty slot"));
-        }
         // Block origins are block-aligned, ranks count the leaf bits, and the blocks'
         // leaves follow one another from leaf 0 to the last: each leaf belongs to one
         // block, and a rank stays in range.
@@ -260,6 +271,33 @@ impl<'a> SnapshotView<'a> {
             return Err(SnapshotError::BadIndex(
                 "blocks do not hold leaf_count leaves",
             ));
+        }
+        // Every table entry names an existing block; a dense array's, the block at its
+        // place (so a lookup needs no origin compare); and a hash table has an empty slot,
+        // so probing always terminates.
+        let mut empty = 0u64;
+        let [dx, dy, _] = h.index_dims.map(u64::from);
+        for s in 0..cap {
+            match v.slot(s) {
+                0 => empty += 1,
+                e if u64::from(e) > nb => {
+                    return Err(SnapshotError::BadIndex("table entry beyond block_count"))
+                }
+                e if dense => {
+                    let at = [s % dx, s / dx % dy, s / dx / dy];
+                    let want = [0, 1, 2].map(|k| (i64::from(h.index_lo[k]) + at[k] as i64) << 6);
+                    let origin = block_origin_of(&v.blocks[e as usize - 1]);
+                    if origin.map(i64::from) != want {
+                        return Err(SnapshotError::BadIndex(
+                            "dense index slot names another block",
+                        ));
+                    }
+                }
+                _ => {}
+            }
+        }
+        if empty == 0 && !dense {
+            return Err(SnapshotError::BadIndex("block table has no empty slot"));
         }
         for i in 0..n {
             let e = v.entry(i);
@@ -352,12 +390,42 @@ impl<'a> SnapshotView<'a> {
     #[inline]
     fn find_leaf(&self, v: VoxelCoord) -> Option<LeafRef> {
         let b = block_origin(v).to_array();
-        let block = self.probe(b, table_hash(b, self.header.table_capacity))?;
+        let block = self.find_block(b)?;
         self.leaf_index(block, leaf_in_block(v))
             .map(|i| self.leaf_ref(i))
     }
 
-    /// The block with origin `b`, probing the table from slot `s` (its hash).
+    /// The block with origin `b`.
+    #[inline]
+    fn find_block(&self, b: [i32; 3]) -> Option<&'a [u8; BLOCK_SIZE]> {
+        self.block_from(b, self.home(b)?)
+    }
+
+    /// The table slot where a lookup of the block with origin `b` starts; `None` outside
+    /// a dense array.
+    #[inline]
+    fn home(&self, b: [i32; 3]) -> Option<u64> {
+        let h = &self.header;
+        if self.dense {
+            dense_slot(block_coords(b), h.index_lo, h.index_dims)
+        } else {
+            Some(table_hash(b, h.table_capacity))
+        }
+    }
+
+    /// The block with origin `b`, looked up from its [`Self::home`] slot `s` (`u64::MAX`:
+    /// none).
+    #[inline]
+    fn block_from(&self, b: [i32; 3], s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
+        if self.dense {
+            let e = self.slot(s);
+            self.blocks.get((e as usize).checked_sub(1)?)
+        } else {
+            self.probe(b, s)
+        }
+    }
+
+    /// The block with origin `b`, probing the hash table from slot `s` (its hash).
     #[inline]
     fn probe(&self, b: [i32; 3], mut s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
         let cap = self.header.table_capacity;
@@ -492,14 +560,18 @@ impl<'a> SnapshotView<'a> {
         let mut slot = [0u64; STATES_GROUP];
         for (s, v) in slot.iter_mut().zip(voxels) {
             if let Some(v) = v {
-                *s = table_hash(block_origin(*v).to_array(), h.table_capacity);
-                prefetch(self.bytes, h.table_offset + 4 * *s);
+                if let Some(home) = self.home(block_origin(*v).to_array()) {
+                    *s = home;
+                    prefetch(self.bytes, h.table_offset + 4 * home);
+                } else {
+                    *s = u64::MAX;
+                }
             }
         }
         let mut index = [None; STATES_GROUP];
         for ((i, v), s) in index.iter_mut().zip(voxels).zip(slot) {
             *i = v.and_then(|v| {
-                let block = self.probe(block_origin(v).to_array(), s)?;
+                let block = self.block_from(block_origin(v).to_array(), s)?;
                 let i = self.leaf_index(block, leaf_in_block(v))?;
                 prefetch(self.bytes, h.leaves_offset + ENTRY_SIZE as u64 * i);
                 Some(i)
@@ -573,7 +645,7 @@ impl<'a> SnapshotView<'a> {
         let mut class = |lo: VoxelCoord| {
             let b = block_origin(lo).to_array();
             if b != block.0 {
-                block = (b, self.probe(b, table_hash(b, self.header.table_capacity)));
+                block = (b, self.find_block(b));
             }
             let leaf = block
                 .1

@@ -156,6 +156,8 @@ pub struct Plan<'a> {
     /// The leaves' blocks, in leaf order.
     blocks: Vec<BlockEntry>,
     table_capacity: u64,
+    /// The dense index's lowest block and size, when the table is one.
+    dense: Option<([i32; 3], [u32; 3])>,
     /// The masks section, already encoded, in pieces (in leaf order).
     records: Vec<Vec<u8>>,
     masks_len: u64,
@@ -207,6 +209,26 @@ fn blocks_of(leaves: &[PlannedLeaf<'_>]) -> Vec<BlockEntry> {
         }
     }
     blocks
+}
+
+/// A dense index over the blocks' bounds (lowest block coordinates, size in blocks), if it
+/// needs no more slots than a hash table would: the usual case, as maps are built from
+/// rays and so are compact. A dense lookup is a bounds check and one read, no hashing,
+/// probing or origin compare.
+fn dense_index(blocks: &[BlockEntry]) -> Option<([i32; 3], [u32; 3])> {
+    let first = block_coords(blocks.first()?.origin);
+    let (mut lo, mut hi) = (first, first);
+    for b in blocks {
+        let c = block_coords(b.origin);
+        for k in 0..3 {
+            lo[k] = lo[k].min(c[k]);
+            hi[k] = hi[k].max(c[k]);
+        }
+    }
+    // Block coordinates span 2^26: each size fits u32, their product u128.
+    let dims = [0, 1, 2].map(|k| (i64::from(hi[k]) - i64::from(lo[k]) + 1) as u32);
+    let slots: u128 = dims.iter().map(|&d| u128::from(d)).product();
+    (slots <= u128::from(table_capacity_for(blocks.len() as u64))).then_some((lo, dims))
 }
 
 /// Fill a zeroed table of `slots.len() / 4` slots with block `i` + 1 for each `home << 32 | i`
@@ -346,7 +368,11 @@ impl<'a> Plan<'a> {
             records.push(bytes);
         }
         let blocks = blocks_of(&leaves);
-        let table_capacity = table_capacity_for(blocks.len() as u64);
+        let dense = dense_index(&blocks);
+        let table_capacity = match dense {
+            Some((_, dims)) => dims.iter().map(|&d| u64::from(d)).product(),
+            None => table_capacity_for(blocks.len() as u64),
+        };
         Self {
             map,
             leaves,
@@ -354,6 +380,7 @@ impl<'a> Plan<'a> {
             meta,
             blocks,
             table_capacity,
+            dense,
             records,
             masks_len: at,
             sums,
@@ -420,13 +447,25 @@ impl<'a> Plan<'a> {
         buf[HEADER_SIZE..blocks as usize].fill(0);
         let q = self.map.quantized();
         let cap = self.table_capacity;
-        // Blocks in order of their home slots (ties by index, so the table does not depend
-        // on scheduling), filled in one pass front to back (`fill_table`).
-        let mut order: Vec<u64> = (self.blocks.iter().enumerate())
-            .map(|(i, b)| table_hash(b.origin, cap) << 32 | i as u64)
-            .collect();
-        order.sort_unstable();
-        fill_table(&mut buf[table as usize..(table + 4 * cap) as usize], &order);
+        let slots = &mut buf[table as usize..(table + 4 * cap) as usize];
+        match self.dense {
+            Some((lo, dims)) => {
+                for (i, b) in self.blocks.iter().enumerate() {
+                    let s = dense_slot(block_coords(b.origin), lo, dims).expect("in bounds");
+                    slots[4 * s as usize..][..4].copy_from_slice(&(i as u32 + 1).to_le_bytes());
+                }
+            }
+            None => {
+                // Blocks in order of their home slots (ties by index, so the table does not
+                // depend on scheduling), filled in one pass front to back (`fill_table`).
+                let mut order: Vec<u64> = (self.blocks.iter().enumerate())
+                    .map(|(i, b)| table_hash(b.origin, cap) << 32 | i as u64)
+                    .collect();
+                order.sort_unstable();
+                fill_table(slots, &order);
+            }
+        }
+        let (index_lo, index_dims) = self.dense.unwrap_or_default();
         buf[blocks as usize..entries as usize].copy_from_slice(bytemuck::cast_slice(&self.blocks));
         // Cut the sections into disjoint pieces and write them in parallel.
         let (_, rest) = buf.split_at_mut(entries as usize);
@@ -488,6 +527,10 @@ impl<'a> Plan<'a> {
                 FLAG_VALUES
             } else {
                 0
+            } | if self.dense.is_some() {
+                FLAG_DENSE_INDEX
+            } else {
+                0
             },
             header_size: HEADER_SIZE as u32,
             frac_bits: q.frac_bits,
@@ -504,6 +547,8 @@ impl<'a> Plan<'a> {
             bounds_max: sums.hi,
             table_capacity: self.table_capacity,
             block_count: self.blocks.len() as u64,
+            index_lo,
+            index_dims,
             table_offset: table,
             blocks_offset: blocks,
             leaves_offset: entries,
