@@ -4,7 +4,8 @@
 //! from `floor(o)` to `floor(e)`: exactly `|Δx| + |Δy| + |Δz|` steps, one axis at a time.
 //! When the segment crosses an edge or corner exactly, the tie goes to the lowest axis
 //! (x, then y, then z), so the walk is deterministic. Step counts are fixed up front, so
-//! rounding can never carry the walk past the end voxel.
+//! rounding can never carry the walk past the end voxel. [`LeafWalk`] follows the same walk
+//! leaf by leaf (8x8x8 voxels) for walks that can pass whole leaves.
 
 use crate::coord::VoxelCoord;
 

@@ -174,8 +174,9 @@ fn view_agrees_with_the_map_on_every_query() {
     }
 }
 
-/// `first_hit` passes leaves with nothing blocking in one jump: check it on long segments
-/// through a sparse map, from and to leaf corners, faces and edges (ties), and along axes.
+/// `first_hit` passes leaves with nothing blocking whole (`raycast::LeafWalk`): check it on
+/// long segments through a sparse map, from and to leaf corners, faces and edges (ties),
+/// and along axes.
 #[test]
 fn first_hit_agrees_on_long_and_lattice_segments() {
     let map = random_map(9, 2);
