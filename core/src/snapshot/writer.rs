@@ -320,7 +320,10 @@ impl<'a> Plan<'a> {
         let pieces: Vec<(Vec<u8>, Sums, usize)> = leaves
             .par_chunks_mut(PIECE)
             .map(|piece| {
-                let (mut bytes, mut sums, mut empty) = (Vec::new(), Sums::default(), 0);
+                // The most a record takes (two dense masks), so the piece never grows by
+                // copying; pages not written to are never touched.
+                let mut bytes = Vec::with_capacity(piece.len() * 2 * 64);
+                let (mut sums, mut empty) = (Sums::default(), 0);
                 for p in piece {
                     let keep = *keep_of(&keeps, p);
                     if keep.is_empty() {
