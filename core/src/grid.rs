@@ -63,6 +63,32 @@ pub fn leaf_origin(v: VoxelCoord) -> VoxelCoord {
     VoxelCoord::new(v.x & !7, v.y & !7, v.z & !7)
 }
 
+/// The voxels of the leaf with origin `o` that lie in the inclusive voxel box [lo, hi].
+pub fn leaf_box_mask(o: VoxelCoord, lo: VoxelCoord, hi: VoxelCoord) -> Mask512 {
+    // Per axis, the in-leaf coordinates inside the box as 8 bits.
+    let axis = |o: i32, lo: i32, hi: i32| -> u64 {
+        let a = (i64::from(lo) - i64::from(o)).clamp(0, 8);
+        let b = (i64::from(hi) - i64::from(o) + 1).clamp(0, 8);
+        if a >= b {
+            0
+        } else {
+            (1 << b) - (1 << a)
+        }
+    };
+    let (mx, my, mz) = (
+        axis(o.x, lo.x, hi.x),
+        axis(o.y, lo.y, hi.y),
+        axis(o.z, lo.z, hi.z),
+    );
+    // Word z holds the slice at that z, bit x | y << 3.
+    let slice = (0..8)
+        .filter(|y| my >> y & 1 != 0)
+        .fold(0u64, |s, y| s | mx << (8 * y));
+    Mask512 {
+        words: std::array::from_fn(|z| if mz >> z & 1 != 0 { slice } else { 0 }),
+    }
+}
+
 /// Voxel at in-leaf offset `i` of the leaf with origin `o`.
 #[inline]
 pub fn voxel_at(o: VoxelCoord, i: usize) -> VoxelCoord {
@@ -346,6 +372,35 @@ impl<V: GridValue> Grid<V> {
             .collect()
     }
 
+    /// [`Self::filter_map_leaves_in_block_order`] over the leaves that overlap the voxel
+    /// box [lo, hi] only: internal nodes and leaves outside it are passed over without
+    /// reading them, so the cost follows the box, not the map.
+    pub fn filter_map_leaves_in_box<'a, T: Send>(
+        &'a self,
+        lo: VoxelCoord,
+        hi: VoxelCoord,
+        f: impl Fn(VoxelCoord, &'a Leaf<V>) -> Option<T> + Sync + Send,
+    ) -> Vec<T> {
+        use rayon::prelude::*;
+        // Does [o, o + size) overlap the box on every axis?
+        let overlaps = |o: VoxelCoord, size: i64| {
+            let (o, lo, hi) = (o.to_array(), lo.to_array(), hi.to_array());
+            (0..3).all(|k| {
+                i64::from(o[k]) <= i64::from(hi[k]) && i64::from(lo[k]) < i64::from(o[k]) + size
+            })
+        };
+        let mut nodes = self.internals_in_block_order();
+        nodes.retain(|n| overlaps(n.origin, 1 << INTERNAL_TOTAL_LOG2));
+        nodes
+            .par_iter()
+            .flat_map_iter(|node| {
+                self.node_leaves(node)
+                    .filter(|(o, _)| overlaps(*o, 1 << LEAF_LOG2))
+                    .filter_map(|(o, l)| f(o, l))
+            })
+            .collect()
+    }
+
     fn internals_in_block_order(&self) -> Vec<&Internal> {
         let mut order: Vec<&Internal> = self.internals.iter().map(|n| &**n).collect();
         order.sort_unstable_by_key(|n| (n.origin.z, n.origin.y, n.origin.x));
@@ -474,6 +529,41 @@ mod tests {
             .collect();
         want.sort();
         assert_eq!(got, want);
+    }
+
+    #[test]
+    fn leaf_box_masks_hold_the_voxels_inside() {
+        let mut rng = crate::test_rng::Rng(3);
+        for _ in 0..2000 {
+            let o = VoxelCoord::new(rng.i(-40, 40), rng.i(-40, 40), rng.i(-40, 40))
+                .shr(3)
+                .shl(3);
+            let mut c = || rng.i(-50, 50);
+            let (a, b) = (
+                VoxelCoord::new(c(), c(), c()),
+                VoxelCoord::new(c(), c(), c()),
+            );
+            let (lo, hi) = (
+                VoxelCoord::new(a.x.min(b.x), a.y.min(b.y), a.z.min(b.z)),
+                VoxelCoord::new(a.x.max(b.x), a.y.max(b.y), a.z.max(b.z)),
+            );
+            let m = leaf_box_mask(o, lo, hi);
+            for i in 0..LEAF_VOXELS {
+                let v = voxel_at(o, i);
+                let inside = (0..3).all(|k| {
+                    lo.to_array()[k] <= v.to_array()[k] && v.to_array()[k] <= hi.to_array()[k]
+                });
+                assert_eq!(m.get(i), inside, "{o:?} [{lo:?}, {hi:?}] {v:?}");
+            }
+        }
+        let (near, far) = (
+            VoxelCoord::new(i32::MIN, i32::MIN, i32::MIN),
+            VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
+        );
+        assert_eq!(
+            leaf_box_mask(VoxelCoord::new(-8, 0, 0), near, far),
+            Mask512::FULL
+        );
     }
 
     #[test]

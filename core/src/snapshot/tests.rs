@@ -218,9 +218,18 @@ fn first_hit_agrees_on_long_and_lattice_segments() {
 #[test]
 fn box_scope_keeps_exactly_the_voxels_inside() {
     let map = random_map(9, 2);
-    let (min, max) = ([-1.0, -0.5, -0.3], [1.2, 0.7, 0.4]);
-    let bytes = encode(&map, Scope::Box { min, max }, false);
-    let whole = encode(&map, Scope::Whole, false);
+    // Across the origin (eight internal nodes), then within one node's corner.
+    for (min, max) in [
+        ([-1.0, -0.5, -0.3], [1.2, 0.7, 0.4]),
+        ([0.05, 0.3, 0.0], [2.0, 3.9, 1.1]),
+    ] {
+        check_box_scope(&map, min, max);
+    }
+}
+
+fn check_box_scope(map: &OccupancyMap, min: [f64; 3], max: [f64; 3]) {
+    let bytes = encode(map, Scope::Box { min, max }, false);
+    let whole = encode(map, Scope::Whole, false);
     assert!(bytes.len() < whole.len());
     let view = SnapshotView::open_checked(&bytes).unwrap();
     assert!(!view.has_values());

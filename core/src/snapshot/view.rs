@@ -3,7 +3,7 @@
 use super::layout::*;
 use super::record::{self, MaskRef};
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{block_origin, leaf_in_block, leaf_offset, leaf_origin, voxel_at};
+use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, leaf_offset, leaf_origin, voxel_at};
 use crate::mask::BitIter;
 use crate::model::{QuantizedModel, VoxelState};
 use bytemuck::Zeroable;
@@ -730,14 +730,11 @@ impl<'a> SnapshotView<'a> {
                         None if !unknown_is_free => return false,
                         None => {}
                         Some(l) => {
-                            for i in 0..512 {
-                                let v = voxel_at(o, i);
-                                if inside(v) {
-                                    match self.leaf_state(l, i) {
-                                        VoxelState::Occupied => return false,
-                                        VoxelState::Unknown if !unknown_is_free => return false,
-                                        _ => {}
-                                    }
+                            for i in leaf_box_mask(o, lo, hi).iter_ones() {
+                                match self.leaf_state(l, i) {
+                                    VoxelState::Occupied => return false,
+                                    VoxelState::Unknown if !unknown_is_free => return false,
+                                    _ => {}
                                 }
                             }
                         }

@@ -6,7 +6,7 @@
 use super::layout::*;
 use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
-use crate::grid::{block_origin, leaf_in_block, Leaf};
+use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf};
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
 use rayon::prelude::*;
@@ -278,39 +278,31 @@ impl<'a> Plan<'a> {
                 let bounds = map
                     .transform()
                     .voxels_centred_in(&WorldPoint::from(min), &WorldPoint::from(max));
-                match bounds {
-                    Some((lo, hi)) => map
-                        .grid()
-                        .leaves_in_block_order()
-                        .filter_map(|(origin, leaf)| {
-                            let mut keep = Mask512::EMPTY;
-                            for i in leaf.active.iter_ones() {
-                                let v = crate::grid::voxel_at(origin, i);
-                                if lo.x <= v.x
-                                    && v.x <= hi.x
-                                    && lo.y <= v.y
-                                    && v.y <= hi.y
-                                    && lo.z <= v.z
-                                    && v.z <= hi.z
-                                {
-                                    keep.set(i);
-                                }
-                            }
-                            if keep.is_empty() {
-                                return None;
-                            }
-                            keeps.push(keep);
-                            Some(PlannedLeaf {
-                                origin,
-                                leaf,
-                                kinds: (0, 0),
-                                record: 0,
-                                keep: keeps.len() as u32 - 1,
-                            })
-                        })
-                        .collect(),
-                    None => Vec::new(),
-                }
+                // Only the leaves overlapping the box are read (a box around the sensor
+                // in a large map is a small part of it).
+                let planned = bounds.map_or(Vec::new(), |(lo, hi)| {
+                    map.grid().filter_map_leaves_in_box(lo, hi, |origin, leaf| {
+                        let inside = leaf_box_mask(origin, lo, hi);
+                        let keep = Mask512 {
+                            words: std::array::from_fn(|w| leaf.active.words[w] & inside.words[w]),
+                        };
+                        (!keep.is_empty()).then_some((origin, leaf, keep))
+                    })
+                });
+                keeps.reserve(planned.len());
+                planned
+                    .into_iter()
+                    .map(|(origin, leaf, keep)| {
+                        keeps.push(keep);
+                        PlannedLeaf {
+                            origin,
+                            leaf,
+                            kinds: (0, 0),
+                            record: 0,
+                            keep: keeps.len() as u32 - 1,
+                        }
+                    })
+                    .collect()
             }
         };
         let threshold = map.quantized().threshold;
