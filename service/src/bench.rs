@@ -237,7 +237,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let mem = map.memory_bytes();
                 let med = median(&mut times);
                 if mode == RayMode::Exact && Some(&threads) == a.threads.last() && !a.no_snapshot {
-                    snapshots.push((name.clone(), snapshot_bench(&integ, &map, med)));
+                    let t = cloud.pose.translation.vector;
+                    let sensor = [t.x, t.y, t.z];
+                    snapshots.push((name.clone(), snapshot_bench(&integ, &map, med, sensor)));
                 }
                 drop(map);
                 let (min, max) = (times[0], times[times.len() - 1]);
@@ -283,8 +285,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         if !snapshots.is_empty() {
             println!();
             println!(
-                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>9} {:>9}",
-                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "open ms", "ms chk", "query ns", "batch ns", "los10m ns"
+                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}",
+                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "box ms", "open ms", "ms chk", "query ns", "batch ns", "los10m ns"
             );
         }
     }
@@ -297,6 +299,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     "bytes_per_known_voxel": s.bytes as f64 / s.known.max(1) as f64,
                     "bytes_per_leaf": s.bytes as f64 / s.leaves.max(1) as f64,
                     "map_memory_bytes": s.map_bytes, "encode_ms": s.encode_ms, "integrate_ms": s.integrate_ms,
+                    "box_encode_ms": s.box_encode_ms, "box_bytes": s.box_bytes,
                     "open_ms": s.open_ms, "open_checked_ms": s.open_checked_ms,
                     "point_query_ns": s.query_ns, "point_query_batched_ns": s.batch_query_ns,
                     "first_hit_10m_ns": s.los_ns,
@@ -306,14 +309,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
             );
         } else {
             println!(
-                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.3} {:>8.3} {:>9.1} {:>9.1} {:>9.0}",
+                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.2} {:>8.3} {:>8.3} {:>9.1} {:>9.1} {:>9.0}",
                 name, s.bytes, s.leaves, s.bytes as f64 / s.known.max(1) as f64, s.bytes as f64 / s.leaves.max(1) as f64,
-                s.encode_ms, s.integrate_ms / s.encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.batch_query_ns, s.los_ns
+                s.encode_ms, s.integrate_ms / s.encode_ms, s.box_encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.batch_query_ns, s.los_ns
             );
         }
     }
     if !a.json && !snapshots.is_empty() {
-        println!("xfaster = integrate median / encode; query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query, one state() call each); batch = the same voxels through one states() call per batch; los10m = first_hit on a 10 m segment (median ns)");
+        println!("xfaster = integrate median / encode; box = encode of a 20 x 20 x 6 m box around the sensor (median of 3); query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query, one state() call each); batch = the same voxels through one states() call per batch; los10m = first_hit on a 10 m segment (median ns)");
         println!();
         println!(
             "{:<40} {:>12} {:>10} {:>10}",
@@ -336,6 +339,9 @@ struct SnapshotBench {
     map_bytes: usize,
     encode_ms: f64,
     integrate_ms: f64,
+    /// A 20 x 20 x 6 m box around the sensor: encode ms (median of 3) and bytes.
+    box_encode_ms: f64,
+    box_bytes: usize,
     open_ms: f64,
     open_checked_ms: f64,
     query_ns: f64,
@@ -359,7 +365,12 @@ fn median(v: &mut [f64]) -> f64 {
 
 /// Encode on the integrator's pool, as the service does, so encode and integrate use the
 /// same threads.
-fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> SnapshotBench {
+fn snapshot_bench(
+    integ: &Integrator,
+    map: &OccupancyMap,
+    integrate_ms: f64,
+    sensor: [f64; 3],
+) -> SnapshotBench {
     use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
     use voxmap_core::{VoxelCoord, WorldPoint};
     let meta = Meta::default();
@@ -373,6 +384,17 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
             plan.write(&mut buf).expect("sized");
         });
         enc.push(ms(t.elapsed()));
+    }
+    let around = Scope::Box {
+        min: [sensor[0] - 10.0, sensor[1] - 10.0, sensor[2] - 3.0],
+        max: [sensor[0] + 10.0, sensor[1] + 10.0, sensor[2] + 3.0],
+    };
+    let mut box_enc = Vec::new();
+    let mut box_bytes = 0;
+    for _ in 0..3 {
+        let t = Instant::now();
+        box_bytes = integ.install(|| Plan::new(map, around, meta).to_vec().len());
+        box_enc.push(ms(t.elapsed()));
     }
     let t = Instant::now();
     let view = SnapshotView::open(&buf).expect("fresh snapshot opens");
@@ -454,6 +476,8 @@ fn snapshot_bench(integ: &Integrator, map: &OccupancyMap, integrate_ms: f64) -> 
         map_bytes: map.memory_bytes(),
         encode_ms: median(&mut enc),
         integrate_ms,
+        box_encode_ms: median(&mut box_enc),
+        box_bytes,
         open_ms,
         open_checked_ms,
         query_ns,
