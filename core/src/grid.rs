@@ -359,22 +359,37 @@ impl<V: GridValue> Grid<V> {
             .flat_map(move |node| self.node_leaves(node))
     }
 
-    /// `f` applied to [`Self::leaves_in_block_order`] in parallel (on the current rayon
-    /// pool), keeping the `Some`s in that order.
-    pub fn filter_map_leaves_in_block_order<'a, T: Send>(
-        &'a self,
-        f: impl Fn(VoxelCoord, &'a Leaf<V>) -> Option<T> + Sync + Send,
-    ) -> Vec<T> {
+    /// Every leaf as (origin, leaf index), in block order ([`Self::leaves_in_block_order`]),
+    /// listed in parallel on the current rayon pool. Each internal node's share of the
+    /// output is counted from its child mask and written in place: collecting a parallel
+    /// iteration of unknown length instead (rayon's list of vectors, then a copy) took
+    /// 51-63 ms for the 1.8 M leaves of the random 500k 60 m map.
+    pub fn leaf_indices_in_block_order(&self) -> Vec<(VoxelCoord, u32)> {
         use rayon::prelude::*;
-        self.internals_in_block_order()
-            .par_iter()
-            .flat_map_iter(|node| self.node_leaves(node).filter_map(|(o, l)| f(o, l)))
-            .collect()
+        let nodes = self.internals_in_block_order();
+        let counts: Vec<usize> = (nodes.iter())
+            .map(|n| n.child_mask.iter().map(|w| w.count_ones() as usize).sum())
+            .collect();
+        let mut out = vec![(VoxelCoord::default(), 0); counts.iter().sum()];
+        let mut parts = Vec::with_capacity(nodes.len());
+        let mut rest = out.as_mut_slice();
+        for n in counts {
+            let (part, tail) = rest.split_at_mut(n);
+            parts.push(part);
+            rest = tail;
+        }
+        parts.into_par_iter().zip(nodes).for_each(|(part, node)| {
+            for (slot, leaf) in part.iter_mut().zip(Self::node_leaf_indices(node)) {
+                *slot = leaf;
+            }
+        });
+        out
     }
 
-    /// [`Self::filter_map_leaves_in_block_order`] over the leaves that overlap the voxel
-    /// box [lo, hi] only: internal nodes and leaves outside it are passed over without
-    /// reading them, so the cost follows the box, not the map.
+    /// `f` applied in parallel (on the current rayon pool) to the leaves that overlap the
+    /// voxel box [lo, hi], keeping the `Some`s in block order. Internal nodes and leaves
+    /// outside the box are passed over without reading them, so the cost follows the box,
+    /// not the map.
     pub fn filter_map_leaves_in_box<'a, T: Send>(
         &'a self,
         lo: VoxelCoord,
@@ -411,6 +426,11 @@ impl<V: GridValue> Grid<V> {
         &'a self,
         node: &'a Internal,
     ) -> impl Iterator<Item = (VoxelCoord, &'a Leaf<V>)> + 'a {
+        Self::node_leaf_indices(node).map(|(o, i)| (o, self.leaves.get(i)))
+    }
+
+    /// A node's leaves as (origin, leaf index), in block order.
+    fn node_leaf_indices(node: &Internal) -> impl Iterator<Item = (VoxelCoord, u32)> + '_ {
         // Child index x | y << 4 | z << 8 (x, y, z in leaves, 0..16): a block's row of 8
         // leaves along x at (y, z) is one byte of the child mask.
         (0..8 * BLOCK_LEAVES / 8).flat_map(move |row| {
@@ -423,7 +443,7 @@ impl<V: GridValue> Grid<V> {
                 let ci = at + b;
                 let o = node.origin
                     + VoxelCoord::new((bx * 8 + b) as i32, y as i32, z as i32).shl(LEAF_LOG2);
-                (o, self.leaves.get(node.children[ci]))
+                (o, node.children[ci])
             })
         })
     }
@@ -637,8 +657,11 @@ mod tests {
                 assert!(done.insert(block_origin(w[0])), "block {:?} split", w[0]);
             }
         }
-        let par = g.filter_map_leaves_in_block_order(|o, _| Some(o));
-        assert_eq!(par, order);
+        let par = g.leaf_indices_in_block_order();
+        assert_eq!(par.iter().map(|&(o, _)| o).collect::<Vec<_>>(), order);
+        for (o, i) in par {
+            assert_eq!(g.leaf_index(o), Some(i));
+        }
         let v = VoxelCoord::new(-65, 70, 200);
         assert_eq!(block_origin(v), VoxelCoord::new(-128, 64, 192));
         assert_eq!(leaf_in_block(v), 7 + (1 << 6)); // (7, 0, 1)

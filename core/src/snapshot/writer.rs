@@ -263,17 +263,19 @@ impl<'a> Plan<'a> {
     pub fn new(map: &'a OccupancyMap, scope: Scope, meta: Meta) -> Self {
         let mut keeps = Vec::new();
         let mut leaves: Vec<PlannedLeaf<'a>> = match scope {
-            // Leaves are not read here: in block order they are scattered over the pool,
-            // and the pass below reads each one once.
-            Scope::Whole => map.grid().filter_map_leaves_in_block_order(|origin, leaf| {
-                Some(PlannedLeaf {
-                    origin,
-                    leaf,
-                    kinds: (0, 0),
-                    record: 0,
-                    keep: WHOLE,
-                })
-            }),
+            // Leaves are not read here; the pass below reads each one once.
+            Scope::Whole => {
+                let grid = map.grid();
+                (grid.leaf_indices_in_block_order().par_iter())
+                    .map(|&(origin, i)| PlannedLeaf {
+                        origin,
+                        leaf: grid.leaf(i),
+                        kinds: (0, 0),
+                        record: 0,
+                        keep: WHOLE,
+                    })
+                    .collect()
+            }
             Scope::Box { min, max } => {
                 let bounds = map
                     .transform()
