@@ -509,7 +509,7 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
     );
     let exact = frames.iter().find(|r| r["mode"] == "exact").unwrap();
     assert_eq!(u(s, "known"), u(exact, "occupied") + u(exact, "free"));
-    for k in ["bytes", "leaves", "mapfile_bytes"] {
+    for k in ["bytes", "leaves", "mapfile_bytes", "box_bytes"] {
         assert!(u(s, k) > 0, "{k}");
     }
     for k in [
@@ -517,6 +517,7 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         "point_query_batched_ns",
         "first_hit_10m_ns",
         "encode_ms",
+        "box_encode_ms",
     ] {
         assert!(f(s, k) > 0.0, "{k}");
     }
