@@ -42,6 +42,13 @@ pub fn block_origin(v: VoxelCoord) -> VoxelCoord {
 pub fn leaf_in_block(v: VoxelCoord) -> usize {
     ((v.x >> 3 & 7) | (v.y >> 3 & 7) << 3 | (v.z >> 3 & 7) << 6) as usize
 }
+
+/// Origin of the leaf with in-block index `j` of the block with origin `b` (the inverse of
+/// [`leaf_in_block`]).
+#[inline]
+pub fn leaf_of_block(b: VoxelCoord, j: usize) -> VoxelCoord {
+    voxel_at(VoxelCoord::default(), j).shl(LEAF_LOG2) + b
+}
 /// Leaves per pool chunk: as many `Leaf<i8>`, in whole [`UPDATE_SPAN`]s, as fill one
 /// huge page (3584 of 3640). Each chunk is its own mapping ([`Zeroed`]): with chunks of 256
 /// leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the random 500k 60 m
@@ -665,6 +672,10 @@ mod tests {
         let v = VoxelCoord::new(-65, 70, 200);
         assert_eq!(block_origin(v), VoxelCoord::new(-128, 64, 192));
         assert_eq!(leaf_in_block(v), 7 + (1 << 6)); // (7, 0, 1)
+        assert_eq!(
+            leaf_of_block(block_origin(v), leaf_in_block(v)),
+            leaf_origin(v)
+        );
     }
 
     #[test]

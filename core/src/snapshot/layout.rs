@@ -86,6 +86,18 @@ pub struct BlockEntry {
 }
 
 const _: () = assert!(BLOCK_SIZE == 96);
+
+impl BlockEntry {
+    /// The `ranks` of these leaf bits: the stored leaves in the words before each.
+    pub fn ranks_of(leaves: &[u64; 8]) -> [u16; 8] {
+        let mut below = 0;
+        leaves.map(|w| {
+            let r = below;
+            below += w.count_ones() as u16;
+            r
+        })
+    }
+}
 /// Byte offset in a [`BlockEntry`] of its `ranks`.
 pub const BLOCK_RANKS_AT: usize = std::mem::offset_of!(BlockEntry, ranks);
 /// Byte offset in a [`BlockEntry`] of its `leaves` words.

@@ -174,6 +174,39 @@ fn view_agrees_with_the_map_on_every_query() {
     }
 }
 
+/// Boxes with more leaves than the snapshot stores, unknown as free: answered by scanning
+/// the stored leaves, which must agree with the map's occupied voxels.
+#[test]
+fn is_box_free_scans_stored_leaves_for_large_boxes() {
+    let map = random_map(2, 1);
+    let bytes = encode(&map, Scope::Whole, false);
+    let view = SnapshotView::open(&bytes).unwrap();
+    let tf = map.transform();
+    let mut rng = Rng(31);
+    let (mut free, mut blocked) = (0, 0);
+    for _ in 0..200 {
+        // 100 x 100 m slabs, 0.05-0.5 m thick, at random heights: 15,625 leaves or more.
+        let z = rng.f() * 9.0 - 4.5;
+        let (min, max) = (
+            WorldPoint::new(-50.0, -50.0, z),
+            WorldPoint::new(50.0, 50.0, z + 0.05 + rng.f() * 0.45),
+        );
+        assert!(view.leaf_count() < 125 * 125);
+        let want = map.grid().active_voxels().all(|(v, _)| {
+            let c = tf.voxel_center(v);
+            map.state(v) != VoxelState::Occupied
+                || !(0..3).all(|k| min[k] <= c[k] && c[k] <= max[k])
+        });
+        assert_eq!(view.is_box_free(&min, &max, true), want, "{min:?} {max:?}");
+        if want {
+            free += 1;
+        } else {
+            blocked += 1;
+        }
+    }
+    assert!(free > 5 && blocked > 5, "{free} free, {blocked} blocked");
+}
+
 /// `first_hit` passes leaves with nothing blocking whole (`raycast::LeafWalk`): check it on
 /// long segments through a sparse map, from and to leaf corners, faces and edges (ties),
 /// and along axes.

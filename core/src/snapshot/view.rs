@@ -3,7 +3,9 @@
 use super::layout::*;
 use super::record::{self, MaskRef};
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, leaf_offset, leaf_origin, voxel_at};
+use crate::grid::{
+    block_origin, leaf_box_mask, leaf_in_block, leaf_of_block, leaf_offset, leaf_origin, voxel_at,
+};
 use crate::mask::BitIter;
 use crate::model::{QuantizedModel, VoxelState};
 use bytemuck::Zeroable;
@@ -258,14 +260,12 @@ impl<'a> SnapshotView<'a> {
             if u64::from(block_first(b)) != next {
                 return Err(SnapshotError::BadIndex("blocks' leaves out of sequence"));
             }
-            let mut below = 0u16;
-            for w in 0..8 {
-                if block_rank(b, w) != below {
-                    return Err(SnapshotError::BadIndex("block rank miscounts its leaves"));
-                }
-                below += block_word(b, w).count_ones() as u16;
+            let words = std::array::from_fn(|w| block_word(b, w));
+            let ranks = BlockEntry::ranks_of(&words);
+            if (0..8).any(|w| block_rank(b, w) != ranks[w]) {
+                return Err(SnapshotError::BadIndex("block rank miscounts its leaves"));
             }
-            next += u64::from(below);
+            next += words.iter().map(|w| u64::from(w.count_ones())).sum::<u64>();
         }
         if next != n {
             return Err(SnapshotError::BadIndex(
@@ -475,11 +475,7 @@ impl<'a> SnapshotView<'a> {
             (0..8)
                 .flat_map(move |w| BitIter(block_word(b, w)).map(move |bit| w * 64 + bit))
                 .enumerate()
-                .map(move |(k, j)| {
-                    let j = j as i32;
-                    let at = VoxelCoord::new(j & 7, j >> 3 & 7, j >> 6).shl(3);
-                    (origin + at, self.entry(first + k as u64))
-                })
+                .map(move |(k, j)| (leaf_of_block(origin, j), self.entry(first + k as u64)))
         })
     }
 
@@ -703,9 +699,6 @@ impl<'a> SnapshotView<'a> {
         if lo.x > hi.x || lo.y > hi.y || lo.z > hi.z {
             return true; // no voxel centre inside
         }
-        let inside = |v: VoxelCoord| {
-            lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
-        };
         let (llo, lhi) = (leaf_origin(lo), leaf_origin(hi));
         // Up to 2^28 leaves per axis: the product can pass u64.
         let leaves_in_box = ((lhi.x - llo.x) as u64 / 8 + 1)
@@ -714,9 +707,8 @@ impl<'a> SnapshotView<'a> {
         if unknown_is_free && leaves_in_box > self.leaf_count() {
             // Cheaper to scan the stored leaves than the box.
             return self.leaf_occupancy().all(|l| {
-                l.occupied
-                    .iter_ones()
-                    .all(|i| !inside(voxel_at(l.origin, i)))
+                let inside = leaf_box_mask(l.origin, lo, hi);
+                (0..8).all(|w| l.occupied.words[w] & inside.words[w] == 0)
             });
         }
         let mut z = llo.z;

@@ -202,11 +202,7 @@ fn blocks_of(leaves: &[PlannedLeaf<'_>]) -> Vec<BlockEntry> {
         }
     }
     for b in &mut blocks {
-        let mut below = 0;
-        for (r, w) in b.ranks.iter_mut().zip(b.leaves) {
-            *r = below;
-            below += w.count_ones() as u16;
-        }
+        b.ranks = BlockEntry::ranks_of(&b.leaves);
     }
     blocks
 }
