@@ -353,7 +353,7 @@ impl Integrator {
             } = extent;
             report.cut_rays = cut_rays;
             let dense_box = match walk {
-                Walk::Sparse => None,
+                Walk::Sparse | Walk::SparseScalar => None,
                 // Zeroing and merging the dense grids cost about 15 ns per word, and a dense
                 // step saves 4-8 ns against a sparse one (1.5-2.5 against 4-10 ns): walk
                 // dense when the grid has at most a quarter as many words as the walk has
@@ -382,10 +382,7 @@ impl Integrator {
             );
             let t1 = Instant::now();
             report.voxel_steps = match &dense_box {
-                None => rays
-                    .par_chunks(RAY_CHUNK)
-                    .map(|chunk| cast_chunk(marks, origin, chunk))
-                    .sum(),
+                None => cast_sparse(marks, origin, rays, steps, walk),
                 Some(b) => cast_dense(dense, b, frame_no, origin, rays, steps, walk),
             };
             let t2 = Instant::now();
@@ -710,7 +707,10 @@ enum Walk {
     /// the grids (eight rays at a time where the build has AVX-512, one at a time
     /// otherwise), sparse otherwise.
     Auto,
+    /// Sparse, eight rays at a time where the build has AVX-512.
     Sparse,
+    /// Sparse one ray at a time, even where the build has AVX-512.
+    SparseScalar,
     /// Dense whenever the box fits the budget.
     Dense,
     /// Dense one ray at a time, even where the build has AVX-512.
@@ -775,8 +775,71 @@ fn cast_dense(
         .sum()
 }
 
+/// Walk all rays into `marks` in parallel chunks; returns voxels visited.
+fn cast_sparse(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray], steps: f64, walk: Walk) -> u64 {
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    ))]
+    if walk != Walk::SparseScalar {
+        let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
+        return rays
+            .par_chunks(RAY_CHUNK)
+            // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
+            // crate (the cfg above), so every CPU that runs this code has them.
+            .map(|chunk| unsafe { avx512::cast_sparse(&mut marks.cache(), origin, chunk, refill_at) })
+            .sum();
+    }
+    let _ = (walk, steps);
+    rays.par_chunks(RAY_CHUNK)
+        .map(|chunk| cast_chunk(marks, origin, chunk))
+        .sum()
+}
+
 fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A voxel of a sparse walk packed in one `u64`, 21 bits per axis, relative to an origin
+/// near the rays' start: a step is one add of a stride, a field's low 3 bits are the
+/// voxel's offset in its brick, and a change above them is a new brick.
+#[derive(Clone, Copy)]
+struct Packed {
+    /// The voxel that packs to 0: brick-aligned, `BIAS` below the start on every axis.
+    o: VoxelCoord,
+}
+
+impl Packed {
+    const F: u32 = 21;
+    const BIAS: i32 = 1 << 19;
+    /// Index change of one voxel step along x, y and z.
+    const STRIDES: [i64; 3] = [1, 1 << Self::F, 1 << (2 * Self::F)];
+    /// Bits of a field above its low 3.
+    const BRICK: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
+
+    /// Packing for rays that start at `v`. Rays end within max range of their start, so
+    /// no field under- or overflows.
+    fn around(v: VoxelCoord) -> Self {
+        const _: () = assert!(MAX_RANGE_VOXELS as i32 + 16 < Packed::BIAS);
+        let b = Self::BIAS;
+        Packed {
+            o: v.shr(3).shl(3) - VoxelCoord::new(b, b, b),
+        }
+    }
+
+    #[inline]
+    fn pack(&self, v: VoxelCoord) -> u64 {
+        let d = v - self.o;
+        u64::from(d.x as u32) | u64::from(d.y as u32) << Self::F | u64::from(d.z as u32) << (2 * Self::F)
+    }
+
+    #[inline]
+    fn unpack(&self, p: u64) -> VoxelCoord {
+        let m = (1u64 << Self::F) - 1;
+        let (f, f2) = (Self::F, 2 * Self::F);
+        self.o + VoxelCoord::new((p & m) as i32, (p >> f & m) as i32, (p >> f2) as i32)
+    }
 }
 
 /// Walk a chunk of rays one at a time, OR-ing their marks into `marks`; returns voxels
@@ -798,33 +861,16 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
         let mut brick = dda.voxel().shr(3);
         if n > 2 {
             // All steps but the last two: mark the current voxel, step, flush the brick's
-            // marks on leaving it. The voxel is packed in one register, 21 bits per axis
-            // from a biased origin: a step is one add and "left the brick" one test, and
-            // the loop keeps more in registers. About 5% faster: 46 of 57 interleaved
-            // paired runs (6 m workloads, 1 and 2 threads) on a noisy VM.
-            const BIAS: i32 = 1 << 19;
-            const F: u32 = 21;
-            // Rays end within max range: no field under- or overflows.
-            const _: () = assert!(MAX_RANGE_VOXELS as i32 + 16 < BIAS);
-            // A brick-aligned origin, so that a field's low 3 bits are the in-brick offset.
+            // marks on leaving it. The voxel is [`Packed`]: a step is one add and "left the
+            // brick" one test, and the loop keeps more in registers. About 5% faster: 46
+            // of 57 interleaved paired runs (6 m workloads, 1 and 2 threads) on a noisy VM.
             let start = dda.voxel();
-            let o = start.shr(3).shl(3) - VoxelCoord::new(BIAS, BIAS, BIAS);
-            let [sx, sy, sz] = dda.direction();
-            let (mx, my, mz) = (
-                i64::from(sx) as u64,
-                (i64::from(sy) << F) as u64,
-                (i64::from(sz) << (2 * F)) as u64,
-            );
-            let d = start - o;
-            let mut p = u64::from(d.x as u32)
-                | u64::from(d.y as u32) << F
-                | u64::from(d.z as u32) << (2 * F);
-            let unpack = |p: u64| {
-                let m = (1u64 << F) - 1;
-                o + VoxelCoord::new((p & m) as i32, (p >> F & m) as i32, (p >> (2 * F)) as i32)
-            };
-            // Bits of a field above its low 3: a change there is a new brick.
-            const BRICK: u64 = !(7 | 7 << F | 7 << (2 * F));
+            let packed = Packed::around(start);
+            let [mx, my, mz] = Packed::STRIDES.map(|s| s as u64);
+            let [sx, sy, sz] = dda.direction().map(|s| s as u64);
+            let (mx, my, mz) = (mx.wrapping_mul(sx), my.wrapping_mul(sy), mz.wrapping_mul(sz));
+            let mut p = packed.pack(start);
+            const F: u32 = Packed::F;
             for _ in 2..n {
                 let was = p;
                 plane |= 1u64 << ((p & 7) | (p >> (F - 3) & 0x38));
@@ -839,14 +885,14 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
                 });
                 let moved = p ^ was;
                 plane &= ((moved >> (2 * F) != 0) as u64).wrapping_sub(1);
-                if moved & BRICK != 0 {
+                if moved & Packed::BRICK != 0 {
                     cache.or_free(brick, &local);
                     local = [0; 8];
                     plane = 0;
-                    brick = unpack(p).shr(3);
+                    brick = packed.unpack(p).shr(3);
                 }
             }
-            let v = unpack(p);
+            let v = packed.unpack(p);
             (dda.x, dda.y, dda.z) = (v.x, v.y, v.z);
         }
         dda.settle();
@@ -1643,9 +1689,10 @@ mod tests {
             }
             out
         };
-        let sparse = run(Walk::Sparse);
+        let sparse = run(Walk::SparseScalar);
         assert!(sparse.iter().flat_map(|g| &g.2).all(|r| !r.5));
         for walk in [
+            Walk::Sparse,
             Walk::Dense,
             Walk::DenseScalar,
             Walk::DenseTestFirst,
@@ -1653,7 +1700,9 @@ mod tests {
         ] {
             let dense = run(walk);
             let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
-            if walk != Walk::Auto {
+            if walk == Walk::Sparse {
+                assert!(!took_dense.contains(&true));
+            } else if walk != Walk::Auto {
                 assert_eq!(
                     took_dense,
                     [true, true, true, true, true, false, true, true, true]

@@ -12,7 +12,8 @@
 //! one OR into memory that stays in cache: there are no brick changes to handle.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
-use super::{Ray, RayMaker, SKIPPED};
+use super::{BrickCache, Packed, Ray, RayMaker, SKIPPED};
+use crate::coord::VoxelCoord;
 use crate::mask::BitIter;
 use crate::model::QuantizedModel;
 #[cfg(doc)]
@@ -72,42 +73,249 @@ pub(super) fn cast_chunk(
     refill_at: u32,
     test_first: bool,
 ) -> u64 {
+    let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
+    let (free, hits) = bits.words_mut();
+    let sink = dbox.sink();
+    let a = (start, dbox.strides(), origin, rays, Feed::Ranges(ranges), refill_at);
     // Each choice is its own compiled loop, so that the loop for long rays with new marks
     // does no more work than before these choices existed (as run-time flags, every loop
     // kept the work of all of them).
-    let a = (bits, dbox, origin, rays, ranges, refill_at);
     match (refill_at > 1, test_first) {
-        (false, false) => walk::<false, false>(a),
-        (false, true) => walk::<false, true>(a),
-        (true, false) => walk::<true, false>(a),
-        (true, true) => walk::<true, true>(a),
+        (false, false) => walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a),
+        (false, true) => walk::<false, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
+        (true, false) => walk::<true, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a),
+        (true, true) => walk::<true, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
     }
 }
 
-/// [`cast_chunk`] with its choices fixed: whether lanes wait for `refill_at` of them to
-/// end their rays (otherwise each takes its next at once), and whether marks are tested
-/// before they are written.
+/// Walk `rays` from `origin` eight at a time, OR-ing their marks into the frame's tables
+/// through `cache`; returns voxels visited. The same marks and count as
+/// `super::cast_chunk`, the one-ray sparse walk. The rays are sorted by direction and each
+/// lane takes the next: the lanes walk side by side, so they find the bricks they flush in
+/// `cache` and in the CPU's caches. Each lane gathers its current brick's marks in its own
+/// words, so lanes never write the same word.
+#[target_feature(enable = "avx512f,avx512dq")]
+pub(super) fn cast_sparse(
+    cache: &mut BrickCache<'_>,
+    origin: [f64; 3],
+    rays: &[Ray],
+    refill_at: u32,
+) -> u64 {
+    let v = crate::coord::units_to_voxel(origin).expect("origin checked");
+    let packed = Packed::around(v);
+    let mut lanes = SparseLanes {
+        cache,
+        packed,
+        local: [0; LOCAL_WORDS],
+        start: v,
+    };
+    let a = (packed.pack(v), Packed::STRIDES, origin, rays, Feed::Next(0..rays.len()), refill_at);
+    if refill_at > 1 {
+        walk::<true, _>(&mut lanes, a)
+    } else {
+        walk::<false, _>(&mut lanes, a)
+    }
+}
+
+/// What a lane walk does with the voxels its lanes visit. Voxels are `u64` indices with
+/// fixed strides per axis: bit indices into a dense box, or [`Packed`] voxels.
+///
+/// # Safety
+/// The methods use AVX-512F and DQ: call them only where the CPU has both (they are
+/// `unsafe` for that alone, as trait methods cannot enable target features safely).
+trait Lanes {
+    /// Mark free the voxels `p` of the lanes in `live`.
+    unsafe fn mark(&mut self, p: __m512i, live: __mmask8);
+    /// The lanes in `live` stepped from `was` to `p`.
+    unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8);
+    /// The lanes in `end` ended their rays at `p`, those in `hit` in a hit.
+    fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8);
+    /// A ray ended in its start voxel, in a hit.
+    fn hit_at_start(&mut self);
+}
+
+/// The dense walk's lanes: bits of the thread's grid over the frame's box; whether marks
+/// are tested before they are written.
+struct DenseLanes<'a, const TEST_FIRST: bool> {
+    free: &'a mut [u64],
+    hits: &'a mut [u64],
+    start: u64,
+    /// A bit past the box that lanes without a ray mark.
+    sink: __m512i,
+}
+
+impl<'a, const TEST_FIRST: bool> DenseLanes<'a, TEST_FIRST> {
+    #[target_feature(enable = "avx512f")]
+    fn new(free: &'a mut [u64], hits: &'a mut [u64], start: u64, sink: u64) -> Self {
+        let sink = _mm512_set1_epi64(sink as i64);
+        DenseLanes { free, hits, start, sink }
+    }
+}
+
+impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    unsafe fn mark(&mut self, p: __m512i, live: __mmask8) {
+        let free = &mut *self.free;
+        if TEST_FIRST {
+            // Most already are: the words are read with one gather and only lanes whose
+            // bit is not yet set write.
+            let word = _mm512_srli_epi64::<6>(p);
+            let bit = _mm512_sllv_epi64(_mm512_set1_epi64(1), _mm512_and_si512(p, _mm512_set1_epi64(63)));
+            if _mm512_mask_cmpge_epu64_mask(live, word, _mm512_set1_epi64(free.len() as i64)) != 0 {
+                outside_the_box();
+            }
+            // SAFETY: the lanes read, those in `live`, have `word < free.len()` (checked
+            // just above), so every read is inside `free`.
+            let words = unsafe {
+                _mm512_mask_i64gather_epi64::<8>(_mm512_setzero_si512(), live, word, free.as_ptr().cast())
+            };
+            let unset = _mm512_mask_testn_epi64_mask(live, words, bit);
+            if unset != 0 {
+                let (word, bit) = (to_array(word), to_array(bit));
+                for l in BitIter(u64::from(unset)) {
+                    free[word[l] as usize] |= bit[l];
+                }
+            }
+        } else {
+            // Every lane ORs its bit in; a lane without a ray marks the sink bit. One
+            // vector of bit indices, split into word and bit by scalar shifts:
+            // extracting vectors of words and of bits took twice the lane extracts,
+            // which compete with the walk for the vector port (the compiler extracts
+            // rather than reloads `at`; forcing the reload was slower still).
+            for q in to_array(_mm512_mask_mov_epi64(self.sink, live, p)) {
+                set_bit(free, q);
+            }
+        }
+    }
+
+    #[inline]
+    unsafe fn stepped(&mut self, _: __m512i, _: __m512i, _: __mmask8) {}
+
+    #[inline]
+    fn ended(&mut self, p: __m512i, _: __mmask8, hit: __mmask8) {
+        if hit != 0 {
+            let p = to_array(p);
+            for l in BitIter(u64::from(hit)) {
+                set_bit(self.hits, p[l]);
+            }
+        }
+    }
+
+    fn hit_at_start(&mut self) {
+        set_bit(self.hits, self.start);
+    }
+}
+
+/// Per lane the 8 words of its current brick's marks, then the words lanes without a ray
+/// mark.
+const LOCAL_WORDS: usize = 9 * 8;
+
+/// The sparse walk's lanes: each gathers its current brick's marks in its own words of
+/// `local` and ORs them into the frame's tables when it leaves the brick.
+struct SparseLanes<'c, 'a> {
+    cache: &'c mut BrickCache<'a>,
+    packed: Packed,
+    local: [u64; LOCAL_WORDS],
+    start: VoxelCoord,
+}
+
+impl SparseLanes<'_, '_> {
+    /// OR lane `l`'s marks into the brick of `q` and clear them.
+    #[inline]
+    fn flush(&mut self, l: usize, q: u64) {
+        let words: &mut [u64; 8] = (&mut self.local[l * 8..][..8]).try_into().expect("8 words");
+        self.cache.or_free(self.packed.unpack(q).shr(3), words);
+        *words = [0; 8];
+    }
+}
+
+impl Lanes for SparseLanes<'_, '_> {
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    unsafe fn mark(&mut self, p: __m512i, live: __mmask8) {
+        // Lane l's bit: its voxel's bit in the brick, plus 512 l; the sink's bits for
+        // lanes without a ray.
+        let in_brick = in_brick(p);
+        let lane = _mm512_setr_epi64(0, 512, 1024, 1536, 2048, 2560, 3072, 3584);
+        let q = _mm512_mask_add_epi64(_mm512_set1_epi64(8 * 512), live, in_brick, lane);
+        for q in to_array(q) {
+            set_bit(&mut self.local, q);
+        }
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8) {
+        let left = _mm512_mask_test_epi64_mask(
+            live,
+            _mm512_xor_si512(was, p),
+            _mm512_set1_epi64(Packed::BRICK as i64),
+        );
+        if left != 0 {
+            let was = to_array(was);
+            for l in BitIter(u64::from(left)) {
+                self.flush(l, was[l]);
+            }
+        }
+    }
+
+    #[inline]
+    fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8) {
+        let p = to_array(p);
+        for l in BitIter(u64::from(end)) {
+            // A ray's last step may enter a brick only to end there: nothing free to
+            // mark, and a slot would give the map an empty leaf.
+            if self.local[l * 8..][..8] != [0; 8] {
+                self.flush(l, p[l]);
+            }
+            if hit >> l & 1 != 0 {
+                self.cache.set_hit(self.packed.unpack(p[l]));
+            }
+        }
+    }
+
+    fn hit_at_start(&mut self) {
+        self.cache.set_hit(self.start);
+    }
+}
+
+/// Each lane's [`Packed`] voxel's bit in its brick, `x | y << 3 | z << 6` of its fields'
+/// low 3 bits.
+#[inline]
+#[target_feature(enable = "avx512f")]
+fn in_brick(p: __m512i) -> __m512i {
+    const _: () = assert!(Packed::F == 21);
+    _mm512_or_si512(
+        _mm512_or_si512(
+            _mm512_and_si512(p, _mm512_set1_epi64(7)),
+            _mm512_and_si512(_mm512_srli_epi64::<18>(p), _mm512_set1_epi64(7 << 3)),
+        ),
+        _mm512_and_si512(_mm512_srli_epi64::<36>(p), _mm512_set1_epi64(7 << 6)),
+    )
+}
+
+/// Which rays each lane of a walk takes.
+enum Feed {
+    /// Lane `l` those of the `l`-th range in turn, then half of what is left to another.
+    Ranges([Range<usize>; 8]),
+    /// Each lane the next ray no lane has taken: lanes walk neighbouring rays side by side.
+    Next(Range<usize>),
+}
+
+/// Walk the rays of `feed` from `origin`, telling `lanes` the voxels each lane visits;
+/// returns voxels visited. Voxel indices start at
+/// `start` (the origin's voxel) and change by `strides` per step. `WAIT`: whether lanes
+/// wait for `refill_at` of them to end their rays (otherwise each takes its next at once).
 #[target_feature(enable = "avx512f,avx512dq")]
 #[allow(clippy::type_complexity)]
-fn walk<const WAIT: bool, const TEST_FIRST: bool>(
-    (bits, dbox, origin, rays, ranges, refill_at): (
-        &mut DenseBits,
-        &DenseBox,
-        [f64; 3],
-        &[Ray],
-        [Range<usize>; 8],
-        u32,
-    ),
+fn walk<const WAIT: bool, L: Lanes>(
+    lanes: &mut L,
+    (start, strides, origin, rays, feed, refill_at): (u64, [i64; 3], [f64; 3], &[Ray], Feed, u32),
 ) -> u64 {
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
     let never = _mm512_set1_epi64(-1);
-    let sink = _mm512_set1_epi64(dbox.sink() as i64);
-    let (free, hits) = bits.words_mut();
-    let free_len = _mm512_set1_epi64(free.len() as i64);
-    // Every ray starts in the origin's voxel.
-    let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
-    let strides = dbox.strides();
     // Per axis: the origin, its voxel's floor, the distance to the voxel's upper and lower
     // faces, and the index stride.
     let axes: [Axis; 3] = std::array::from_fn(|a| {
@@ -126,28 +334,45 @@ fn walk<const WAIT: bool, const TEST_FIRST: bool>(
     let (mut mx, mut my, mut mz) = (zero, zero, zero);
     let (mut p, mut rem) = (zero, zero);
     let mut hit: __mmask8 = 0;
-    let mut cur = from_array(ranges.clone().map(|r| r.start as u64));
-    let mut lim = from_array(ranges.map(|r| r.end as u64));
+    // Per lane its next ray and the end of its range; with `Feed::Next`, the next ray not
+    // taken and the end in every lane.
+    let (next, (mut cur, mut lim)) = match feed {
+        Feed::Ranges(r) => (
+            false,
+            (from_array(r.clone().map(|r| r.start as u64)), from_array(r.map(|r| r.end as u64))),
+        ),
+        Feed::Next(r) => (true, (_mm512_set1_epi64(r.start as i64), _mm512_set1_epi64(r.end as i64))),
+    };
     let mut steps = zero;
     let mut need: __mmask8 = 0xff;
-    // Lanes walking a ray, and each lane's last end voxel.
+    // Lanes walking a ray.
     let mut live: __mmask8 = 0;
-    let mut ends = zero;
     loop {
         // Give each lane in `need` its next ray that takes a step; rays that end in their
         // start voxel are done here (a hit at most).
         while need != 0 {
-            let dry = need & _mm512_cmpge_epu64_mask(cur, lim);
-            if dry != 0 {
-                (cur, lim) = share(cur, lim, dry);
-            }
-            let avail = need & _mm512_cmplt_epu64_mask(cur, lim);
+            let (ray, avail) = if next {
+                // The lanes in `need`, lowest first, take the next rays in order.
+                let ray = _mm512_add_epi64(cur, _mm512_maskz_expand_epi64(need, IOTA));
+                let avail = need & _mm512_cmplt_epu64_mask(ray, lim);
+                cur = _mm512_add_epi64(cur, _mm512_set1_epi64(i64::from(avail.count_ones())));
+                (ray, avail)
+            } else {
+                let dry = need & _mm512_cmpge_epu64_mask(cur, lim);
+                if dry != 0 {
+                    (cur, lim) = share(cur, lim, dry);
+                }
+                let avail = need & _mm512_cmplt_epu64_mask(cur, lim);
+                let ray = cur;
+                cur = _mm512_mask_add_epi64(cur, avail, cur, one);
+                (ray, avail)
+            };
             if avail == 0 {
                 break;
             }
-            let at = _mm512_slli_epi64::<2>(cur); // Ray is four 8-byte words
+            let at = _mm512_slli_epi64::<2>(ray); // Ray is four 8-byte words
             let base = rays.as_ptr().cast::<u8>();
-            // SAFETY: lanes in `avail` have cur < lim <= rays.len(), so every word read is
+            // SAFETY: lanes in `avail` have ray < lim <= rays.len(), so every word read is
             // inside `rays`: `end` is words 0..3 and `key`/`hit` word 3 of a `Ray`
             // (repr(C), every byte initialised, see `Ray`). Other lanes read nothing.
             let (ex, ey, ez, flags) = unsafe {
@@ -173,7 +398,6 @@ fn walk<const WAIT: bool, const TEST_FIRST: bool>(
                     ),
                 )
             };
-            cur = _mm512_mask_add_epi64(cur, avail, cur, one);
             let [x, y, z] =
                 [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
             let n = _mm512_add_epi64(_mm512_add_epi64(x.n, y.n), z.n);
@@ -181,7 +405,7 @@ fn walk<const WAIT: bool, const TEST_FIRST: bool>(
             let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
             let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
             if empty & ray_hit != 0 {
-                set_bit(hits, start);
+                lanes.hit_at_start();
             }
             let k = avail & !empty;
             tx = _mm512_mask_mov_epi64(tx, k, x.t);
@@ -211,45 +435,9 @@ fn walk<const WAIT: bool, const TEST_FIRST: bool>(
         // Walk until `wait` lanes have ended their rays. An ended lane walks on, marking
         // nothing, until the refill.
         loop {
-            // Mark the current voxels free.
-            if TEST_FIRST {
-                // Most already are: the words are read with one gather and only lanes whose
-                // bit is not yet set write.
-                let word = _mm512_srli_epi64::<6>(p);
-                let bit = _mm512_sllv_epi64(one, _mm512_and_si512(p, _mm512_set1_epi64(63)));
-                if _mm512_mask_cmpge_epu64_mask(live, word, free_len) != 0 {
-                    outside_the_box();
-                }
-                // SAFETY: the lanes read, those in `live`, have `word < free.len()` (checked
-                // just above), so every read is inside `free`.
-                let words = unsafe {
-                    _mm512_mask_i64gather_epi64::<8>(zero, live, word, free.as_ptr().cast())
-                };
-                let unset = _mm512_mask_testn_epi64_mask(live, words, bit);
-                if unset != 0 {
-                    let (word, bit) = (to_array(word), to_array(bit));
-                    for l in BitIter(u64::from(unset)) {
-                        free[word[l] as usize] |= bit[l];
-                    }
-                }
-            } else {
-                // Every lane ORs its bit in; a lane without a ray marks the sink bit. One
-                // vector of bit indices, split into word and bit by scalar shifts:
-                // extracting vectors of words and of bits took twice the lane extracts,
-                // which compete with the walk for the vector port (the compiler extracts
-                // rather than reloads `at`; forcing the reload was slower still).
-                let mut at = [0u64; 8];
-                // SAFETY: `at` is 64 writable bytes; the store has no alignment requirement.
-                unsafe {
-                    _mm512_storeu_si512(
-                        at.as_mut_ptr().cast(),
-                        _mm512_mask_mov_epi64(sink, live, p),
-                    )
-                };
-                for &q in &at {
-                    set_bit(free, q);
-                }
-            }
+            // SAFETY: this function requires AVX-512F and DQ, all `Lanes` methods need.
+            unsafe { lanes.mark(p, live) };
+            let was = p;
             // Step: the axis whose crossing comes first (ties x, y, z). An axis past its
             // last crossing gets t = never, so it is never first again.
             let cx = _mm512_cmple_epu64_mask(tx, ty) & _mm512_cmple_epu64_mask(tx, tz);
@@ -263,25 +451,17 @@ fn walk<const WAIT: bool, const TEST_FIRST: bool>(
             tz = _mm512_mask_mov_epi64(tz, _mm512_mask_cmpgt_epu64_mask(cz, tz, lz), never);
             let inc = _mm512_mask_blend_epi64(cx, _mm512_mask_blend_epi64(cy, mz, my), mx);
             p = _mm512_add_epi64(p, inc);
+            // SAFETY: as for `mark`.
+            unsafe { lanes.stepped(was, p, live) };
             rem = _mm512_sub_epi64(rem, one);
             let end = _mm512_mask_cmpeq_epi64_mask(live, rem, zero);
-            if WAIT {
-                ends = _mm512_mask_mov_epi64(ends, end, p);
+            if end != 0 {
+                lanes.ended(p, end, end & hit);
                 live &= !end;
                 ended |= end;
-                if ended.count_ones() >= wait {
+                if !WAIT || ended.count_ones() >= wait {
                     break;
                 }
-            } else if end != 0 {
-                (ends, ended) = (p, end);
-                live &= !end;
-                break;
-            }
-        }
-        if ended & hit != 0 {
-            let end = to_array(ends);
-            for l in BitIter(u64::from(ended & hit)) {
-                set_bit(hits, end[l]);
             }
         }
         need = ended;
@@ -456,6 +636,9 @@ impl Axis {
         }
     }
 }
+
+/// 0, 1, ..., 7.
+const IOTA: __m512i = unsafe { std::mem::transmute([0u64, 1, 2, 3, 4, 5, 6, 7]) };
 
 #[inline(always)]
 fn from_array(a: [u64; 8]) -> __m512i {
