@@ -106,6 +106,7 @@ pub(super) fn cast_sparse(
     let mut lanes = SparseLanes {
         cache,
         packed,
+        plane: _mm512_setzero_si512(),
         local: [0; LOCAL_WORDS],
         start: v,
     };
@@ -207,15 +208,18 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
     }
 }
 
-/// Per lane the 8 words of its current brick's marks, then the words lanes without a ray
-/// mark.
-const LOCAL_WORDS: usize = 9 * 8;
+/// Per lane the 8 words (z planes) of its current brick's marks.
+const LOCAL_WORDS: usize = 8 * 8;
 
 /// The sparse walk's lanes: each gathers its current brick's marks in its own words of
 /// `local` and ORs them into the frame's tables when it leaves the brick.
 struct SparseLanes<'c, 'a> {
     cache: &'c mut BrickCache<'a>,
     packed: Packed,
+    /// Per lane the marks of its current z plane in its brick, bit `x | y << 3`. A ray
+    /// visits each plane of a brick in one run, so a plane is stored to `local` once,
+    /// when the lane leaves it.
+    plane: __m512i,
     local: [u64; LOCAL_WORDS],
     start: VoxelCoord,
 }
@@ -230,28 +234,38 @@ impl SparseLanes<'_, '_> {
     }
 }
 
+/// Bits of the z field of a [`Packed`] voxel.
+const Z_FIELD: u64 = !0 << (2 * Packed::F);
+
 impl Lanes for SparseLanes<'_, '_> {
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq")]
     unsafe fn mark(&mut self, p: __m512i, live: __mmask8) {
-        // Lane l's bit: its voxel's bit in the brick, plus 512 l; the sink's bits for
-        // lanes without a ray.
-        let in_brick = in_brick(p);
-        let lane = _mm512_setr_epi64(0, 512, 1024, 1536, 2048, 2560, 3072, 3584);
-        let q = _mm512_mask_add_epi64(_mm512_set1_epi64(8 * 512), live, in_brick, lane);
-        for q in to_array(q) {
-            set_bit(&mut self.local, q);
-        }
+        const _: () = assert!(Packed::F == 21);
+        let xy = _mm512_or_si512(
+            _mm512_and_si512(p, _mm512_set1_epi64(7)),
+            _mm512_and_si512(_mm512_srli_epi64::<18>(p), _mm512_set1_epi64(7 << 3)),
+        );
+        let bit = _mm512_sllv_epi64(_mm512_set1_epi64(1), xy);
+        self.plane = _mm512_mask_or_epi64(self.plane, live, self.plane, bit);
     }
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq")]
     unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8) {
-        let left = _mm512_mask_test_epi64_mask(
-            live,
-            _mm512_xor_si512(was, p),
-            _mm512_set1_epi64(Packed::BRICK as i64),
+        let moved = _mm512_xor_si512(was, p);
+        let left = _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
+        let done = left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
+        // Lanes that left their plane store it: lane l's word z of `local`.
+        let word = _mm512_add_epi64(
+            _mm512_and_si512(_mm512_srli_epi64::<42>(was), _mm512_set1_epi64(7)),
+            _mm512_setr_epi64(0, 8, 16, 24, 32, 40, 48, 56),
         );
+        // SAFETY: `word` is 8 l + z with l < 8 and z < 8: inside `local` (64 words).
+        unsafe {
+            _mm512_mask_i64scatter_epi64::<8>(self.local.as_mut_ptr().cast(), done, word, self.plane)
+        };
+        self.plane = _mm512_mask_mov_epi64(self.plane, done, _mm512_setzero_si512());
         if left != 0 {
             let was = to_array(was);
             for l in BitIter(u64::from(left)) {
@@ -263,7 +277,10 @@ impl Lanes for SparseLanes<'_, '_> {
     #[inline]
     fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8) {
         let p = to_array(p);
+        let mut plane = to_array(self.plane);
         for l in BitIter(u64::from(end)) {
+            self.local[l * 8 + (p[l] >> (2 * Packed::F) & 7) as usize] |= plane[l];
+            plane[l] = 0;
             // A ray's last step may enter a brick only to end there: nothing free to
             // mark, and a slot would give the map an empty leaf.
             if self.local[l * 8..][..8] != [0; 8] {
@@ -273,26 +290,12 @@ impl Lanes for SparseLanes<'_, '_> {
                 self.cache.set_hit(self.packed.unpack(p[l]));
             }
         }
+        self.plane = from_array(plane);
     }
 
     fn hit_at_start(&mut self) {
         self.cache.set_hit(self.start);
     }
-}
-
-/// Each lane's [`Packed`] voxel's bit in its brick, `x | y << 3 | z << 6` of its fields'
-/// low 3 bits.
-#[inline]
-#[target_feature(enable = "avx512f")]
-fn in_brick(p: __m512i) -> __m512i {
-    const _: () = assert!(Packed::F == 21);
-    _mm512_or_si512(
-        _mm512_or_si512(
-            _mm512_and_si512(p, _mm512_set1_epi64(7)),
-            _mm512_and_si512(_mm512_srli_epi64::<18>(p), _mm512_set1_epi64(7 << 3)),
-        ),
-        _mm512_and_si512(_mm512_srli_epi64::<36>(p), _mm512_set1_epi64(7 << 6)),
-    )
 }
 
 /// Which rays each lane of a walk takes.
