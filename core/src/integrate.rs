@@ -788,7 +788,9 @@ fn cast_sparse(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray], steps: f64, w
             .par_chunks(RAY_CHUNK)
             // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
             // crate (the cfg above), so every CPU that runs this code has them.
-            .map(|chunk| unsafe { avx512::cast_sparse(&mut marks.cache(), origin, chunk, refill_at) })
+            .map(|chunk| unsafe {
+                avx512::cast_sparse(&mut marks.cache(), origin, chunk, refill_at)
+            })
             .sum();
     }
     let _ = (walk, steps);
@@ -831,7 +833,9 @@ impl Packed {
     #[inline]
     fn pack(&self, v: VoxelCoord) -> u64 {
         let d = v - self.o;
-        u64::from(d.x as u32) | u64::from(d.y as u32) << Self::F | u64::from(d.z as u32) << (2 * Self::F)
+        u64::from(d.x as u32)
+            | u64::from(d.y as u32) << Self::F
+            | u64::from(d.z as u32) << (2 * Self::F)
     }
 
     #[inline]
@@ -868,7 +872,11 @@ fn cast_chunk(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
             let packed = Packed::around(start);
             let [mx, my, mz] = Packed::STRIDES.map(|s| s as u64);
             let [sx, sy, sz] = dda.direction().map(|s| s as u64);
-            let (mx, my, mz) = (mx.wrapping_mul(sx), my.wrapping_mul(sy), mz.wrapping_mul(sz));
+            let (mx, my, mz) = (
+                mx.wrapping_mul(sx),
+                my.wrapping_mul(sy),
+                mz.wrapping_mul(sz),
+            );
             let mut p = packed.pack(start);
             const F: u32 = Packed::F;
             for _ in 2..n {

@@ -76,12 +76,21 @@ pub(super) fn cast_chunk(
     let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
     let (free, hits) = bits.words_mut();
     let sink = dbox.sink();
-    let a = (start, dbox.strides(), origin, rays, Feed::Ranges(ranges), refill_at);
+    let a = (
+        start,
+        dbox.strides(),
+        origin,
+        rays,
+        Feed::Ranges(ranges),
+        refill_at,
+    );
     // Each choice is its own compiled loop, so that the loop for long rays with new marks
     // does no more work than before these choices existed (as run-time flags, every loop
     // kept the work of all of them).
     match (refill_at > 1, test_first) {
-        (false, false) => walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a),
+        (false, false) => {
+            walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a)
+        }
         (false, true) => walk::<false, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
         (true, false) => walk::<true, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a),
         (true, true) => walk::<true, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
@@ -110,7 +119,14 @@ pub(super) fn cast_sparse(
         local: [0; LOCAL_WORDS],
         start: v,
     };
-    let a = (packed.pack(v), Packed::STRIDES, origin, rays, Feed::Next(0..rays.len()), refill_at);
+    let a = (
+        packed.pack(v),
+        Packed::STRIDES,
+        origin,
+        rays,
+        Feed::Next(0..rays.len()),
+        refill_at,
+    );
     if refill_at > 1 {
         walk::<true, _>(&mut lanes, a)
     } else {
@@ -149,7 +165,12 @@ impl<'a, const TEST_FIRST: bool> DenseLanes<'a, TEST_FIRST> {
     #[target_feature(enable = "avx512f")]
     fn new(free: &'a mut [u64], hits: &'a mut [u64], start: u64, sink: u64) -> Self {
         let sink = _mm512_set1_epi64(sink as i64);
-        DenseLanes { free, hits, start, sink }
+        DenseLanes {
+            free,
+            hits,
+            start,
+            sink,
+        }
     }
 }
 
@@ -162,14 +183,22 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
             // Most already are: the words are read with one gather and only lanes whose
             // bit is not yet set write.
             let word = _mm512_srli_epi64::<6>(p);
-            let bit = _mm512_sllv_epi64(_mm512_set1_epi64(1), _mm512_and_si512(p, _mm512_set1_epi64(63)));
+            let bit = _mm512_sllv_epi64(
+                _mm512_set1_epi64(1),
+                _mm512_and_si512(p, _mm512_set1_epi64(63)),
+            );
             if _mm512_mask_cmpge_epu64_mask(live, word, _mm512_set1_epi64(free.len() as i64)) != 0 {
                 outside_the_box();
             }
             // SAFETY: the lanes read, those in `live`, have `word < free.len()` (checked
             // just above), so every read is inside `free`.
             let words = unsafe {
-                _mm512_mask_i64gather_epi64::<8>(_mm512_setzero_si512(), live, word, free.as_ptr().cast())
+                _mm512_mask_i64gather_epi64::<8>(
+                    _mm512_setzero_si512(),
+                    live,
+                    word,
+                    free.as_ptr().cast(),
+                )
             };
             let unset = _mm512_mask_testn_epi64_mask(live, words, bit);
             if unset != 0 {
@@ -254,8 +283,10 @@ impl Lanes for SparseLanes<'_, '_> {
     #[target_feature(enable = "avx512f,avx512dq")]
     unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8) {
         let moved = _mm512_xor_si512(was, p);
-        let left = _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
-        let done = left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
+        let left =
+            _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
+        let done =
+            left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
         // Lanes that left their plane store it: lane l's word z of `local`.
         let word = _mm512_add_epi64(
             _mm512_and_si512(_mm512_srli_epi64::<42>(was), _mm512_set1_epi64(7)),
@@ -263,7 +294,12 @@ impl Lanes for SparseLanes<'_, '_> {
         );
         // SAFETY: `word` is 8 l + z with l < 8 and z < 8: inside `local` (64 words).
         unsafe {
-            _mm512_mask_i64scatter_epi64::<8>(self.local.as_mut_ptr().cast(), done, word, self.plane)
+            _mm512_mask_i64scatter_epi64::<8>(
+                self.local.as_mut_ptr().cast(),
+                done,
+                word,
+                self.plane,
+            )
         };
         self.plane = _mm512_mask_mov_epi64(self.plane, done, _mm512_setzero_si512());
         if left != 0 {
@@ -342,9 +378,18 @@ fn walk<const WAIT: bool, L: Lanes>(
     let (next, (mut cur, mut lim)) = match feed {
         Feed::Ranges(r) => (
             false,
-            (from_array(r.clone().map(|r| r.start as u64)), from_array(r.map(|r| r.end as u64))),
+            (
+                from_array(r.clone().map(|r| r.start as u64)),
+                from_array(r.map(|r| r.end as u64)),
+            ),
         ),
-        Feed::Next(r) => (true, (_mm512_set1_epi64(r.start as i64), _mm512_set1_epi64(r.end as i64))),
+        Feed::Next(r) => (
+            true,
+            (
+                _mm512_set1_epi64(r.start as i64),
+                _mm512_set1_epi64(r.end as i64),
+            ),
+        ),
     };
     let mut steps = zero;
     let mut need: __mmask8 = 0xff;
