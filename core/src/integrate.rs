@@ -5,9 +5,10 @@
 //!    the rays by direction (an octahedral Morton key) so that neighbouring rays walk
 //!    neighbouring memory.
 //! 2. **Raycast** (parallel over chunks of rays), one of two walks with the same result:
-//!    - *sparse*: each ray is walked with the exact DDA; its marks are gathered per 8x8x8
-//!      brick in registers and OR-ed into the per-frame [`FrameMarks`], sparse tables of
-//!      touched bricks only, one per thread. Threads walk rays of different directions, so
+//!    - *sparse*: each ray is walked with the exact DDA, eight at a time where the build
+//!      has AVX-512 (`avx512::cast_sparse`), one at a time otherwise; its marks are
+//!      gathered per 8x8x8 brick and OR-ed into the per-frame [`FrameMarks`], sparse
+//!      tables of touched bricks only, one per thread. Threads walk rays of different directions, so
 //!      their tables share bricks only near the sensor, and there is no grid to merge:
 //!      this is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread
 //!      dense grids made the merge dominate.

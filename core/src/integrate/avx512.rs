@@ -1,15 +1,20 @@
-//! The dense-box raycast walk on AVX-512: eight rays at once, one per 64-bit lane.
+//! The raycast walks on AVX-512: eight rays at once, one per 64-bit lane.
 //!
-//! The scalar walk spends most of a step on the branch that picks the axis to cross: it
+//! The scalar walks spend much of a step on the branch that picks the axis to cross: it
 //! mispredicts often, as the axes interleave irregularly. Here that choice is three
 //! compares into lane masks, and eight rays share every instruction. Lanes that end their
 //! rays take their next ones, a few lanes at a time, so lanes stay busy however ray lengths
 //! differ; the set-up of new rays (`Dda::new`) is vectorised too, for all lanes that need
-//! one at once.
+//! one at once. Per lane the walk is [`Dda::step`] exactly (same crossings, same ties,
+//! same end voxel).
 //!
-//! Per lane the walk is [`Dda::step`] exactly (same crossings, same ties, same end voxel).
-//! A voxel is its bit index in the thread's [`DenseBits`], so a step is one add and a mark
-//! one OR into memory that stays in cache: there are no brick changes to handle.
+//! One walk ([`walk`]), two ways to keep marks ([`Lanes`]):
+//! - dense ([`cast_chunk`]): a voxel is its bit index in the thread's [`DenseBits`], so a
+//!   step is one add and a mark one OR into memory that stays in cache;
+//! - sparse ([`cast_sparse`]): a voxel is [`Packed`]; each lane keeps the marks of its
+//!   current z plane in a vector lane and of its brick in its own words, and ORs the
+//!   brick's into the frame's tables when it leaves the brick, as the one-ray sparse walk
+//!   does.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::{BrickCache, Packed, Ray, RayMaker, SKIPPED};
