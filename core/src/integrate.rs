@@ -1041,6 +1041,15 @@ struct Slot {
 }
 
 impl Slot {
+    /// OR free marks in: plain loads and stores, no test first, as only the task holding
+    /// the slot's lane writes it, and the line is about to be read anyway.
+    #[inline]
+    fn or_free(&self, bits: &[u64; 8]) {
+        for (w, &b) in self.free.iter().zip(bits) {
+            w.store(w.load(Relaxed) | b, Relaxed);
+        }
+    }
+
     /// OR `other`'s marks into this one's. Only between phases, when no walk writes.
     fn absorb(&self, other: &Slot) {
         let pairs = self.free.iter().zip(&other.free);
@@ -1375,14 +1384,10 @@ impl<'a> BrickCache<'a> {
         marks.slots.get(s)
     }
 
-    /// OR a brick's free marks into its slot: plain loads and stores, no test first, as
-    /// the lane is this task's alone and the line is about to be read anyway.
+    /// OR a brick's free marks into its slot ([`Slot::or_free`]).
     #[inline]
     fn or_free(&mut self, brick: VoxelCoord, bits: &[u64; 8]) {
-        let slot = self.slot_for(brick);
-        for (w, &b) in slot.free.iter().zip(bits) {
-            w.store(w.load(Relaxed) | b, Relaxed);
-        }
+        self.slot_for(brick).or_free(bits);
     }
 
     #[inline]

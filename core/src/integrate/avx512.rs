@@ -121,7 +121,14 @@ pub(super) fn cast_sparse(
         cache,
         packed,
         plane: _mm512_setzero_si512(),
-        local: [0; LOCAL_WORDS],
+        buffer: _mm512_mullo_epi64(
+            _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7),
+            _mm512_set1_epi64(BUFFERS as i64),
+        ),
+        buffers: [[0; 8]; 8 * BUFFERS],
+        queued_at: [0; QUEUE_LEN],
+        queued_buffer: [0; QUEUE_LEN],
+        queued: 0,
         start: v,
     };
     let a = (
@@ -132,11 +139,13 @@ pub(super) fn cast_sparse(
         Feed::Next(0..rays.len()),
         refill_at,
     );
-    if refill_at > 1 {
+    let steps = if refill_at > 1 {
         walk::<true, _>(&mut lanes, a)
     } else {
         walk::<false, _>(&mut lanes, a)
-    }
+    };
+    lanes.flush_queue();
+    steps
 }
 
 /// What a lane walk does with the voxels its lanes visit. Voxels are `u64` indices with
@@ -242,29 +251,64 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
     }
 }
 
-/// Per lane the 8 words (z planes) of its current brick's marks.
-const LOCAL_WORDS: usize = 8 * 8;
+/// Brick buffers per lane: the one it fills and up to `QUEUE_AT` waiting in the queue.
+const BUFFERS: usize = 32;
+/// Queued bricks that start a flush. A flush looks up all their slots first and prefetches
+/// them, so that their cache misses overlap.
+const QUEUE_AT: usize = 24;
+/// Room for a queue of `QUEUE_AT - 1` and a whole vector more.
+const QUEUE_LEN: usize = QUEUE_AT + 8;
+// A lane queues at most one brick per step and the queue is flushed once it holds
+// `QUEUE_AT`, so a lane never has more than `QUEUE_AT` waiting: its next buffer is free.
+const _: () = assert!(QUEUE_AT < BUFFERS && BUFFERS.is_power_of_two());
 
-/// The sparse walk's lanes: each gathers its current brick's marks in its own words of
-/// `local` and ORs them into the frame's tables when it leaves the brick.
+/// The sparse walk's lanes. Each gathers the marks of its current z plane in a vector
+/// lane and those of its current brick in a buffer of its own; when it leaves the brick,
+/// it queues the buffer and takes its next one, and the queue's bricks are OR-ed into the
+/// frame's tables together.
 struct SparseLanes<'c, 'a> {
     cache: &'c mut BrickCache<'a>,
     packed: Packed,
     /// Per lane the marks of its current z plane in its brick, bit `x | y << 3`. A ray
-    /// visits each plane of a brick in one run, so a plane is stored to `local` once,
-    /// when the lane leaves it.
+    /// visits each plane of a brick in one run, so a plane is stored once, when the lane
+    /// leaves it.
     plane: __m512i,
-    local: [u64; LOCAL_WORDS],
+    /// Per lane the index of its current buffer, `BUFFERS * lane + b`.
+    buffer: __m512i,
+    /// 8 words (z planes) per buffer.
+    buffers: [[u64; 8]; 8 * BUFFERS],
+    /// Queued bricks: a voxel of each (packed) and its buffer.
+    queued_at: [u64; QUEUE_LEN],
+    queued_buffer: [u64; QUEUE_LEN],
+    queued: usize,
     start: VoxelCoord,
 }
 
 impl SparseLanes<'_, '_> {
-    /// OR lane `l`'s marks into the brick of `q` and clear them.
+    /// OR the marks of buffer `b` into the brick of `q` and clear them.
     #[inline]
-    fn flush(&mut self, l: usize, q: u64) {
-        let words: &mut [u64; 8] = (&mut self.local[l * 8..][..8]).try_into().expect("8 words");
-        self.cache.or_free(self.packed.unpack(q).shr(3), words);
-        *words = [0; 8];
+    fn flush(&mut self, b: usize, q: u64) {
+        self.cache.or_free(self.packed.unpack(q).shr(3), &self.buffers[b]);
+        self.buffers[b] = [0; 8];
+    }
+
+    /// Flush the queue: look up every queued brick's slot and prefetch it, then OR.
+    #[inline(never)]
+    fn flush_queue(&mut self) {
+        let n = self.queued;
+        let mut slots = [None; QUEUE_LEN];
+        for (slot, &q) in slots.iter_mut().zip(&self.queued_at[..n]) {
+            let s = self.cache.slot_for(self.packed.unpack(q).shr(3));
+            // SAFETY: a prefetch is a hint: it reads nothing and cannot fault.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(s).cast()) };
+            *slot = Some(s);
+        }
+        for (slot, &b) in slots[..n].iter().zip(&self.queued_buffer[..n]) {
+            let words = &mut self.buffers[b as usize];
+            slot.expect("looked up above").or_free(words);
+            *words = [0; 8];
+        }
+        self.queued = 0;
     }
 }
 
@@ -292,26 +336,46 @@ impl Lanes for SparseLanes<'_, '_> {
             _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
         let done =
             left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
-        // Lanes that left their plane store it: lane l's word z of `local`.
+        // Lanes that left their plane store it: word z of the lane's buffer.
         let word = _mm512_add_epi64(
+            _mm512_slli_epi64::<3>(self.buffer),
             _mm512_and_si512(_mm512_srli_epi64::<42>(was), _mm512_set1_epi64(7)),
-            _mm512_setr_epi64(0, 8, 16, 24, 32, 40, 48, 56),
         );
-        // SAFETY: `word` is 8 l + z with l < 8 and z < 8: inside `local` (64 words).
+        // SAFETY: `word` is 8 b + z with b < 8 * BUFFERS and z < 8: inside `buffers`.
         unsafe {
             _mm512_mask_i64scatter_epi64::<8>(
-                self.local.as_mut_ptr().cast(),
+                self.buffers.as_mut_ptr().cast(),
                 done,
                 word,
                 self.plane,
             )
         };
         self.plane = _mm512_mask_mov_epi64(self.plane, done, _mm512_setzero_si512());
-        if left != 0 {
-            let was = to_array(was);
-            for l in BitIter(u64::from(left)) {
-                self.flush(l, was[l]);
-            }
+        // Lanes that left their brick queue it and take their next buffer. Whole vectors
+        // are stored at the queue's end, the queued lanes first; the rest is overwritten.
+        let n = self.queued;
+        debug_assert!(n < QUEUE_AT);
+        // SAFETY: n < QUEUE_AT, so the 8 words from n are inside both queues (QUEUE_LEN).
+        unsafe {
+            _mm512_storeu_si512(
+                self.queued_at.as_mut_ptr().add(n).cast(),
+                _mm512_maskz_compress_epi64(left, was),
+            );
+            _mm512_storeu_si512(
+                self.queued_buffer.as_mut_ptr().add(n).cast(),
+                _mm512_maskz_compress_epi64(left, self.buffer),
+            );
+        }
+        self.queued = n + left.count_ones() as usize;
+        let first = _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7);
+        let next = _mm512_add_epi64(self.buffer, _mm512_set1_epi64(1));
+        let wrapped = _mm512_or_si512(
+            _mm512_and_si512(next, _mm512_set1_epi64(BUFFERS as i64 - 1)),
+            _mm512_mullo_epi64(first, _mm512_set1_epi64(BUFFERS as i64)),
+        );
+        self.buffer = _mm512_mask_mov_epi64(self.buffer, left, wrapped);
+        if self.queued >= QUEUE_AT {
+            self.flush_queue();
         }
     }
 
@@ -319,13 +383,15 @@ impl Lanes for SparseLanes<'_, '_> {
     fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8) {
         let p = to_array(p);
         let mut plane = to_array(self.plane);
+        let buffer = to_array(self.buffer);
         for l in BitIter(u64::from(end)) {
-            self.local[l * 8 + (p[l] >> (2 * Packed::F) & 7) as usize] |= plane[l];
+            let b = buffer[l] as usize;
+            self.buffers[b][(p[l] >> (2 * Packed::F) & 7) as usize] |= plane[l];
             plane[l] = 0;
             // A ray's last step may enter a brick only to end there: nothing free to
             // mark, and a slot would give the map an empty leaf.
-            if self.local[l * 8..][..8] != [0; 8] {
-                self.flush(l, p[l]);
+            if self.buffers[b] != [0; 8] {
+                self.flush(b, p[l]);
             }
             if hit >> l & 1 != 0 {
                 self.cache.set_hit(self.packed.unpack(p[l]));
