@@ -294,18 +294,27 @@ impl SparseLanes<'_, '_> {
 
     /// Flush the queue: look up every queued brick's slot and prefetch it, then OR.
     #[inline(never)]
+    #[target_feature(enable = "avx512f")]
     fn flush_queue(&mut self) {
         let n = self.queued;
         let mut slots = [None; QUEUE_LEN];
         for (slot, &q) in slots.iter_mut().zip(&self.queued_at[..n]) {
             let s = self.cache.slot_for(self.packed.unpack(q).shr(3));
-            // SAFETY: a prefetch is a hint: it reads nothing and cannot fault.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(s).cast()) };
+            _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(s).cast());
             *slot = Some(s);
         }
         for (slot, &b) in slots[..n].iter().zip(&self.queued_buffer[..n]) {
             let words = &mut self.buffers[b as usize];
-            slot.expect("looked up above").or_free(words);
+            let free = &slot.expect("looked up above").free;
+            // SAFETY: `words` and `free` are 64 bytes each (eight u64, eight AtomicU64 of
+            // the same layout). Only the task holding this cache's lane accesses the lane's
+            // slots until the lane is released (see `FrameMarks`), so this plain
+            // read-modify-write races with nothing, as `Slot::or_free`'s does not.
+            unsafe {
+                let at = free.as_ptr().cast::<__m512i>().cast_mut();
+                let marks = _mm512_loadu_si512(words.as_ptr().cast());
+                _mm512_storeu_si512(at, _mm512_or_si512(_mm512_loadu_si512(at), marks));
+            }
             *words = [0; 8];
         }
         self.queued = 0;
