@@ -120,11 +120,6 @@ pub(super) fn cast_sparse(
     let mut lanes = SparseLanes {
         cache,
         packed,
-        plane: _mm512_setzero_si512(),
-        buffer: _mm512_mullo_epi64(
-            _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7),
-            _mm512_set1_epi64(BUFFERS as i64),
-        ),
         buffers: [[0; 8]; 8 * BUFFERS],
         queued_at: [0; QUEUE_LEN],
         queued_buffer: [0; QUEUE_LEN],
@@ -155,12 +150,16 @@ pub(super) fn cast_sparse(
 /// The methods use AVX-512F and DQ: call them only where the CPU has both (they are
 /// `unsafe` for that alone, as trait methods cannot enable target features safely).
 trait Lanes {
+    /// Per-lane values the walk keeps in registers for the methods: the walk owns them,
+    /// so that they are not stored and reloaded on every step.
+    type Regs: Copy;
+    fn regs(&self) -> Self::Regs;
     /// Mark free the voxels `p` of the lanes in `live`.
-    unsafe fn mark(&mut self, p: __m512i, live: __mmask8);
+    unsafe fn mark(&mut self, r: &mut Self::Regs, p: __m512i, live: __mmask8);
     /// The lanes in `live` stepped from `was` to `p`.
-    unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8);
+    unsafe fn stepped(&mut self, r: &mut Self::Regs, was: __m512i, p: __m512i, live: __mmask8);
     /// The lanes in `end` ended their rays at `p`, those in `hit` in a hit.
-    fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8);
+    fn ended(&mut self, r: Self::Regs, p: __m512i, end: __mmask8, hit: __mmask8) -> Self::Regs;
     /// A ray ended in its start voxel, in a hit.
     fn hit_at_start(&mut self);
 }
@@ -189,9 +188,13 @@ impl<'a, const TEST_FIRST: bool> DenseLanes<'a, TEST_FIRST> {
 }
 
 impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
+    type Regs = ();
+
+    fn regs(&self) {}
+
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq")]
-    unsafe fn mark(&mut self, p: __m512i, live: __mmask8) {
+    unsafe fn mark(&mut self, _: &mut (), p: __m512i, live: __mmask8) {
         let free = &mut *self.free;
         if TEST_FIRST {
             // Most already are: the words are read with one gather and only lanes whose
@@ -234,10 +237,10 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
     }
 
     #[inline]
-    unsafe fn stepped(&mut self, _: __m512i, _: __m512i, _: __mmask8) {}
+    unsafe fn stepped(&mut self, _: &mut (), _: __m512i, _: __m512i, _: __mmask8) {}
 
     #[inline]
-    fn ended(&mut self, p: __m512i, _: __mmask8, hit: __mmask8) {
+    fn ended(&mut self, _: (), p: __m512i, _: __mmask8, hit: __mmask8) {
         if hit != 0 {
             let p = to_array(p);
             for l in BitIter(u64::from(hit)) {
@@ -269,12 +272,6 @@ const _: () = assert!(QUEUE_AT < BUFFERS && BUFFERS.is_power_of_two());
 struct SparseLanes<'c, 'a> {
     cache: &'c mut BrickCache<'a>,
     packed: Packed,
-    /// Per lane the marks of its current z plane in its brick, bit `x | y << 3`. A ray
-    /// visits each plane of a brick in one run, so a plane is stored once, when the lane
-    /// leaves it.
-    plane: __m512i,
-    /// Per lane the index of its current buffer, `BUFFERS * lane + b`.
-    buffer: __m512i,
     /// 8 words (z planes) per buffer.
     buffers: [[u64; 8]; 8 * BUFFERS],
     /// Queued bricks: a voxel of each (packed) and its buffer.
@@ -288,7 +285,8 @@ impl SparseLanes<'_, '_> {
     /// OR the marks of buffer `b` into the brick of `q` and clear them.
     #[inline]
     fn flush(&mut self, b: usize, q: u64) {
-        self.cache.or_free(self.packed.unpack(q).shr(3), &self.buffers[b]);
+        self.cache
+            .or_free(self.packed.unpack(q).shr(3), &self.buffers[b]);
         self.buffers[b] = [0; 8];
     }
 
@@ -324,22 +322,46 @@ impl SparseLanes<'_, '_> {
 /// Bits of the z field of a [`Packed`] voxel.
 const Z_FIELD: u64 = !0 << (2 * Packed::F);
 
+/// A sparse walk's per-lane registers.
+#[derive(Clone, Copy)]
+struct SparseRegs {
+    /// Per lane the marks of its current z plane in its brick, bit `x | y << 3`. A ray
+    /// visits each plane of a brick in one run, so a plane is stored once, when the lane
+    /// leaves it.
+    plane: __m512i,
+    /// Per lane the index of its current buffer, `BUFFERS * lane + b`.
+    buffer: __m512i,
+}
+
 impl Lanes for SparseLanes<'_, '_> {
+    type Regs = SparseRegs;
+
+    fn regs(&self) -> SparseRegs {
+        // SAFETY: this module is only compiled where the build enables AVX-512F for the
+        // whole crate.
+        unsafe {
+            SparseRegs {
+                plane: _mm512_setzero_si512(),
+                buffer: _mm512_mullo_epi64(IOTA, _mm512_set1_epi64(BUFFERS as i64)),
+            }
+        }
+    }
+
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq")]
-    unsafe fn mark(&mut self, p: __m512i, live: __mmask8) {
+    unsafe fn mark(&mut self, r: &mut SparseRegs, p: __m512i, live: __mmask8) {
         const _: () = assert!(Packed::F == 21);
         let xy = _mm512_or_si512(
             _mm512_and_si512(p, _mm512_set1_epi64(7)),
             _mm512_and_si512(_mm512_srli_epi64::<18>(p), _mm512_set1_epi64(7 << 3)),
         );
         let bit = _mm512_sllv_epi64(_mm512_set1_epi64(1), xy);
-        self.plane = _mm512_mask_or_epi64(self.plane, live, self.plane, bit);
+        r.plane = _mm512_mask_or_epi64(r.plane, live, r.plane, bit);
     }
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq")]
-    unsafe fn stepped(&mut self, was: __m512i, p: __m512i, live: __mmask8) {
+    unsafe fn stepped(&mut self, r: &mut SparseRegs, was: __m512i, p: __m512i, live: __mmask8) {
         let moved = _mm512_xor_si512(was, p);
         let left =
             _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
@@ -347,19 +369,14 @@ impl Lanes for SparseLanes<'_, '_> {
             left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
         // Lanes that left their plane store it: word z of the lane's buffer.
         let word = _mm512_add_epi64(
-            _mm512_slli_epi64::<3>(self.buffer),
+            _mm512_slli_epi64::<3>(r.buffer),
             _mm512_and_si512(_mm512_srli_epi64::<42>(was), _mm512_set1_epi64(7)),
         );
         // SAFETY: `word` is 8 b + z with b < 8 * BUFFERS and z < 8: inside `buffers`.
         unsafe {
-            _mm512_mask_i64scatter_epi64::<8>(
-                self.buffers.as_mut_ptr().cast(),
-                done,
-                word,
-                self.plane,
-            )
+            _mm512_mask_i64scatter_epi64::<8>(self.buffers.as_mut_ptr().cast(), done, word, r.plane)
         };
-        self.plane = _mm512_mask_mov_epi64(self.plane, done, _mm512_setzero_si512());
+        r.plane = _mm512_mask_mov_epi64(r.plane, done, _mm512_setzero_si512());
         // Lanes that left their brick queue it and take their next buffer. Whole vectors
         // are stored at the queue's end, the queued lanes first; the rest is overwritten.
         let n = self.queued;
@@ -372,27 +389,26 @@ impl Lanes for SparseLanes<'_, '_> {
             );
             _mm512_storeu_si512(
                 self.queued_buffer.as_mut_ptr().add(n).cast(),
-                _mm512_maskz_compress_epi64(left, self.buffer),
+                _mm512_maskz_compress_epi64(left, r.buffer),
             );
         }
         self.queued = n + left.count_ones() as usize;
-        let first = _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7);
-        let next = _mm512_add_epi64(self.buffer, _mm512_set1_epi64(1));
+        let next = _mm512_add_epi64(r.buffer, _mm512_set1_epi64(1));
         let wrapped = _mm512_or_si512(
             _mm512_and_si512(next, _mm512_set1_epi64(BUFFERS as i64 - 1)),
-            _mm512_mullo_epi64(first, _mm512_set1_epi64(BUFFERS as i64)),
+            _mm512_mullo_epi64(IOTA, _mm512_set1_epi64(BUFFERS as i64)),
         );
-        self.buffer = _mm512_mask_mov_epi64(self.buffer, left, wrapped);
+        r.buffer = _mm512_mask_mov_epi64(r.buffer, left, wrapped);
         if self.queued >= QUEUE_AT {
             self.flush_queue();
         }
     }
 
     #[inline]
-    fn ended(&mut self, p: __m512i, end: __mmask8, hit: __mmask8) {
+    fn ended(&mut self, r: SparseRegs, p: __m512i, end: __mmask8, hit: __mmask8) -> SparseRegs {
         let p = to_array(p);
-        let mut plane = to_array(self.plane);
-        let buffer = to_array(self.buffer);
+        let mut plane = to_array(r.plane);
+        let buffer = to_array(r.buffer);
         for l in BitIter(u64::from(end)) {
             let b = buffer[l] as usize;
             self.buffers[b][(p[l] >> (2 * Packed::F) & 7) as usize] |= plane[l];
@@ -406,7 +422,10 @@ impl Lanes for SparseLanes<'_, '_> {
                 self.cache.set_hit(self.packed.unpack(p[l]));
             }
         }
-        self.plane = from_array(plane);
+        SparseRegs {
+            plane: from_array(plane),
+            ..r
+        }
     }
 
     fn hit_at_start(&mut self) {
@@ -475,6 +494,7 @@ fn walk<const WAIT: bool, L: Lanes>(
     let mut need: __mmask8 = 0xff;
     // Lanes walking a ray.
     let mut live: __mmask8 = 0;
+    let mut regs = lanes.regs();
     loop {
         // Give each lane in `need` its next ray that takes a step; rays that end in their
         // start voxel are done here (a hit at most).
@@ -564,7 +584,7 @@ fn walk<const WAIT: bool, L: Lanes>(
         // nothing, until the refill.
         loop {
             // SAFETY: this function requires AVX-512F and DQ, all `Lanes` methods need.
-            unsafe { lanes.mark(p, live) };
+            unsafe { lanes.mark(&mut regs, p, live) };
             let was = p;
             // Step: the axis whose crossing comes first (ties x, y, z). An axis past its
             // last crossing gets t = never, so it is never first again.
@@ -580,11 +600,11 @@ fn walk<const WAIT: bool, L: Lanes>(
             let inc = _mm512_mask_blend_epi64(cx, _mm512_mask_blend_epi64(cy, mz, my), mx);
             p = _mm512_add_epi64(p, inc);
             // SAFETY: as for `mark`.
-            unsafe { lanes.stepped(was, p, live) };
+            unsafe { lanes.stepped(&mut regs, was, p, live) };
             rem = _mm512_sub_epi64(rem, one);
             let end = _mm512_mask_cmpeq_epi64_mask(live, rem, zero);
             if end != 0 {
-                lanes.ended(p, end, end & hit);
+                regs = lanes.ended(regs, p, end, end & hit);
                 live &= !end;
                 ended |= end;
                 if !WAIT || ended.count_ones() >= wait {
