@@ -8,10 +8,10 @@
 //!    - *sparse*: each ray is walked with the exact DDA, eight at a time where the build
 //!      has AVX-512 (`avx512::cast_sparse`), one at a time otherwise; its marks are
 //!      gathered per 8x8x8 brick and OR-ed into the per-frame [`FrameMarks`], sparse
-//!      tables of touched bricks only, one per thread. Threads walk rays of different directions, so
-//!      their tables share bricks only near the sensor, and there is no grid to merge:
-//!      this is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread
-//!      dense grids made the merge dominate.
+//!      tables of touched bricks only, one per thread. Threads walk rays of different
+//!      directions, so their tables share bricks only near the sensor, and there is no
+//!      grid to merge: this is what keeps 2 threads ahead of 1 at 60 m, where the paper's
+//!      per-thread dense grids made the merge dominate.
 //!    - *dense*, when the frame's box is small (about 30 m of range at 0.1 m): each thread
 //!      walks into its own bit grid over the whole box (`dense`), eight rays at a time, one
 //!      per vector lane, where the build has AVX-512 (`avx512`), one at a time otherwise.
@@ -356,9 +356,10 @@ impl Integrator {
             let dense_box = match walk {
                 Walk::Sparse | Walk::SparseScalar => None,
                 // Zeroing and merging the dense grids cost about 15 ns per word, and a dense
-                // step saves 4-8 ns against a sparse one (1.5-2.5 against 4-10 ns): walk
-                // dense when the grid has at most a quarter as many words as the walk has
-                // steps. A few rays in a big box walk sparse.
+                // step saved 4-8 ns against a one-ray sparse one (1.5-2.5 against 4-10 ns):
+                // walk dense when the grid has at most a quarter as many words as the walk
+                // has steps. A few rays in a big box walk sparse. (Not re-tuned for the
+                // AVX-512 sparse walk, 2.5-4 ns a step at 60 m with its memory traffic.)
                 Walk::Auto => {
                     dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps)
                 }

@@ -337,13 +337,9 @@ impl Lanes for SparseLanes<'_, '_> {
     type Regs = SparseRegs;
 
     fn regs(&self) -> SparseRegs {
-        // SAFETY: this module is only compiled where the build enables AVX-512F for the
-        // whole crate.
-        unsafe {
-            SparseRegs {
-                plane: _mm512_setzero_si512(),
-                buffer: _mm512_mullo_epi64(IOTA, _mm512_set1_epi64(BUFFERS as i64)),
-            }
+        SparseRegs {
+            plane: per_lane(0),
+            buffer: FIRST_BUFFERS,
         }
     }
 
@@ -396,7 +392,7 @@ impl Lanes for SparseLanes<'_, '_> {
         let next = _mm512_add_epi64(r.buffer, _mm512_set1_epi64(1));
         let wrapped = _mm512_or_si512(
             _mm512_and_si512(next, _mm512_set1_epi64(BUFFERS as i64 - 1)),
-            _mm512_mullo_epi64(IOTA, _mm512_set1_epi64(BUFFERS as i64)),
+            FIRST_BUFFERS,
         );
         r.buffer = _mm512_mask_mov_epi64(r.buffer, left, wrapped);
         if self.queued >= QUEUE_AT {
@@ -785,8 +781,15 @@ impl Axis {
     }
 }
 
-/// 0, 1, ..., 7.
-const IOTA: __m512i = unsafe { std::mem::transmute([0u64, 1, 2, 3, 4, 5, 6, 7]) };
+/// `k * l` in lane `l`.
+const fn per_lane(k: u64) -> __m512i {
+    // SAFETY: __m512i and [u64; 8] are both 64 plain bytes; every bit pattern is valid.
+    unsafe { std::mem::transmute([0, k, 2 * k, 3 * k, 4 * k, 5 * k, 6 * k, 7 * k]) }
+}
+
+const IOTA: __m512i = per_lane(1);
+/// Each lane's first buffer.
+const FIRST_BUFFERS: __m512i = per_lane(BUFFERS as u64);
 
 #[inline(always)]
 fn from_array(a: [u64; 8]) -> __m512i {
