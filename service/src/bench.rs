@@ -285,8 +285,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         if !snapshots.is_empty() {
             println!();
             println!(
-                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9}",
-                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "box ms", "open ms", "ms chk", "query ns", "batch ns", "los10m ns"
+                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>8}",
+                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "box ms", "open ms", "ms chk", "query ns", "batch ns", "los10m ns", "read ns"
             );
         }
     }
@@ -302,21 +302,22 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     "box_encode_ms": s.box_encode_ms, "box_bytes": s.box_bytes,
                     "open_ms": s.open_ms, "open_checked_ms": s.open_checked_ms,
                     "point_query_ns": s.query_ns, "point_query_batched_ns": s.batch_query_ns,
-                    "first_hit_10m_ns": s.los_ns,
+                    "first_hit_10m_ns": s.los_ns, "dependent_read_ns": s.read_ns,
                     "mapfile_bytes": s.file_bytes, "mapfile_encode_ms": s.file_encode_ms,
                     "mapfile_decode_ms": s.file_decode_ms,
                 })
             );
         } else {
             println!(
-                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.2} {:>8.3} {:>8.3} {:>9.1} {:>9.1} {:>9.0}",
+                "{:<40} {:>10} {:>10} {:>9.3} {:>9.1} {:>9.2} {:>9.1} {:>8.2} {:>8.3} {:>8.3} {:>9.1} {:>9.1} {:>9.0} {:>8.1}",
                 name, s.bytes, s.leaves, s.bytes as f64 / s.known.max(1) as f64, s.bytes as f64 / s.leaves.max(1) as f64,
-                s.encode_ms, s.integrate_ms / s.encode_ms, s.box_encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.batch_query_ns, s.los_ns
+                s.encode_ms, s.integrate_ms / s.encode_ms, s.box_encode_ms, s.open_ms, s.open_checked_ms, s.query_ns, s.batch_query_ns, s.los_ns,
+                s.read_ns
             );
         }
     }
     if !a.json && !snapshots.is_empty() {
-        println!("xfaster = integrate median / encode; box = encode of a 20 x 20 x 6 m box around the sensor (median of 3); query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query, one state() call each); batch = the same voxels through one states() call per batch; los10m = first_hit on a 10 m segment (median ns)");
+        println!("xfaster = integrate median / encode; box = encode of a 20 x 20 x 6 m box around the sensor (median of 3); query = state at random known voxels (median over batches of {QUERY_BATCH} of ns per query, one state() call each); batch = the same voxels through one states() call per batch; los10m = first_hit on a 10 m segment (median ns); read = one dependent read of a random 64-byte line of a buffer the snapshot's size, timed as the queries: what a query that misses cache pays per miss on this machine");
         println!();
         println!(
             "{:<40} {:>12} {:>10} {:>10}",
@@ -348,10 +349,40 @@ struct SnapshotBench {
     /// The same queries through [`SnapshotView::states`], a batch per call.
     batch_query_ns: f64,
     los_ns: f64,
+    /// ns per dependent read of a random line of a buffer the snapshot's size.
+    read_ns: f64,
     /// Map file, in memory (no disk): bytes, encode and decode ms.
     file_bytes: usize,
     file_encode_ms: f64,
     file_decode_ms: f64,
+}
+
+/// This machine's cost of a cache miss at a snapshot's size: ns per read of a random
+/// 64-byte line of a buffer `bytes` long, each read's address taken from the one before
+/// (a random cycle through all lines), timed in batches like the point queries.
+fn dependent_read_ns(bytes: usize, rng: &mut crate::rng::XorShift) -> f64 {
+    let lines = (bytes / 64).max(2);
+    let mut order: Vec<usize> = (0..lines).collect();
+    for i in (1..lines).rev() {
+        order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+    }
+    // Word 0 of each line holds the next line of the cycle.
+    let mut next = vec![0usize; lines * 8];
+    for (i, &line) in order.iter().enumerate() {
+        next[line * 8] = order[(i + 1) % lines];
+    }
+    let mut at = order[0];
+    let mut batches: Vec<f64> = (0..400)
+        .map(|_| {
+            let t = Instant::now();
+            for _ in 0..QUERY_BATCH {
+                at = next[at * 8];
+            }
+            t.elapsed().as_secs_f64() * 1e9 / QUERY_BATCH as f64
+        })
+        .collect();
+    std::hint::black_box(at);
+    median(&mut batches)
 }
 
 /// Point queries per timed batch.
@@ -455,6 +486,7 @@ fn snapshot_bench(
         })
         .collect();
     let los_ns = median(&mut walks);
+    let read_ns = dependent_read_ns(buf.len(), &mut rng);
     let (known, _) = view.counts();
     // The map file, encoded and decoded on the integrator's pool (the service encodes a
     // save there; it decodes a load on the file worker, with rayon's global pool).
@@ -483,6 +515,7 @@ fn snapshot_bench(
         query_ns,
         batch_query_ns,
         los_ns,
+        read_ns,
         file_bytes: file.len(),
         file_encode_ms,
         file_decode_ms,

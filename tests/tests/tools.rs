@@ -518,6 +518,7 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         "first_hit_10m_ns",
         "encode_ms",
         "box_encode_ms",
+        "dependent_read_ns",
     ] {
         assert!(f(s, k) > 0.0, "{k}");
     }
