@@ -249,14 +249,15 @@ pub fn encode(
         (rows_of(known, known_kind), known_kind),
         (rows_of(occupied, occupied_kind), occupied_kind),
     ];
+    let presences = masks.map(|(rows, _)| presence(&rows));
     let mut at = 0;
-    for (rows, kind) in &masks {
+    for ((_, kind), p) in masks.iter().zip(presences) {
         if *kind >= 2 {
-            out[at..at + 8].copy_from_slice(&presence(rows).to_le_bytes());
+            out[at..at + 8].copy_from_slice(&p.to_le_bytes());
             at += 8;
         }
     }
-    for (rows, kind) in &masks {
+    for ((rows, kind), p) in masks.iter().zip(presences) {
         let bytes: &[u8] = bytemuck::cast_slice(rows);
         match kind {
             0 => {}
@@ -264,13 +265,48 @@ pub fn encode(
                 out[at..at + 64].copy_from_slice(bytes);
                 at += 64;
             }
-            _ => {
-                for r in crate::mask::BitIter(presence(rows)) {
-                    out[at] = bytes[r];
-                    at += 1;
-                }
-            }
+            _ => at += compress_rows(rows, p, &mut out[at..]),
         }
+    }
+    at
+}
+
+/// Write the bytes of `rows` whose bit is set in `present`, in order, at the start of
+/// `out`; returns how many. With AVX-512 VBMI2 one compressing store: the whole-map encode
+/// of the random 500k 60 m map took 277-305 ms against 314-389 (minimum of 12 encodes,
+/// three alternated probe runs).
+#[cfg(all(
+    target_arch = "x86_64",
+    target_feature = "avx512f",
+    target_feature = "avx512vbmi2"
+))]
+#[inline]
+fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
+    use std::arch::x86_64::*;
+    let n = present.count_ones() as usize;
+    assert!(n <= out.len(), "record shorter than its rows");
+    // SAFETY: this function is only compiled where the build enables AVX-512F and VBMI2
+    // for the whole crate. The load reads the 64 bytes of `rows`; the compressing store
+    // writes n bytes from `out`'s start, and n <= out.len() (checked above).
+    unsafe {
+        let v = _mm512_loadu_si512(rows.as_ptr().cast());
+        _mm512_mask_compressstoreu_epi8(out.as_mut_ptr().cast(), present, v);
+    }
+    n
+}
+
+#[cfg(not(all(
+    target_arch = "x86_64",
+    target_feature = "avx512f",
+    target_feature = "avx512vbmi2"
+)))]
+#[inline]
+fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
+    let bytes: &[u8] = bytemuck::cast_slice(rows);
+    let mut at = 0;
+    for r in crate::mask::BitIter(present) {
+        out[at] = bytes[r];
+        at += 1;
     }
     at
 }
