@@ -128,6 +128,24 @@ pub struct Leaf<V> {
 }
 
 impl<V: GridValue> Leaf<V> {
+    /// Ask the CPU to start loading the leaf (mask and values) into cache, for a loop that
+    /// reads it a few iterations later: leaves visited in an order other than the pool's
+    /// miss cache one after another, and these loads overlap. Only speed changes.
+    #[inline]
+    pub fn prefetch(&self) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let base = std::ptr::from_ref(self).cast::<i8>();
+            for at in (0..std::mem::size_of::<Self>()).step_by(64) {
+                // SAFETY: `_mm_prefetch` needs SSE, which every x86_64 CPU has; a prefetch
+                // reads nothing into the program and cannot fault, and `at` is inside the
+                // leaf.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(at)) };
+            }
+        }
+    }
+
     #[inline]
     pub fn get(&self, i: usize) -> Option<V> {
         self.active.get(i).then(|| self.values[i])

@@ -54,6 +54,11 @@ struct PlannedLeaf<'a> {
 }
 
 const WHOLE: u32 = u32::MAX;
+/// Leaves ahead of the one being encoded whose loads are started: leaves in block order
+/// lie all over the leaf pool, and each one read missed cache on its own. Whole-map
+/// encode, random 500k 60 m, minimum of 12 in alternated probe runs: 262-288 ms without,
+/// 199-225 with 4 ahead, 179-256 with 8.
+const PREFETCH_AHEAD: usize = 8;
 /// [`PlannedLeaf::kinds`] of a leaf with nothing known, dropped from the plan.
 const EMPTY: u8 = u8::MAX;
 
@@ -314,7 +319,11 @@ impl<'a> Plan<'a> {
                 // copying; pages not written to are never touched.
                 let mut bytes = Vec::with_capacity(piece.len() * 2 * 64);
                 let (mut sums, mut empty) = (Sums::default(), 0);
-                for p in piece {
+                for k in 0..piece.len() {
+                    if let Some(ahead) = piece.get(k + PREFETCH_AHEAD) {
+                        ahead.leaf.prefetch();
+                    }
+                    let p = &mut piece[k];
                     let keep = *keep_of(&keeps, p);
                     if keep.is_empty() {
                         p.kinds = (EMPTY, 0);
