@@ -438,9 +438,9 @@ enum Feed {
 }
 
 /// Walk the rays of `feed` from `origin`, telling `lanes` the voxels each lane visits;
-/// returns voxels visited. Voxel indices start at
-/// `start` (the origin's voxel) and change by `strides` per step. `WAIT`: whether lanes
-/// wait for `refill_at` of them to end their rays (otherwise each takes its next at once).
+/// returns voxels visited. Voxel indices start at `start` (the origin's voxel) and change
+/// by `strides` per step. `WAIT`: whether lanes wait for `refill_at` of them to end their
+/// rays (otherwise each takes its next at once).
 #[target_feature(enable = "avx512f,avx512dq")]
 #[allow(clippy::type_complexity)]
 fn walk<const WAIT: bool, L: Lanes>(

@@ -371,7 +371,7 @@ impl<'a> SnapshotView<'a> {
         self.header.flags & FLAG_VALUES != 0
     }
 
-    /// Table slot `s`: leaf index + 1, or 0 (empty).
+    /// Table slot `s`: block index + 1, or 0 (empty).
     #[inline]
     fn slot(&self, s: u64) -> u32 {
         self.table
@@ -413,8 +413,7 @@ impl<'a> SnapshotView<'a> {
         }
     }
 
-    /// The block with origin `b`, looked up from its [`Self::home`] slot `s` (`u64::MAX`:
-    /// none).
+    /// The block with origin `b`, looked up from its [`Self::home`] slot `s`.
     #[inline]
     fn block_from(&self, b: [i32; 3], s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
         if self.dense {
@@ -553,21 +552,17 @@ impl<'a> SnapshotView<'a> {
     /// misses are.
     fn states_group(&self, voxels: &[Option<VoxelCoord>], out: &mut Vec<VoxelState>) {
         let h = &self.header;
-        let mut slot = [0u64; STATES_GROUP];
+        let mut slot = [None; STATES_GROUP];
         for (s, v) in slot.iter_mut().zip(voxels) {
-            if let Some(v) = v {
-                if let Some(home) = self.home(block_origin(*v).to_array()) {
-                    *s = home;
-                    prefetch(self.bytes, h.table_offset + 4 * home);
-                } else {
-                    *s = u64::MAX;
-                }
+            *s = v.and_then(|v| self.home(block_origin(v).to_array()));
+            if let Some(home) = *s {
+                prefetch(self.bytes, h.table_offset + 4 * home);
             }
         }
         let mut index = [None; STATES_GROUP];
         for ((i, v), s) in index.iter_mut().zip(voxels).zip(slot) {
             *i = v.and_then(|v| {
-                let block = self.block_from(block_origin(v).to_array(), s)?;
+                let block = self.block_from(block_origin(v).to_array(), s?)?;
                 let i = self.leaf_index(block, leaf_in_block(v))?;
                 prefetch(self.bytes, h.leaves_offset + ENTRY_SIZE as u64 * i);
                 Some(i)
