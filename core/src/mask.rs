@@ -26,6 +26,14 @@ impl Mask512 {
         self.words[i >> 6] &= !(1 << (i & 63));
     }
 
+    /// The bits set in both.
+    #[inline]
+    pub fn and(&self, other: &Self) -> Self {
+        Self {
+            words: std::array::from_fn(|w| self.words[w] & other.words[w]),
+        }
+    }
+
     pub fn count(&self) -> u32 {
         self.words.iter().map(|w| w.count_ones()).sum()
     }

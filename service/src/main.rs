@@ -52,6 +52,7 @@ enum Cmd {
 }
 
 fn main() -> anyhow::Result<()> {
+    os::keep_freed_memory();
     match Cli::parse().cmd {
         Cmd::Demo(a) => demo::run(a),
         Cmd::Serve(a) => serve::run(a),

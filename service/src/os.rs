@@ -1,5 +1,6 @@
 //! Operating-system facilities the service and tools share: the wall clock used for frame
-//! and snapshot time stamps, and real-time scheduling.
+//! and snapshot time stamps, real-time scheduling, and the allocator's hold on freed
+//! memory.
 
 use anyhow::{bail, Result};
 
@@ -30,4 +31,31 @@ pub fn set_realtime(priority: i32) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Have glibc's allocator keep the heap memory the process frees for its next
+/// allocations, rather than hand it back to the kernel.
+///
+/// Every frame and every snapshot allocates and frees the same large temporaries (a whole
+/// map snapshot's plan is about 200 MB at 60 m). By default glibc returns such memory on
+/// free, and the next frame pays a page fault and a zeroed page per 4 KiB again, which on
+/// the VMs measured costs 1-5 us a page. Kept, the process's resident memory stays at its
+/// peak, as with allocators that cache freed memory. Settings: no trimming of the heap's
+/// top, blocks up to 32 MiB (glibc's largest such threshold) from the heap, and heaps
+/// grown 256 MiB of address space at a time. Whole-map encode, random 500k 60 m, in a
+/// probe: 29 thousand page faults per encode -> 2 thousand, 162 -> 136 ms (median of 10).
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    for (param, value) in [
+        (libc::M_TRIM_THRESHOLD, i32::MAX),
+        (libc::M_MMAP_THRESHOLD, 32 << 20),
+        (libc::M_TOP_PAD, 256 << 20),
+    ] {
+        // SAFETY: mallopt only changes the allocator's tuning; called first thing in
+        // `main`, before any other thread exists. A refused value leaves the default,
+        // which is only slower, so the result is ignored.
+        unsafe {
+            libc::mallopt(param, value);
+        }
+    }
 }

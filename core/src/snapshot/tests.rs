@@ -29,6 +29,17 @@ fn random_map(seed: u64, frames: usize) -> OccupancyMap {
             .integrate(&mut map, &Frame { pose, points: &pts })
             .unwrap();
     }
+    // Some known voxels at the occupancy threshold and either side of it: at it is occupied.
+    let t = map.quantized().threshold;
+    let some: Vec<VoxelCoord> = map
+        .grid()
+        .active_voxels()
+        .map(|(v, _)| v)
+        .take(600)
+        .collect();
+    for (i, v) in some.into_iter().enumerate() {
+        map.set_value(v, t - 1 + (i % 3) as i8);
+    }
     map
 }
 
