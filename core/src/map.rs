@@ -165,13 +165,13 @@ impl OccupancyMap {
     /// Every non-empty leaf's occupancy, in no particular order.
     pub fn leaf_occupancy(&self) -> impl Iterator<Item = LeafOccupancy> + '_ {
         let thr = self.q.threshold;
-        self.grid.leaves().filter_map(move |(origin, leaf)| {
-            (!leaf.active.is_empty()).then(|| LeafOccupancy {
+        (self.grid.leaves())
+            .filter(|(_, leaf)| !leaf.active.is_empty())
+            .map(move |(origin, leaf)| LeafOccupancy {
                 origin,
                 known: leaf.active,
                 occupied: occupied_mask(leaf, thr),
             })
-        })
     }
 
     /// Heap bytes held by the map.
