@@ -119,28 +119,34 @@ fn child_index(v: VoxelCoord) -> usize {
 pub trait GridValue: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug {}
 impl<T: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug> GridValue for T {}
 
-/// An 8x8x8 block of voxels: a value per voxel and which of them are active.
+/// An 8x8x8 block of voxels: a value per voxel, which of them are active, and which of
+/// those the grid's owner marks.
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct Leaf<V> {
     pub active: Mask512,
+    /// A subset of `active` that the grid's owner keeps in step with the values; the grid
+    /// itself never writes it. An occupancy map marks its occupied voxels
+    /// ([`crate::map::OccupancyMap`]), so that readers of occupancy (snapshots, counts)
+    /// read two masks per leaf, not its 512 values.
+    pub marked: Mask512,
     pub values: [V; LEAF_VOXELS],
 }
 
 impl<V: GridValue> Leaf<V> {
-    /// Ask the CPU to start loading the leaf (mask and values) into cache, for a loop that
-    /// reads it a few iterations later: leaves visited in an order other than the pool's
-    /// miss cache one after another, and these loads overlap. Only speed changes.
+    /// Ask the CPU to start loading the leaf's two masks into cache, for a loop that reads
+    /// them a few iterations later: leaves visited in an order other than the pool's miss
+    /// cache one after another, and these loads overlap. Only speed changes.
     #[inline]
-    pub fn prefetch(&self) {
+    pub fn prefetch_masks(&self) {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let base = std::ptr::from_ref(self).cast::<i8>();
-            for at in (0..std::mem::size_of::<Self>()).step_by(64) {
+            for at in (0..2 * std::mem::size_of::<Mask512>()).step_by(64) {
                 // SAFETY: `_mm_prefetch` needs SSE, which every x86_64 CPU has; a prefetch
                 // reads nothing into the program and cannot fault, and `at` is inside the
-                // leaf.
+                // leaf (the masks come first, `repr(C)`).
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(at)) };
             }
         }

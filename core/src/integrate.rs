@@ -954,10 +954,11 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u
         // select, and that load is the read this avoids.
         if fresh {
             leaf.active.words[w] = any;
-            observe::<true>(values, any, hit, q);
+            leaf.marked.words[w] = observe::<true>(values, any, hit, q);
         } else {
             leaf.active.words[w] |= any;
-            observe::<false>(values, any, hit, q);
+            let occupied = observe::<false>(values, any, hit, q);
+            leaf.marked.words[w] = leaf.marked.words[w] & !any | occupied;
         }
     }
     n
@@ -973,8 +974,9 @@ fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u
 use avx512::observe;
 
 /// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
-/// where set in `hit` too. `FRESH`: the values are all zero, and are not read (see
-/// [`apply`]). `avx512::observe` does the same in one masked add.
+/// where set in `hit` too; returns those of them now at or above the occupancy threshold.
+/// `FRESH`: the values are all zero, and are not read (see [`apply`]). `avx512::observe`
+/// does the same in one masked add.
 #[cfg_attr(
     all(
         target_arch = "x86_64",
@@ -990,11 +992,14 @@ fn observe_scalar<const FRESH: bool>(
     any: u64,
     hit: u64,
     q: &QuantizedModel,
-) {
+) -> u64 {
+    let mut occupied = 0;
     for b in BitIter(any) {
         let old = if FRESH { 0 } else { values[b] };
         values[b] = q.update(old, hit >> b & 1 != 0);
+        occupied |= u64::from(values[b] >= q.threshold) << b;
     }
+    occupied
 }
 
 #[cfg(not(all(
@@ -1441,6 +1446,7 @@ mod tests {
     }
 
     fn snapshot(map: &OccupancyMap) -> Vec<(VoxelCoord, i8)> {
+        map.assert_marks_in_step();
         let mut v: Vec<_> = map.grid().active_voxels().collect();
         v.sort();
         v
@@ -1478,7 +1484,7 @@ mod tests {
         let q = *map.quantized();
         for (v, hit) in marks {
             let old = map.value(v).unwrap_or(0);
-            map.grid_mut().set(v, q.update(old, hit));
+            map.set_value(v, q.update(old, hit));
         }
     }
 
@@ -1848,6 +1854,41 @@ mod tests {
             .collect();
         assert_eq!(leaves.len(), 2, "{leaves:?}");
         assert!(leaves.iter().all(|&(x, n)| x < 16 && n == 8), "{leaves:?}");
+    }
+
+    /// Leaves mark their voxels at or above the threshold, also exactly at it (here one
+    /// hit's value), on every walk, in new leaves and in leaves seen before.
+    #[test]
+    fn leaves_mark_voxels_at_the_threshold() {
+        let model = SensorModel {
+            occupancy_threshold: SensorModel::default().p_hit,
+            ..Default::default()
+        };
+        for walk in [
+            Walk::Sparse,
+            Walk::SparseScalar,
+            Walk::Dense,
+            Walk::DenseScalar,
+        ] {
+            let mut map = OccupancyMap::new(0.1, model).unwrap();
+            let q = *map.quantized();
+            assert_eq!(q.threshold, q.hit);
+            let mut integ = integrator(2, 5.0, RayMode::Exact);
+            integ.walk = walk;
+            let mut rng = Rng(5);
+            for _ in 0..3 {
+                let (pose, pts) = random_frame(&mut rng, 2000, 4.0);
+                integ
+                    .integrate(&mut map, &Frame { pose, points: &pts })
+                    .unwrap();
+                map.assert_marks_in_step();
+            }
+            let at = map
+                .grid()
+                .active_voxels()
+                .filter(|&(_, v)| v == q.threshold);
+            assert!(at.count() > 100, "{walk:?}: few voxels at the threshold");
+        }
     }
 
     #[test]

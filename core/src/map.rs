@@ -1,7 +1,7 @@
 //! [`OccupancyMap`]: a grid of fixed-point log-odds with its resolution and sensor model.
 
 use crate::coord::{ConfigError, GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{Grid, Leaf};
+use crate::grid::{leaf_offset, leaf_origin, Grid, Leaf};
 use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel, VoxelState};
 
@@ -23,7 +23,8 @@ pub struct LeafOccupancy {
     pub occupied: Mask512,
 }
 
-/// The known voxels of `leaf` whose value is at or above `threshold`: its occupied ones.
+/// The known voxels of `leaf` whose value is at or above `threshold`: its occupied ones,
+/// from its values (what [`Leaf::marked`] holds in a map, for anything that fills leaves).
 pub(crate) fn occupied_mask(leaf: &Leaf<i8>, threshold: i8) -> Mask512 {
     let mut occ = Mask512::EMPTY;
     for (w, (out, values)) in occ
@@ -42,7 +43,7 @@ pub(crate) fn occupied_mask(leaf: &Leaf<i8>, threshold: i8) -> Mask512 {
 
 /// Bit `i` set where `values[i] >= threshold`.
 #[inline]
-fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
+pub(crate) fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512bw"))]
     {
         use std::arch::x86_64::{_mm512_cmpge_epi8_mask, _mm512_loadu_si512, _mm512_set1_epi8};
@@ -64,7 +65,8 @@ fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
 }
 
 /// A 3D log-odds occupancy map. Voxels never observed are inactive (unknown); observed
-/// voxels hold a fixed-point log-odds value (see [`crate::model`]).
+/// voxels hold a fixed-point log-odds value (see [`crate::model`]). Each leaf marks its
+/// occupied voxels ([`Leaf::marked`]): every write of a value keeps the mark in step.
 pub struct OccupancyMap {
     grid: Grid<i8>,
     transform: GridTransform,
@@ -123,7 +125,18 @@ impl OccupancyMap {
 
     /// Set a voxel's stored value directly (clamped to the model's range).
     pub fn set_value(&mut self, v: VoxelCoord, value: i8) {
-        self.grid.set(v, value.clamp(self.q.min, self.q.max));
+        let value = value.clamp(self.q.min, self.q.max);
+        self.grid.set(v, value);
+        let li = self
+            .grid
+            .leaf_index(leaf_origin(v))
+            .expect("set made the leaf");
+        let leaf = self.grid.leaf_mut(li);
+        if value >= self.q.threshold {
+            leaf.marked.set(leaf_offset(v));
+        } else {
+            leaf.marked.clear(leaf_offset(v));
+        }
     }
 
     pub fn state(&self, v: VoxelCoord) -> VoxelState {
@@ -148,14 +161,13 @@ impl OccupancyMap {
     }
 
     pub fn counts(&self) -> MapCounts {
-        let thr = self.q.threshold;
         let mut c = MapCounts {
             leaves: self.grid.leaf_count() as u64,
             ..Default::default()
         };
         for (_, leaf) in self.grid.leaves() {
             let known = leaf.active.count() as u64;
-            let occ = occupied_mask(leaf, thr).count() as u64;
+            let occ = leaf.marked.count() as u64;
             c.occupied += occ;
             c.free += known - occ;
         }
@@ -164,14 +176,22 @@ impl OccupancyMap {
 
     /// Every non-empty leaf's occupancy, in no particular order.
     pub fn leaf_occupancy(&self) -> impl Iterator<Item = LeafOccupancy> + '_ {
-        let thr = self.q.threshold;
         (self.grid.leaves())
             .filter(|(_, leaf)| !leaf.active.is_empty())
-            .map(move |(origin, leaf)| LeafOccupancy {
+            .map(|(origin, leaf)| LeafOccupancy {
                 origin,
                 known: leaf.active,
-                occupied: occupied_mask(leaf, thr),
+                occupied: leaf.marked,
             })
+    }
+
+    /// Panics unless every leaf marks exactly its known voxels at or above the threshold.
+    #[cfg(test)]
+    pub(crate) fn assert_marks_in_step(&self) {
+        for (origin, leaf) in self.grid.leaves() {
+            let want = occupied_mask(leaf, self.q.threshold);
+            assert_eq!(leaf.marked, want, "leaf at {origin:?} marks other voxels");
+        }
     }
 
     /// Heap bytes held by the map.

@@ -10,7 +10,7 @@
 
 use crate::coord::VoxelCoord;
 use crate::grid::LEAF_VOXELS;
-use crate::map::OccupancyMap;
+use crate::map::{occupied_mask, OccupancyMap};
 use crate::model::SensorModel;
 use crate::snapshot::{SnapshotError, SnapshotView};
 use serde::{Deserialize, Serialize};
@@ -341,6 +341,7 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
                 *out = if known { v } else { 0 };
             }
         }
+        leaf.marked = occupied_mask(leaf, q.threshold);
         u64::from(bad)
     });
     if out_of_range > 0 {
@@ -410,6 +411,7 @@ mod tests {
         save_map(&map, &path).unwrap();
         let back = load_map(&path).unwrap();
         assert_eq!(voxels(&back), voxels(&map));
+        back.assert_marks_in_step();
         assert_eq!(back.model(), map.model());
         assert_eq!(back.resolution(), 0.05);
         // No temporary file is left behind.

@@ -40,6 +40,7 @@ fn random_map(seed: u64, frames: usize) -> OccupancyMap {
     for (i, v) in some.into_iter().enumerate() {
         map.set_value(v, t - 1 + (i % 3) as i8);
     }
+    map.assert_marks_in_step();
     map
 }
 

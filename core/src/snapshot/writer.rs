@@ -7,7 +7,7 @@ use super::layout::*;
 use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
 use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf};
-use crate::map::{occupied_mask, OccupancyMap};
+use crate::map::OccupancyMap;
 use crate::mask::Mask512;
 use rayon::prelude::*;
 
@@ -291,7 +291,6 @@ impl<'a> Plan<'a> {
                     .collect()
             }
         };
-        let threshold = map.quantized().threshold;
         // Encode every leaf's record once, in pieces; `record` is the offset within the
         // piece until the pieces' offsets are known. Leaves with nothing known (possible
         // only in the whole scope) get no record and are dropped after.
@@ -304,7 +303,7 @@ impl<'a> Plan<'a> {
                 let (mut sums, mut empty) = (Sums::default(), 0);
                 for k in 0..piece.len() {
                     if let Some(ahead) = piece.get(k + PREFETCH_AHEAD) {
-                        ahead.leaf.prefetch();
+                        ahead.leaf.prefetch_masks();
                     }
                     let p = &mut piece[k];
                     let keep = *keep_of(&keeps, p);
@@ -313,7 +312,7 @@ impl<'a> Plan<'a> {
                         empty += 1;
                         continue;
                     }
-                    let occupied = occupied_mask(p.leaf, threshold).and(&keep);
+                    let occupied = p.leaf.marked.and(&keep);
                     let known_choice = record::choose_known(&keep);
                     let occupied_choice = record::choose_occupied(&occupied);
                     p.kinds = (known_choice.kind, occupied_choice.kind);
