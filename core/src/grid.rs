@@ -4,7 +4,7 @@
 //! ```text
 //! root     HashMap<internal key, internal index>        one entry per 128^3 voxels
 //! internal 16^3 child slots + child mask (4096 bits)    children are leaf indices
-//! leaf     8^3 values + active mask (512 bits)          stored in a pooled arena
+//! leaf     active + marked masks (512 bits each), 8^3 values   stored in a pooled arena
 //! ```
 //!
 //! Leaves live in a [`LeafPool`] of fixed-size chunks allocated zeroed, so a new leaf costs
@@ -50,13 +50,17 @@ pub fn leaf_of_block(b: VoxelCoord, j: usize) -> VoxelCoord {
     voxel_at(VoxelCoord::default(), j).shl(LEAF_LOG2) + b
 }
 /// Leaves per pool chunk: as many `Leaf<i8>`, in whole [`UPDATE_SPAN`]s, as fill one
-/// huge page (3584 of 3640). Each chunk is its own mapping ([`Zeroed`]): with chunks of 256
-/// leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the random 500k 60 m
-/// merge from 133-195 to 111-118 ms (1 and 2 threads, interleaved runs).
-const POOL_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Leaf<i8>>() / UPDATE_SPAN * UPDATE_SPAN;
+/// huge page (3272 of 3276 640-byte leaves). Each chunk is its own mapping ([`Zeroed`]):
+/// with chunks of 256 leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the
+/// random 500k 60 m merge from 133-195 to 111-118 ms (1 and 2 threads, interleaved runs).
+const POOL_CHUNK: usize =
+    HUGE_PAGE / std::mem::size_of::<Leaf<i8>>() / SPANS_PER_CHUNK * SPANS_PER_CHUNK;
+/// Update spans per pool chunk: spans of 512 leaves left 204 of 3276 leaves of each chunk
+/// unused (6%) once leaves grew to 640 bytes.
+const SPANS_PER_CHUNK: usize = 8;
 /// Leaves per parallel task of [`LeafPool::par_update`].
-const UPDATE_SPAN: usize = 512;
-const _: () = assert!(POOL_CHUNK >= UPDATE_SPAN);
+const UPDATE_SPAN: usize = POOL_CHUNK / SPANS_PER_CHUNK;
+const _: () = assert!(UPDATE_SPAN >= 256);
 
 /// In-leaf offset of a voxel.
 #[inline]
@@ -135,15 +139,19 @@ pub struct Leaf<V> {
 
 impl<V: GridValue> Leaf<V> {
     /// Ask the CPU to start loading the leaf's two masks into cache, for a loop that reads
-    /// them a few iterations later: leaves visited in an order other than the pool's miss
-    /// cache one after another, and these loads overlap. Only speed changes.
+    /// them a few iterations later, so that the leaves' cache misses overlap rather than
+    /// come one after another (see the snapshot writer's `PREFETCH_AHEAD`). Only speed
+    /// changes.
     #[inline]
     pub fn prefetch_masks(&self) {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let base = std::ptr::from_ref(self).cast::<i8>();
-            for at in (0..2 * std::mem::size_of::<Mask512>()).step_by(64) {
+            // The last byte too: a leaf from the allocator (a small map's first chunk) may
+            // start inside a cache line, and its masks then span three.
+            const MASKS: usize = 2 * std::mem::size_of::<Mask512>();
+            for at in (0..MASKS).step_by(64).chain([MASKS - 1]) {
                 // SAFETY: `_mm_prefetch` needs SSE, which every x86_64 CPU has; a prefetch
                 // reads nothing into the program and cannot fault, and `at` is inside the
                 // leaf (the masks come first, `repr(C)`).
@@ -183,7 +191,8 @@ impl<V: GridValue> LeafPool<V> {
             self.chunks.push(if self.chunks.is_empty() {
                 // A small map's leaves: its first chunk comes from the allocator, and pays
                 // for the pages it touches, not a zeroed 2 MiB page (0.3 ms of a 50k-point
-                // 6 m frame).
+                // 6 m frame). Where the allocator keeps freed memory (the service), it may
+                // be memory freed before, which the allocator clears: once per map.
                 Zeroed::from_allocator(POOL_CHUNK)
             } else {
                 Zeroed::new(POOL_CHUNK)
@@ -325,12 +334,14 @@ impl<V: GridValue> Grid<V> {
         self.leaves.get(li).get(leaf_offset(v))
     }
 
-    /// Set `v` active with `value`, creating its leaf if needed.
-    pub fn set(&mut self, v: VoxelCoord, value: V) {
+    /// Set `v` active with `value`, creating its leaf if needed; returns the leaf (for its
+    /// owner's marks).
+    pub fn set(&mut self, v: VoxelCoord, value: V) -> &mut Leaf<V> {
         let li = self.leaf_index_or_insert(leaf_origin(v), None);
         let leaf = self.leaves.get_mut(li);
         leaf.active.set(leaf_offset(v));
         leaf.values[leaf_offset(v)] = value;
+        leaf
     }
 
     /// Index of the leaf at `origin`, created (all inactive) if absent. `hint` is a cached

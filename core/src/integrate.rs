@@ -1586,12 +1586,12 @@ mod tests {
                 let any = free | hit;
                 let old: [i8; 64] = std::array::from_fn(|_| rng.i(-128, 127) as i8);
                 let (mut a, mut b) = (old, old);
-                observe::<false>(&mut a, any, hit, &q);
-                observe_scalar::<false>(&mut b, any, hit, &q);
+                let marks = observe::<false>(&mut a, any, hit, &q);
+                assert_eq!(marks, observe_scalar::<false>(&mut b, any, hit, &q));
                 assert_eq!(a, b);
                 let (mut a, mut b) = ([0i8; 64], [0i8; 64]);
-                observe::<true>(&mut a, any, hit, &q);
-                observe_scalar::<true>(&mut b, any, hit, &q);
+                let marks = observe::<true>(&mut a, any, hit, &q);
+                assert_eq!(marks, observe_scalar::<true>(&mut b, any, hit, &q));
                 assert_eq!(a, b);
             }
         }

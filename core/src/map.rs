@@ -1,7 +1,7 @@
 //! [`OccupancyMap`]: a grid of fixed-point log-odds with its resolution and sensor model.
 
 use crate::coord::{ConfigError, GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{leaf_offset, leaf_origin, Grid, Leaf};
+use crate::grid::{leaf_offset, Grid, Leaf};
 use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel, VoxelState};
 
@@ -43,7 +43,7 @@ pub(crate) fn occupied_mask(leaf: &Leaf<i8>, threshold: i8) -> Mask512 {
 
 /// Bit `i` set where `values[i] >= threshold`.
 #[inline]
-pub(crate) fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
+fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
     #[cfg(all(target_arch = "x86_64", target_feature = "avx512bw"))]
     {
         use std::arch::x86_64::{_mm512_cmpge_epi8_mask, _mm512_loadu_si512, _mm512_set1_epi8};
@@ -126,12 +126,7 @@ impl OccupancyMap {
     /// Set a voxel's stored value directly (clamped to the model's range).
     pub fn set_value(&mut self, v: VoxelCoord, value: i8) {
         let value = value.clamp(self.q.min, self.q.max);
-        self.grid.set(v, value);
-        let li = self
-            .grid
-            .leaf_index(leaf_origin(v))
-            .expect("set made the leaf");
-        let leaf = self.grid.leaf_mut(li);
+        let leaf = self.grid.set(v, value);
         if value >= self.q.threshold {
             leaf.marked.set(leaf_offset(v));
         } else {
@@ -189,7 +184,13 @@ impl OccupancyMap {
     #[cfg(test)]
     pub(crate) fn assert_marks_in_step(&self) {
         for (origin, leaf) in self.grid.leaves() {
-            let want = occupied_mask(leaf, self.q.threshold);
+            // Voxel by voxel, not through `occupied_mask`'s vector compare.
+            let mut want = Mask512::EMPTY;
+            for i in leaf.active.iter_ones() {
+                if leaf.values[i] >= self.q.threshold {
+                    want.set(i);
+                }
+            }
             assert_eq!(leaf.marked, want, "leaf at {origin:?} marks other voxels");
         }
     }

@@ -38,7 +38,8 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
 
     /// `len` zeroed elements from the global allocator: for an array that may stay mostly
     /// unused, where a huge page would fault in (and zero) 2 MiB on its first write, and
-    /// where memory a freed array held may be handed back at once.
+    /// where memory a freed array held may be handed back at once (unless the process's
+    /// allocator keeps freed memory, as the service's does).
     pub(crate) fn from_allocator(len: usize) -> Self {
         Self::alloc(len, false)
     }

@@ -406,9 +406,10 @@ fn snapshot_bench(
     use voxmap_core::{VoxelCoord, WorldPoint};
     let meta = Meta::default();
     let mut buf = vec![0u8; Plan::new(map, Scope::Whole, meta).encoded_len()];
-    buf.iter_mut().step_by(4096).for_each(|b| *b = 1); // touch pages outside the timing
-                                                       // Five, as the service encodes every frame: the first pays for memory the later ones
-                                                       // reuse, and the median is what a frame pays.
+    // Touch the pages outside the timing.
+    buf.iter_mut().step_by(4096).for_each(|b| *b = 1);
+    // Five encodes, as the service encodes every frame: the first pays for memory the
+    // later ones reuse, and the median is what a frame pays.
     let mut enc = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();

@@ -57,9 +57,9 @@ const WHOLE: u32 = u32::MAX;
 /// Leaves ahead of the one being encoded whose loads are started. Block order mostly
 /// follows the leaf pool (87% of the random 500k 60 m map's leaves come right after their
 /// predecessor in the pool), yet the CPU's own prefetching left each leaf read to miss
-/// cache on its own. Whole-map
-/// encode, random 500k 60 m, minimum of 12 in alternated probe runs: 262-288 ms without,
-/// 199-225 with 4 ahead, 179-256 with 8.
+/// cache on its own. Measured when the pass read whole leaves (values too; now it reads
+/// the two masks): whole-map encode, random 500k 60 m, minimum of 12 in alternated probe
+/// runs, 262-288 ms without, 199-225 with 4 ahead, 179-256 with 8.
 const PREFETCH_AHEAD: usize = 8;
 /// [`PlannedLeaf::kinds`] of a leaf with nothing known, dropped from the plan.
 const EMPTY: u8 = u8::MAX;
