@@ -1,7 +1,7 @@
 //! [`OccupancyMap`]: a grid of fixed-point log-odds with its resolution and sensor model.
 
 use crate::coord::{ConfigError, GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{leaf_offset, Grid, Leaf};
+use crate::grid::{leaf_offset, Grid};
 use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel, VoxelState};
 
@@ -21,47 +21,6 @@ pub struct LeafOccupancy {
     pub known: Mask512,
     /// A subset of `known`.
     pub occupied: Mask512,
-}
-
-/// The known voxels of `leaf` whose value is at or above `threshold`: its occupied ones,
-/// from its values (what [`Leaf::marked`] holds in a map, for anything that fills leaves).
-pub(crate) fn occupied_mask(leaf: &Leaf<i8>, threshold: i8) -> Mask512 {
-    let mut occ = Mask512::EMPTY;
-    for (w, (out, values)) in occ
-        .words
-        .iter_mut()
-        .zip(leaf.values.chunks_exact(64))
-        .enumerate()
-    {
-        let known = leaf.active.words[w];
-        if known != 0 {
-            *out = at_least(values.try_into().expect("64 values"), threshold) & known;
-        }
-    }
-    occ
-}
-
-/// Bit `i` set where `values[i] >= threshold`.
-#[inline]
-fn at_least(values: &[i8; 64], threshold: i8) -> u64 {
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx512bw"))]
-    {
-        use std::arch::x86_64::{_mm512_cmpge_epi8_mask, _mm512_loadu_si512, _mm512_set1_epi8};
-        // SAFETY: compiled only where the build enables AVX-512BW (and so AVX-512F) for
-        // the whole crate; the load reads the 64 bytes of `values`. One compare instead of
-        // 64 (the loop below took a tenth of a whole-map snapshot encode).
-        unsafe {
-            _mm512_cmpge_epi8_mask(
-                _mm512_loadu_si512(values.as_ptr().cast()),
-                _mm512_set1_epi8(threshold),
-            )
-        }
-    }
-    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx512bw")))]
-    values
-        .iter()
-        .enumerate()
-        .fold(0, |bits, (b, &v)| bits | u64::from(v >= threshold) << b)
 }
 
 /// A 3D log-odds occupancy map. Voxels never observed are inactive (unknown); observed
@@ -184,7 +143,6 @@ impl OccupancyMap {
     #[cfg(test)]
     pub(crate) fn assert_marks_in_step(&self) {
         for (origin, leaf) in self.grid.leaves() {
-            // Voxel by voxel, not through `occupied_mask`'s vector compare.
             let mut want = Mask512::EMPTY;
             for i in leaf.active.iter_ones() {
                 if leaf.values[i] >= self.q.threshold {

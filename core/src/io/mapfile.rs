@@ -10,7 +10,7 @@
 
 use crate::coord::VoxelCoord;
 use crate::grid::LEAF_VOXELS;
-use crate::map::{occupied_mask, OccupancyMap};
+use crate::map::OccupancyMap;
 use crate::model::SensorModel;
 use crate::snapshot::{SnapshotError, SnapshotView};
 use serde::{Deserialize, Serialize};
@@ -330,6 +330,8 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
             let word = u64::from_le_bytes(rec[MASK_AT + 8 * w..][..8].try_into().expect("8 bytes"));
             leaf.active.words[w] = word;
             let vals = &rec[VALUES_AT + 64 * w..][..64];
+            // The leaf's occupied marks (`Leaf::marked`), in the same pass.
+            let mut occupied = 0u64;
             for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
                 .iter_mut()
                 .zip(vals)
@@ -338,10 +340,11 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
                 let known = word >> b & 1 != 0;
                 let v = v as i8;
                 bad |= known & !(q.min..=q.max).contains(&v);
+                occupied |= u64::from(known & (v >= q.threshold)) << b;
                 *out = if known { v } else { 0 };
             }
+            leaf.marked.words[w] = occupied;
         }
-        leaf.marked = occupied_mask(leaf, q.threshold);
         u64::from(bad)
     });
     if out_of_range > 0 {
