@@ -363,9 +363,7 @@ struct SnapshotBench {
 fn dependent_read_ns(bytes: usize, rng: &mut crate::rng::XorShift) -> f64 {
     let lines = (bytes / 64).max(2);
     let mut order: Vec<usize> = (0..lines).collect();
-    for i in (1..lines).rev() {
-        order.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
-    }
+    rng.shuffle(&mut order);
     // Word 0 of each line holds the next line of the cycle.
     let mut next = vec![0usize; lines * 8];
     for (i, &line) in order.iter().enumerate() {
@@ -446,9 +444,7 @@ fn snapshot_bench(
         .map(|(v, _)| v)
         .collect();
     let mut rng = crate::rng::XorShift::new(0x2545F4914F6CDD1D);
-    for i in (1..pts.len()).rev() {
-        pts.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
-    }
+    rng.shuffle(&mut pts);
     // A query takes about as long as reading the clock, so queries are timed in batches:
     // the median over batches of the mean per query. `occupied` answers a batch.
     let per_query_ns = |occupied: &mut dyn FnMut(&[VoxelCoord]) -> usize| {

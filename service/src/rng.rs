@@ -19,6 +19,13 @@ impl XorShift {
         (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
 
+    /// Put `items` in a uniformly random order (Fisher-Yates).
+    pub fn shuffle<T>(&mut self, items: &mut [T]) {
+        for i in (1..items.len()).rev() {
+            items.swap(i, (self.next_u64() % (i as u64 + 1)) as usize);
+        }
+    }
+
     /// Standard normal (Box-Muller).
     pub fn gaussian(&mut self) -> f64 {
         let u = self.uniform().max(1e-300);
