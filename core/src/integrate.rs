@@ -90,6 +90,11 @@ pub struct IntegratorConfig {
     /// Rays longer than this (metres) are cut here and mark free space only.
     pub max_range: f64,
     pub mode: RayMode,
+    /// Pin worker i to the i-th CPU the process may run on (Linux), so that workers never
+    /// share a CPU while another idles (see `cpus`). Off where another pinned workload
+    /// owns some of those CPUs, or several integrators share a machine's few CPUs; a
+    /// process's CPU set (`taskset`, cgroup cpusets) limits where workers go either way.
+    pub pin_threads: bool,
 }
 
 impl Default for IntegratorConfig {
@@ -98,6 +103,7 @@ impl Default for IntegratorConfig {
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             max_range: 30.0,
             mode: RayMode::Exact,
+            pin_threads: true,
         }
     }
 }
@@ -256,9 +262,15 @@ impl Integrator {
             }
             _ => {}
         }
+        let pin = cfg.pin_threads;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cfg.threads)
             .thread_name(|i| format!("voxmap-int-{i}"))
+            .start_handler(move |i| {
+                if pin {
+                    crate::cpus::pin_to_nth(i);
+                }
+            })
             .build()
             .map_err(|_| ConfigError::Invalid {
                 name: "threads",
@@ -1594,6 +1606,7 @@ mod tests {
             threads,
             max_range,
             mode,
+            ..Default::default()
         })
         .unwrap()
     }
@@ -2245,7 +2258,7 @@ mod tests {
         let long = IntegratorConfig {
             max_range: 2000.0,
             threads: 1,
-            mode: RayMode::Exact,
+            ..Default::default()
         };
         assert_eq!(
             Integrator::new(long).unwrap().integrate(

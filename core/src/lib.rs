@@ -21,6 +21,7 @@
 //! ```
 
 pub mod coord;
+mod cpus;
 pub mod grid;
 pub mod integrate;
 pub mod io;

@@ -45,6 +45,10 @@ pub struct BenchArgs {
     /// Skip the snapshot measurements (run on the exact map at the last thread count).
     #[arg(long)]
     no_snapshot: bool,
+    /// Pin integration thread i to the i-th CPU, as the service does by default (for
+    /// `--e2e`, the service's).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pin_threads: bool,
     /// Instead: the end-to-end benchmark (service, sensor and planner processes) with
     /// phases of this many seconds.
     #[arg(long, value_name = "SECONDS")]
@@ -162,7 +166,7 @@ fn ms(d: std::time::Duration) -> f64 {
 
 pub fn run(a: BenchArgs) -> Result<()> {
     if let Some(secs) = a.e2e {
-        return crate::demo::e2e(secs);
+        return crate::demo::e2e(secs, a.pin_threads);
     }
     let dir = match &a.workloads {
         Some(d) => d.clone(),
@@ -208,6 +212,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     threads,
                     max_range,
                     mode,
+                    pin_threads: a.pin_threads,
                 };
                 let mut integ = Integrator::new(cfg)?;
                 let frame = Frame {

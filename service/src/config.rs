@@ -20,6 +20,8 @@ pub struct Config {
     pub max_range: f64,
     /// 0 = one per core.
     pub threads: usize,
+    /// Pin integration thread i to the i-th CPU the service may use.
+    pub pin_threads: bool,
     /// exact | subsample | bundle | unique_end
     pub mode: String,
     pub subsample_factor: u32,
@@ -51,6 +53,9 @@ pub struct MappingArgs {
     /// Integration threads (0 = one per core).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Pin integration thread i to the i-th CPU the service may use: true or false.
+    #[arg(long)]
+    pub pin_threads: Option<bool>,
     /// Ray selection: exact, subsample, bundle or unique_end.
     #[arg(long)]
     pub mode: Option<String>,
@@ -91,7 +96,7 @@ impl MappingArgs {
                 $(if let Some(v) = self.$flag.clone() { c.$($field).+ = v; })*
             };
         }
-        set!(resolution => resolution, max_range => max_range, threads => threads, mode => mode,
+        set!(resolution => resolution, max_range => max_range, threads => threads, pin_threads => pin_threads, mode => mode,
              subsample_factor => subsample_factor, bundle_threshold => bundle_threshold,
              p_hit => sensor_model.p_hit, p_miss => sensor_model.p_miss,
              clamp_min => sensor_model.clamp_min, clamp_max => sensor_model.clamp_max,
@@ -178,6 +183,7 @@ impl Config {
             threads: self.threads(),
             max_range: self.max_range,
             mode: self.ray_mode()?,
+            pin_threads: self.pin_threads,
         })?)
     }
 }

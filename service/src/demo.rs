@@ -330,15 +330,15 @@ pub fn planner(a: SimArgs) -> Result<()> {
 /// scans at 0.1 m and 30 m max range. For normal and for real-time (SCHED_FIFO 10)
 /// scheduling of the service's I/O thread and the planner: latency at 10 Hz; then, at
 /// normal priority, the sustained rate with the sensor flat out, and the idle CPU.
-pub fn e2e(seconds: f64) -> Result<()> {
-    println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads, sensor and planner as processes, {seconds} s per phase");
+pub fn e2e(seconds: f64, pin_threads: bool) -> Result<()> {
+    println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads (pinned: {pin_threads}), sensor and planner as processes, {seconds} s per phase");
     for rt in [0, 10] {
-        e2e_run(seconds, rt)?;
+        e2e_run(seconds, rt, pin_threads)?;
     }
     Ok(())
 }
 
-fn e2e_run(seconds: f64, rt: i32) -> Result<()> {
+fn e2e_run(seconds: f64, rt: i32, pin_threads: bool) -> Result<()> {
     let exe = std::env::current_exe()?;
     let prefix = format!("voxmap-e2e-{}-{rt}", std::process::id());
     let (secs, rts) = (seconds.to_string(), rt.to_string());
@@ -356,6 +356,7 @@ fn e2e_run(seconds: f64, rt: i32) -> Result<()> {
                 "30",
             ])
             .args(["--threads", "2", "--rt-priority", &rts])
+            .args(["--pin-threads", &pin_threads.to_string()])
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()?,

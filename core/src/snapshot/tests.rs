@@ -15,6 +15,7 @@ fn random_map(seed: u64, frames: usize) -> OccupancyMap {
         threads: 2,
         max_range: 4.0,
         mode: RayMode::Exact,
+        ..Default::default()
     })
     .unwrap();
     for _ in 0..frames {
