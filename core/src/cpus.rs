@@ -1,4 +1,5 @@
-//! Where the integrator's worker threads run: one per CPU of the process's set.
+//! Where the integrator's worker threads run: one per CPU of the set that the thread
+//! creating the integrator may run on (the process's, unless that thread was pinned).
 //!
 //! Left to the Linux scheduler, the two workers of a two-thread pool often shared one CPU
 //! for many frames in a row while the other idled (a waker's wakee is placed on the
@@ -21,8 +22,9 @@ pub(crate) fn allowed() -> Vec<usize> {
         if unsafe { libc::sched_getaffinity(0, size, &mut set) } != 0 {
             return Vec::new();
         }
-        (0..libc::CPU_SETSIZE as usize)
-            // SAFETY: `c` is below `CPU_SETSIZE`, inside the set's bits.
+        // Every bit of the set (some libcs' `CPU_SETSIZE` is smaller than the set).
+        (0..8 * size)
+            // SAFETY: `c` indexes a bit of `set`, which `CPU_ISSET` reads in bounds.
             .filter(|&c| unsafe { libc::CPU_ISSET(c, &set) })
             .collect()
     }
@@ -30,39 +32,34 @@ pub(crate) fn allowed() -> Vec<usize> {
     Vec::new()
 }
 
-/// Pin the calling thread to the `i`-th CPU (wrapping) of the set it may run on. Only
-/// speed depends on it, so a failure leaves the thread as it was.
-pub(crate) fn pin_to_nth(i: usize) {
+/// Pin the calling thread to `cpu`, one of [`allowed`]. Only speed depends on it, so a
+/// failure leaves the thread as it was.
+pub(crate) fn pin_to(cpu: usize) {
     #[cfg(target_os = "linux")]
     {
-        let allowed = allowed();
-        let Some(&cpu) = allowed.get(i % allowed.len().max(1)) else {
-            return;
-        };
         // SAFETY: as in `allowed`; all zeros is the empty set.
         let mut one: libc::cpu_set_t = unsafe { std::mem::zeroed() };
-        // SAFETY: `cpu` came from a set's own bits, so it is below `CPU_SETSIZE`.
+        // SAFETY: `cpu` came from `allowed`, so it indexes a bit of the set.
         unsafe { libc::CPU_SET(cpu, &mut one) };
         let size = std::mem::size_of::<libc::cpu_set_t>();
         // SAFETY: `one` is a valid `cpu_set_t` of `size` bytes; pid 0 is this thread.
         unsafe { libc::sched_setaffinity(0, size, &one) };
     }
     #[cfg(not(target_os = "linux"))]
-    let _ = i;
+    let _ = cpu;
 }
 
 #[cfg(all(test, target_os = "linux"))]
 mod tests {
     use crate::{Integrator, IntegratorConfig};
 
-    /// Pinned workers run on the first CPUs of the set, one each; unpinned ones keep the
-    /// whole set.
+    /// Pinned workers run on the CPUs of the set in turn, one each (wrapping when there
+    /// are more workers than CPUs); unpinned ones keep the whole set.
     #[test]
     fn integrator_workers_are_pinned_one_per_cpu() {
         let all = super::allowed();
         assert!(!all.is_empty());
-        let threads = all.len().min(4);
-        for pin in [true, false] {
+        for (threads, pin) in [(all.len().min(4), true), (all.len() + 1, true), (2, false)] {
             let integ = Integrator::new(IntegratorConfig {
                 threads,
                 pin_threads: pin,
@@ -72,7 +69,7 @@ mod tests {
             let sets = integ.install(|| rayon::broadcast(|_| super::allowed()));
             for (i, set) in sets.iter().enumerate() {
                 if pin {
-                    assert_eq!(set, &[all[i]], "worker {i}");
+                    assert_eq!(set, &[all[i % all.len()]], "worker {i}");
                 } else {
                     assert_eq!(set, &all, "worker {i}");
                 }

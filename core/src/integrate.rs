@@ -1,9 +1,10 @@
 //! Frame integration: the paper's two-step update, made merge-free.
 //!
-//! 1. **Prepare** (parallel): transform points into the map frame, drop non-finite ones,
-//!    cut rays at `max_range`, apply the optional trade-off mode; for the sparse walk, sort
-//!    the rays by direction (an octahedral Morton key) so that neighbouring rays walk
-//!    neighbouring memory.
+//! 1. **Prepare** (parallel): transform points into the map frame, skip non-finite ones,
+//!    cut rays at `max_range`, apply the optional trade-off mode; lay the rays out by the
+//!    side of the sensor they lie on (`Sides`), so that each thread of the dense walk
+//!    keeps mostly to its half of the box; for the sparse walk, sort the rays by direction
+//!    (an octahedral Morton key) so that neighbouring rays walk neighbouring memory.
 //! 2. **Raycast** (parallel over chunks of rays), one of two walks with the same result:
 //!    - *sparse*: each ray is walked with the exact DDA, eight at a time where the build
 //!      has AVX-512 (`avx512::cast_sparse`), one at a time otherwise; its marks are
@@ -85,16 +86,22 @@ impl RayMode {
 /// Integration parameters.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct IntegratorConfig {
-    /// Worker threads (>= 1). One thread runs the same code path.
+    /// Worker threads (>= 1). One thread runs the same walk, merge and update (its rays
+    /// are not laid out by sides, see `Sides`).
     pub threads: usize,
     /// Rays longer than this (metres) are cut here and mark free space only.
     pub max_range: f64,
     pub mode: RayMode,
-    /// Pin worker i to the i-th CPU the process may run on (Linux), so that workers never
-    /// share a CPU while another idles (see `cpus`). Off where another pinned workload
+    /// Pin worker i to the i-th CPU (wrapping) that the thread creating the integrator may
+    /// run on (Linux), so that workers never share a CPU while another idles (see `cpus`). Off where another pinned workload
     /// owns some of those CPUs, or several integrators share a machine's few CPUs; a
     /// process's CPU set (`taskset`, cgroup cpusets) limits where workers go either way.
+    #[serde(default = "pin_by_default")]
     pub pin_threads: bool,
+}
+
+fn pin_by_default() -> bool {
+    IntegratorConfig::default().pin_threads
 }
 
 impl Default for IntegratorConfig {
@@ -262,13 +269,17 @@ impl Integrator {
             }
             _ => {}
         }
-        let pin = cfg.pin_threads;
+        let cpus = if cfg.pin_threads {
+            crate::cpus::allowed()
+        } else {
+            Vec::new()
+        };
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cfg.threads)
             .thread_name(|i| format!("voxmap-int-{i}"))
             .start_handler(move |i| {
-                if pin {
-                    crate::cpus::pin_to_nth(i);
+                if let Some(&cpu) = cpus.get(i % cpus.len().max(1)) {
+                    crate::cpus::pin_to(cpu);
                 }
             })
             .build()
@@ -394,8 +405,9 @@ impl Integrator {
             report.dense = dense_box.is_some();
             // The dense walk needs no order but the sides: its grids stay in cache whatever
             // the rays' directions, and its lanes only need to be far apart in direction,
-            // which the eighths of a sensor's scan order are (sorting took half of its
-            // prepare time). The sparse walk needs them sorted by direction, without gaps.
+            // which chunks from the eight eighths of a sensor's scan are (sorting took half
+            // of its prepare time). The sparse walk needs them sorted by direction, without
+            // gaps.
             if !report.dense {
                 if report.rays < rays.len() as u64 {
                     rays.retain(|r| r.key != SKIPPED);
@@ -509,12 +521,21 @@ fn prepare_rays(
     rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
     sides.clear();
     sides.resize(n.div_ceil(RAY_CHUNK), [0; 2]);
+    // The trade-off modes keep the first ray of a kind in scan order, so they see the rays
+    // in scan order (one thread's layout) and lay them out after.
+    let made_by = match mode {
+        RayMode::Exact => halves,
+        _ => Sides {
+            axis: None,
+            ..halves
+        },
+    };
     let sums = rays
         .par_chunks_mut(RAY_CHUNK)
         .zip(frame.points.par_chunks(RAY_CHUNK))
         .zip(sides.par_iter_mut())
         .map_init(Vec::new, |made, ((out, pts), side)| {
-            let (counts, sum) = halves.make(&maker, pts, out, made);
+            let (counts, sum) = made_by.make(&maker, pts, out, made);
             *side = counts;
             sum
         })
@@ -652,9 +673,7 @@ impl Sides {
         if sum.skipped == 0 {
             return ([out.len() as u32, 0], sum);
         }
-        made.clear();
-        made.extend_from_slice(out);
-        (self.lay_out(made, out), sum)
+        (self.lay_out_in_place(out, made), sum)
     }
 
     /// Lay the rays `made` out into `out`, as long; returns how many lie in front and
@@ -682,10 +701,15 @@ impl Sides {
         rays.par_chunks_mut(RAY_CHUNK)
             .zip(sides.par_iter_mut())
             .for_each_init(Vec::new, |made, (chunk, side)| {
-                made.clear();
-                made.extend_from_slice(chunk);
-                *side = self.lay_out(made, chunk);
+                *side = self.lay_out_in_place(chunk, made);
             });
+    }
+
+    /// [`Sides::lay_out`] of `chunk` into itself, through `scratch`.
+    fn lay_out_in_place(&self, chunk: &mut [Ray], scratch: &mut Vec<Ray>) -> [u32; 2] {
+        scratch.clear();
+        scratch.extend_from_slice(chunk);
+        self.lay_out(scratch, chunk)
     }
 }
 
@@ -914,7 +938,7 @@ fn cast_dense(
         target_feature = "avx512dq"
     ))]
     let (refill_at, test_first) = (
-        avx512::refill_at(steps / rays.len().max(1) as f64),
+        avx512::refill_at(steps / sides.iter().map(|&[f, b]| f + b).sum::<u32>().max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
     (0..2 * per_lane)
@@ -1685,7 +1709,8 @@ mod tests {
     fn result_is_identical_for_any_thread_count() {
         let mut rng = Rng(11);
         // Non-finite points leave gaps among the rays, laid out by sides from 2 threads
-        // and in scan order on 1 (see `Sides`).
+        // and in scan order on 1 (see `Sides`); the trade-off modes keep the first ray of a
+        // kind, which must not depend on that layout.
         let frames: Vec<_> = (0..3)
             .map(|_| {
                 let (pose, mut pts) = random_frame(&mut rng, 20000, 12.0);
@@ -1693,9 +1718,9 @@ mod tests {
                 (pose, pts)
             })
             .collect();
-        let run = |threads| {
+        let run = |threads, mode| {
             let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-            let mut integ = integrator(threads, 10.0, RayMode::Exact);
+            let mut integ = integrator(threads, 10.0, mode);
             let mut steps = 0;
             for (pose, pts) in &frames {
                 steps += integ
@@ -1711,10 +1736,17 @@ mod tests {
             }
             (snapshot(&map), steps, map.grid().leaf_count())
         };
-        let one = run(1);
-        assert!(one.0.len() > 100_000);
-        for t in [2, 3, 4] {
-            assert!(run(t) == one, "{t} threads differ from 1");
+        for mode in [
+            RayMode::Exact,
+            RayMode::Subsample { factor: 2 },
+            RayMode::Bundle { threshold: 2 },
+            RayMode::UniqueEnd,
+        ] {
+            let one = run(1, mode);
+            assert!(one.0.len() > 100_000);
+            for t in [2, 3, 4] {
+                assert!(run(t, mode) == one, "{mode:?}: {t} threads differ from 1");
+            }
         }
     }
 
@@ -1895,8 +1927,8 @@ mod tests {
             .for_each(|p| *p = p.map(|c| c * 12.0));
         frames.push((pose, pts));
         // Non-finite points leave gaps in the rays' chunks (see `Sides`): scattered, and
-        // filling a whole chunk. Then scans with every ray in front of the sensor or behind
-        // it: one half of the walk's tasks has all the rays.
+        // filling a whole chunk. Then scans with every ray on one side of every sensor
+        // axis, so on one side of the plane: one half of the walk's tasks has all the rays.
         let (pose, mut pts) = random_frame(&mut rng, 6000, 3.0);
         pts.iter_mut().step_by(7).for_each(|p| p[1] = f32::NAN);
         pts[1500..2600]
@@ -1905,7 +1937,7 @@ mod tests {
         frames.push((pose, pts));
         for sign in [1.0f32, -1.0] {
             let (pose, mut pts) = random_frame(&mut rng, 5000, 3.0);
-            pts.iter_mut().for_each(|p| p[0] = sign * p[0].abs());
+            pts.iter_mut().for_each(|p| *p = p.map(|c| sign * c.abs()));
             frames.push((pose, pts));
         }
         // Exact diagonals in 2 and 3 axes from a voxel centre, on a grid whose
