@@ -697,6 +697,11 @@ impl Sides {
     /// Lay out rays without gaps in place.
     fn lay_out_all(&self, rays: &mut [Ray], sides: &mut Vec<[u32; 2]>) {
         sides.clear();
+        if self.axis.is_none() {
+            // All in front, in place.
+            sides.extend(rays.chunks(RAY_CHUNK).map(|c| [c.len() as u32, 0]));
+            return;
+        }
         sides.resize(rays.len().div_ceil(RAY_CHUNK), [0; 2]);
         rays.par_chunks_mut(RAY_CHUNK)
             .zip(sides.par_iter_mut())
