@@ -93,9 +93,10 @@ pub struct IntegratorConfig {
     pub max_range: f64,
     pub mode: RayMode,
     /// Pin worker i to the i-th CPU (wrapping) that the thread creating the integrator may
-    /// run on (Linux), so that workers never share a CPU while another idles (see `cpus`). Off where another pinned workload
-    /// owns some of those CPUs, or several integrators share a machine's few CPUs; a
-    /// process's CPU set (`taskset`, cgroup cpusets) limits where workers go either way.
+    /// run on (Linux), so that workers never share a CPU while another idles (see `cpus`).
+    /// Off where CPU-heavy processes share those CPUs, or several integrators share a
+    /// machine's few CPUs (each pins to the same first ones); a process's CPU set
+    /// (`taskset`, cgroup cpusets) limits where workers go either way.
     #[serde(default = "pin_by_default")]
     pub pin_threads: bool,
 }
@@ -627,8 +628,8 @@ impl Sides {
     const SAMPLES: usize = 1024;
 
     /// The sides for `frame` on a pool of `threads`: across the sensor axis whose plane
-    /// halves the rays' lengths best, in a sample of the points (sensors have a field of
-    /// view along one axis, often x for a lidar and z for a camera, with no ray behind it).
+    /// halves the rays' lengths best, in a sample of the points (a sensor looking along one
+    /// of its axes, as a camera along z or a forward lidar along x, has no ray behind it).
     fn new(frame: &Frame<'_>, origin: [f64; 3], threads: usize) -> Self {
         if threads < 2 {
             return Sides { origin, axis: None };
@@ -694,7 +695,7 @@ impl Sides {
         [front as u32, (out.len() - back) as u32]
     }
 
-    /// Lay out rays without gaps in place.
+    /// Lay out rays without gaps in place; `sides` gets each chunk's counts.
     fn lay_out_all(&self, rays: &mut [Ray], sides: &mut Vec<[u32; 2]>) {
         sides.clear();
         if self.axis.is_none() {
