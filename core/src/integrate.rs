@@ -381,7 +381,7 @@ impl Integrator {
                 prepare_rays(rays, sides, halves, frame, &tf, origin, range_units, mode);
             report.skipped_nonfinite = skipped;
             // Not `rays.len()`: skipped points leave gaps (see `Sides`).
-            report.rays = sides.iter().map(|&[f, b]| u64::from(f + b)).sum();
+            report.rays = ray_count(sides);
             let Extent {
                 lo,
                 hi,
@@ -719,6 +719,11 @@ impl Sides {
     }
 }
 
+/// Rays in chunks laid out with counts `sides` (not their length: gaps are not rays).
+fn ray_count(sides: &[[u32; 2]]) -> u64 {
+    sides.iter().map(|&[f, b]| u64::from(f + b)).sum()
+}
+
 /// Makes a frame's rays from its points: sensor frame to world by the pose, to voxel units
 /// (snapped onto faces, see `GridTransform::to_units`), cut at max range.
 #[derive(Clone, Copy, Debug)]
@@ -944,7 +949,7 @@ fn cast_dense(
         target_feature = "avx512dq"
     ))]
     let (refill_at, test_first) = (
-        avx512::refill_at(steps / sides.iter().map(|&[f, b]| f + b).sum::<u32>().max(1) as f64),
+        avx512::refill_at(steps / ray_count(sides).max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
     (0..2 * per_lane)
