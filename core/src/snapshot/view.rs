@@ -703,7 +703,7 @@ impl<'a> SnapshotView<'a> {
             // Cheaper to scan the stored leaves than the box.
             return self.leaf_occupancy().all(|l| {
                 let inside = leaf_box_mask(l.origin, lo, hi);
-                (0..8).all(|w| l.occupied.words[w] & inside.words[w] == 0)
+                l.occupied.and(&inside).is_empty()
             });
         }
         let mut z = llo.z;
