@@ -7,8 +7,9 @@
 //! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
 //! thread walked which ray.
 
-use super::{FrameMarks, Ray};
 use crate::coord::VoxelCoord;
+use crate::integrate::marks::FrameMarks;
+use crate::integrate::prepare::Ray;
 use crate::raycast::Dda;
 use rayon::prelude::*;
 use std::ops::Range;
@@ -24,15 +25,15 @@ pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 22;
 /// every edge a multiple of 8 from a brick-aligned corner, so a brick's row of 8 voxels is
 /// one byte of one word.
 #[derive(Clone, Copy, Debug)]
-pub(super) struct DenseBox {
-    lo: VoxelCoord,
+pub(in crate::integrate) struct DenseBox {
+    pub(in crate::integrate) lo: VoxelCoord,
     /// Voxels per axis: x a multiple of 64, y and z of 8.
-    n: [u64; 3],
+    pub(in crate::integrate) n: [u64; 3],
 }
 
 impl DenseBox {
     /// The box over voxels `lo..=hi`, if its grid fits the budget.
-    pub(super) fn new(lo: VoxelCoord, hi: VoxelCoord) -> Option<Self> {
+    pub(in crate::integrate) fn new(lo: VoxelCoord, hi: VoxelCoord) -> Option<Self> {
         let lo = lo.shr(3).shl(3);
         let len = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1) as u64;
         let n = [
@@ -44,7 +45,7 @@ impl DenseBox {
         (words <= DENSE_BUDGET_WORDS).then_some(Self { lo, n })
     }
 
-    pub(super) fn words(&self) -> usize {
+    pub(in crate::integrate) fn words(&self) -> usize {
         (self.n[0] / 64 * self.n[1] * self.n[2]) as usize
     }
 
@@ -58,48 +59,48 @@ impl DenseBox {
         )),
         allow(dead_code)
     )]
-    pub(super) fn sink(&self) -> u64 {
+    pub(in crate::integrate) fn sink(&self) -> u64 {
         self.words() as u64 * 64
     }
 
     /// Bit index of a voxel inside the box.
     #[inline]
-    pub(super) fn index(&self, v: VoxelCoord) -> u64 {
+    pub(in crate::integrate) fn index(&self, v: VoxelCoord) -> u64 {
         let d = v - self.lo;
         debug_assert!(d.x >= 0 && d.y >= 0 && d.z >= 0);
         d.x as u64 + self.n[0] * (d.y as u64 + self.n[1] * d.z as u64)
     }
 
     /// The voxel at a bit index inside the box.
-    pub(super) fn voxel(&self, index: u64) -> VoxelCoord {
+    pub(in crate::integrate) fn voxel(&self, index: u64) -> VoxelCoord {
         let (x, yz) = (index % self.n[0], index / self.n[0]);
         self.lo + VoxelCoord::new(x as i32, (yz % self.n[1]) as i32, (yz / self.n[1]) as i32)
     }
 
     /// Bit index change of one voxel step along x, y and z.
     #[inline]
-    pub(super) fn strides(&self) -> [i64; 3] {
+    pub(in crate::integrate) fn strides(&self) -> [i64; 3] {
         [1, self.n[0] as i64, (self.n[0] * self.n[1]) as i64]
     }
 
     /// Rows of bricks (one per brick y and z), the merge's unit of parallel work.
-    pub(super) fn brick_rows(&self) -> usize {
+    pub(in crate::integrate) fn brick_rows(&self) -> usize {
         (self.n[1] / 8 * self.n[2] / 8) as usize
     }
 }
 
 /// One thread's marks over a [`DenseBox`], for one frame.
 #[derive(Default)]
-pub(super) struct DenseBits {
-    free: Vec<u64>,
-    hit: Vec<u64>,
+pub(in crate::integrate) struct DenseBits {
+    pub(in crate::integrate) free: Vec<u64>,
+    pub(in crate::integrate) hit: Vec<u64>,
     /// The frame these marks belong to; marks of an older frame are stale.
-    frame: u64,
+    pub(in crate::integrate) frame: u64,
 }
 
 impl DenseBits {
     /// Start `frame`'s marks over `words` words, unless already started.
-    pub(super) fn begin(&mut self, frame: u64, words: usize) {
+    pub(in crate::integrate) fn begin(&mut self, frame: u64, words: usize) {
         if self.frame != frame {
             self.frame = frame;
             // One word more than the box: the sink.
@@ -110,12 +111,12 @@ impl DenseBits {
         }
     }
 
-    pub(super) fn frame(&self) -> u64 {
+    pub(in crate::integrate) fn frame(&self) -> u64 {
         self.frame
     }
 
     /// The free and the hit words, which the walks mark with [`set_bit`].
-    pub(super) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
+    pub(in crate::integrate) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
         (&mut self.free, &mut self.hit)
     }
 }
@@ -128,9 +129,9 @@ pub(super) fn set_bit(words: &mut [u64], index: u64) {
 
 /// Walk the rays `rays[ranges[l]]` from `origin` one at a time, setting their free and hit
 /// bits in `bits`; returns voxels visited. The dense walk where the build has no AVX-512:
-/// the same voxels as `avx512::cast_chunk`. As in the sparse walk, all steps but the last
+/// the same voxels as `avx512::walk_dense`. As in the sparse walk, all steps but the last
 /// two skip the check for an axis past its last crossing (`Dda::step_far_crossing`).
-pub(super) fn cast_chunk(
+pub(super) fn walk_rays(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
@@ -179,7 +180,7 @@ pub(super) fn cast_chunk(
 /// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
 /// mark get a slot. `marks` must be reset for the frame's box with room for one batch of
 /// spare slots per brick row.
-pub(super) fn merge(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
+pub(in crate::integrate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let row_words = (dbox.n[0] / 64) as usize;
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
     (0..dbox.brick_rows()).into_par_iter().for_each(|r| {

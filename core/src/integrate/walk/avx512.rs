@@ -9,18 +9,19 @@
 //! same end voxel).
 //!
 //! One walk ([`walk`]), two ways to keep marks ([`Lanes`]):
-//! - dense ([`cast_chunk`]): a voxel is its bit index in the thread's [`DenseBits`], so a
+//! - dense ([`walk_dense`]): a voxel is its bit index in the thread's [`DenseBits`], so a
 //!   step is one add and a mark one OR into memory that stays in cache;
-//! - sparse ([`cast_sparse`]): a voxel is [`Packed`]; each lane keeps the marks of its
+//! - sparse ([`walk_sparse`]): a voxel is [`Packed`]; each lane keeps the marks of its
 //!   current z plane in a vector lane and of its brick in its own words, and ORs the
 //!   brick's into the frame's tables when it leaves the brick, as the one-ray sparse walk
 //!   does.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
-use super::{BrickCache, Packed, Ray, RayMaker, SKIPPED};
+use super::Packed;
 use crate::coord::VoxelCoord;
+use crate::integrate::marks::BrickCache;
+use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
-use crate::model::QuantizedModel;
 #[cfg(doc)]
 use crate::raycast::Dda;
 use crate::raycast::T_ONE;
@@ -62,14 +63,14 @@ pub(super) fn test_first(steps_per_voxel: f64) -> bool {
 
 /// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
 /// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
-/// count as `super::cast_chunk`. `refill_at` and `test_first` are [`refill_at`] and
+/// count as `super::sparse::walk_rays`. `refill_at` and `test_first` are [`refill_at`] and
 /// [`test_first`] for the frame (tests force the latter).
 ///
 /// Feed the lanes from far apart in direction. Lanes on neighbouring rays OR into the same
 /// word one after another near the sensor, and each OR then waits for the last: fed
 /// neighbouring rays, the walk ran 2.3x slower (random 500k 6 m, one thread).
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn cast_chunk(
+pub(super) fn walk_dense(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
@@ -104,12 +105,12 @@ pub(super) fn cast_chunk(
 
 /// Walk `rays` from `origin` eight at a time, OR-ing their marks into the frame's tables
 /// through `cache`; returns voxels visited. The same marks and count as
-/// `super::cast_chunk`, the one-ray sparse walk. The rays are sorted by direction and each
+/// `super::sparse::walk_rays`, the one-ray sparse walk. The rays are sorted by direction and each
 /// lane takes the next: the lanes walk side by side, so they find the bricks they flush in
 /// `cache` and in the CPU's caches. Each lane gathers its current brick's marks in its own
 /// words, so lanes never write the same word.
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn cast_sparse(
+pub(super) fn walk_sparse(
     cache: &mut BrickCache<'_>,
     origin: [f64; 3],
     rays: &[Ray],
@@ -613,82 +614,6 @@ fn walk<const WAIT: bool, L: Lanes>(
     to_array(steps).iter().sum()
 }
 
-/// `out[i] = m.make(&pts[i])` for eight points at a time, with `make`'s f64 operations in
-/// its order (so bit for bit the same rays); returns how many it made, a multiple of eight.
-/// The rest is left to the caller. Making a ray is about 50 cycles of scalar code, three
-/// divisions among them, and was most of the prepare phase.
-#[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
-    let n = out.len().min(pts.len()) / 8 * 8;
-    let zero = _mm512_setzero_pd();
-    let res = _mm512_set1_pd(m.tf.resolution());
-    let snap = _mm512_set1_pd(crate::coord::FACE_SNAP);
-    let range = _mm512_set1_pd(m.range_units);
-    let surely_in = _mm512_set1_pd(m.surely_in);
-    let origin = m.origin.map(|c| _mm512_set1_pd(c));
-    let rot = m.rot.map(|r| r.map(|c| _mm512_set1_pd(c)));
-    let t = m.t.map(|c| _mm512_set1_pd(c));
-    // Coordinate `a` of point `j` of eight is f32 number `3 j + a`.
-    let idx = _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21);
-    for (o8, p8) in out[..n].chunks_exact_mut(8).zip(pts[..n].chunks_exact(8)) {
-        let [x, y, z] = [0, 1, 2].map(|a| {
-            // SAFETY: `p8` is eight points, 24 f32s; the indices are 3 j + a < 24.
-            let f = unsafe { _mm256_i32gather_ps::<4>(p8.as_ptr().cast::<f32>().add(a), idx) };
-            _mm512_cvtps_pd(f)
-        });
-        // Finite iff c - c is 0 (NaN otherwise).
-        let finite = [x, y, z]
-            .map(|c| _mm512_cmp_pd_mask::<_CMP_EQ_OQ>(_mm512_sub_pd(c, c), zero))
-            .into_iter()
-            .fold(0xff, |a, b| a & b);
-        let mut e = [0, 1, 2].map(|i| {
-            let r = rot[i];
-            let w = _mm512_add_pd(
-                _mm512_add_pd(
-                    _mm512_add_pd(_mm512_mul_pd(r[0], x), _mm512_mul_pd(r[1], y)),
-                    _mm512_mul_pd(r[2], z),
-                ),
-                t[i],
-            );
-            // `GridTransform::to_units`.
-            let k = _mm512_div_pd(w, res);
-            let near = _mm512_roundscale_pd::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(k);
-            let off = _mm512_abs_pd(_mm512_sub_pd(k, near));
-            _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_LE_OQ>(off, snap), k, near)
-        });
-        let d = [0, 1, 2].map(|a| _mm512_sub_pd(e[a], origin[a]));
-        let len2 = _mm512_add_pd(
-            _mm512_add_pd(_mm512_mul_pd(d[0], d[0]), _mm512_mul_pd(d[1], d[1])),
-            _mm512_mul_pd(d[2], d[2]),
-        );
-        let len = _mm512_sqrt_pd(len2);
-        let hit = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(len2, surely_in)
-            | _mm512_cmp_pd_mask::<_CMP_LE_OQ>(len, range);
-        let cut = finite & !hit;
-        if cut != 0 {
-            let s = _mm512_div_pd(range, len);
-            for a in 0..3 {
-                let c = _mm512_add_pd(origin[a], _mm512_mul_pd(d[a], s));
-                e[a] = _mm512_mask_blend_pd(cut, e[a], c);
-            }
-        }
-        let e = e.map(|v| {
-            let mut a = [0.0f64; 8];
-            // SAFETY: `a` is 64 writable bytes; the store has no alignment requirement.
-            unsafe { _mm512_storeu_pd(a.as_mut_ptr(), v) };
-            a
-        });
-        for (j, r) in o8.iter_mut().enumerate() {
-            *r = if finite >> j & 1 == 0 {
-                Ray::new([0.0; 3], SKIPPED, false)
-            } else {
-                Ray::new([e[0][j], e[1][j], e[2][j]], 0, hit >> j & 1 != 0)
-            };
-        }
-    }
-    n
-}
-
 /// A walk stepped outside its box: a bug, stopped before any read outside the marks.
 #[cold]
 #[inline(never)]
@@ -744,7 +669,7 @@ impl Axis {
     /// results are bit for bit those of `Dda::new`.
     #[inline(always)]
     fn setup(&self, e: __m512d) -> AxisSetup {
-        // SAFETY: only called from `cast_chunk`, which requires AVX-512F and DQ.
+        // SAFETY: only called from `walk_dense`, which requires AVX-512F and DQ.
         unsafe { self.setup_impl(e) }
     }
 
@@ -801,46 +726,4 @@ fn from_array(a: [u64; 8]) -> __m512i {
 fn to_array(v: __m512i) -> [u64; 8] {
     // SAFETY: __m512i and [u64; 8] are both 64 plain bytes; every bit pattern is valid.
     unsafe { std::mem::transmute(v) }
-}
-
-/// `super::observe` in one masked saturating add, clamp, store and compare: the 64 values
-/// of a leaf word take their observation at once instead of one set bit at a time. The
-/// same values and marks:
-/// an i8 add saturates only beyond the clamps, which are within i8. Random 500k 60 m, 2
-/// threads, update phase: see the README.
-#[cfg(target_feature = "avx512bw")]
-#[inline]
-pub(super) fn observe<const FRESH: bool>(
-    values: &mut [i8; 64],
-    any: u64,
-    hit: u64,
-    q: &QuantizedModel,
-) -> u64 {
-    // SAFETY: this module is only compiled where the build enables AVX-512F (and DQ) for
-    // the whole crate, and this function where it enables BW too.
-    unsafe { observe_impl::<FRESH>(values, any, hit, q) }
-}
-
-#[cfg(target_feature = "avx512bw")]
-#[target_feature(enable = "avx512f,avx512bw")]
-fn observe_impl<const FRESH: bool>(
-    values: &mut [i8; 64],
-    any: u64,
-    hit: u64,
-    q: &QuantizedModel,
-) -> u64 {
-    let delta = _mm512_mask_blend_epi8(hit, _mm512_set1_epi8(q.miss), _mm512_set1_epi8(q.hit));
-    let old = if FRESH {
-        _mm512_setzero_si512()
-    } else {
-        // SAFETY: reads the 64 bytes of `values`.
-        unsafe { _mm512_loadu_si512(values.as_ptr().cast()) }
-    };
-    let new = _mm512_max_epi8(
-        _mm512_min_epi8(_mm512_adds_epi8(old, delta), _mm512_set1_epi8(q.max)),
-        _mm512_set1_epi8(q.min),
-    );
-    // SAFETY: writes bytes of `values` only, those whose bit is set in `any`.
-    unsafe { _mm512_mask_storeu_epi8(values.as_mut_ptr(), any, new) };
-    _mm512_mask_cmpge_epi8_mask(any, new, _mm512_set1_epi8(q.threshold))
 }

@@ -1,0 +1,764 @@
+//! The integrator's tests: against a reference update written the slow way, across walks,
+//! kernels, thread counts and trade-off modes.
+
+use super::marks::FrameMarks;
+use super::prepare::{RayMaker, Sides, SKIPPED};
+use super::update::{observe, observe_scalar};
+use super::*;
+use crate::coord::VoxelCoord;
+use crate::model::QuantizedModel;
+use crate::model::{SensorModel, VoxelState};
+use crate::raycast::for_each_voxel;
+use crate::test_rng::Rng;
+use hashbrown::HashMap;
+use nalgebra::{Translation3, UnitQuaternion};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+
+/// Integrate `pts` seen from the origin, exact mode, 2 threads.
+fn at_origin(map: &mut OccupancyMap, max_range: f64, pts: &[[f32; 3]]) -> IntegrateReport {
+    let frame = Frame {
+        pose: Isometry3::identity(),
+        points: pts,
+    };
+    integrator(2, max_range, RayMode::Exact)
+        .integrate(map, &frame)
+        .unwrap()
+}
+
+fn integrator(threads: usize, max_range: f64, mode: RayMode) -> Integrator {
+    Integrator::new(IntegratorConfig {
+        threads,
+        max_range,
+        mode,
+        ..Default::default()
+    })
+    .unwrap()
+}
+
+fn snapshot(map: &OccupancyMap) -> Vec<(VoxelCoord, i8)> {
+    map.assert_marks_in_step();
+    let mut v: Vec<_> = map.grid().active_voxels().collect();
+    v.sort();
+    v
+}
+
+/// The update rule written the slow, obvious way: per ray a list of voxels, hit beats
+/// free within a frame, then one update per voxel.
+fn reference_integrate(map: &mut OccupancyMap, frame: &Frame<'_>, max_range: f64) {
+    let tf = *map.transform();
+    let o = tf.point_to_units(&Point3::from(frame.pose.translation.vector));
+    let range = max_range / tf.resolution();
+    let mut marks: HashMap<VoxelCoord, bool> = HashMap::new();
+    for p in frame.points {
+        if !p.iter().all(|c| c.is_finite()) {
+            continue;
+        }
+        let w = frame.pose * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        let mut e = tf.point_to_units(&w);
+        let d: Vec<f64> = (0..3).map(|a| e[a] - o[a]).collect();
+        let len = d.iter().map(|c| c * c).sum::<f64>().sqrt();
+        let hit = len <= range;
+        if !hit {
+            e = [0, 1, 2].map(|a| o[a] + d[a] * range / len);
+        }
+        let mut path = Vec::new();
+        for_each_voxel(o, e, |v| path.push(v));
+        let end = path.pop().unwrap();
+        for v in path {
+            marks.entry(v).or_insert(false);
+        }
+        if hit {
+            marks.insert(end, true);
+        }
+    }
+    let q = *map.quantized();
+    for (v, hit) in marks {
+        let old = map.value(v).unwrap_or(0);
+        map.set_value(v, q.update(old, hit));
+    }
+}
+
+fn random_frame(rng: &mut Rng, n: usize, radius: f64) -> (Isometry3<f64>, Vec<[f32; 3]>) {
+    let pose = Isometry3::from_parts(
+        Translation3::new(rng.f() * 4.0 - 2.0, rng.f() * 4.0 - 2.0, rng.f() - 0.5),
+        UnitQuaternion::from_euler_angles(rng.f() * 6.0, rng.f() - 0.5, rng.f() * 6.0),
+    );
+    (pose, (0..n).map(|_| rng.ball(radius)).collect())
+}
+
+#[test]
+fn matches_the_reference_update_over_several_frames() {
+    let mut rng = Rng(3);
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let mut want = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let mut integ = integrator(2, 3.0, RayMode::Exact);
+    for _ in 0..4 {
+        let (pose, pts) = random_frame(&mut rng, 3000, 4.0);
+        let frame = Frame { pose, points: &pts };
+        let r = integ.integrate(&mut map, &frame).unwrap();
+        assert!(
+            r.cut_rays > 0 && r.cut_rays < r.rays,
+            "both kinds of rays: {r:?}"
+        );
+        reference_integrate(&mut want, &frame, 3.0);
+    }
+    assert_eq!(snapshot(&map), snapshot(&want));
+}
+
+#[test]
+fn result_is_identical_for_any_thread_count() {
+    let mut rng = Rng(11);
+    // Non-finite points leave gaps among the rays, laid out by sides from 2 threads
+    // and in scan order on 1 (see `Sides`); the trade-off modes keep the first ray of a
+    // kind, which must not depend on that layout.
+    let frames: Vec<_> = (0..3)
+        .map(|_| {
+            let (pose, mut pts) = random_frame(&mut rng, 20000, 12.0);
+            pts.iter_mut().step_by(11).for_each(|p| p[0] = f32::NAN);
+            (pose, pts)
+        })
+        .collect();
+    let run = |threads, mode| {
+        let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+        let mut integ = integrator(threads, 10.0, mode);
+        let mut steps = 0;
+        for (pose, pts) in &frames {
+            steps += integ
+                .integrate(
+                    &mut map,
+                    &Frame {
+                        pose: *pose,
+                        points: pts,
+                    },
+                )
+                .unwrap()
+                .voxel_steps;
+        }
+        (snapshot(&map), steps, map.grid().leaf_count())
+    };
+    for mode in [
+        RayMode::Exact,
+        RayMode::Subsample { factor: 2 },
+        RayMode::Bundle { threshold: 2 },
+        RayMode::UniqueEnd,
+    ] {
+        let one = run(1, mode);
+        assert!(one.0.len() > 100_000);
+        for t in [2, 3, 4] {
+            assert!(run(t, mode) == one, "{mode:?}: {t} threads differ from 1");
+        }
+    }
+}
+
+/// The dense walk's halves cut across the sensor axis that halves a frame best, found
+/// from a sample of its points, and only on more than one thread.
+#[test]
+fn sides_cut_across_the_axis_that_halves_the_frame() {
+    let mut rng = Rng(5);
+    let (pose, pts) = random_frame(&mut rng, 30000, 6.0);
+    let origin = [1.0, 2.0, 3.0];
+    // Keep the points with x and z in front (a sensor looking along x and z): only y
+    // halves them.
+    let front: Vec<_> = pts.iter().map(|p| [p[0].abs(), p[1], p[2].abs()]).collect();
+    let frame = Frame {
+        pose,
+        points: &front,
+    };
+    assert!(Sides::new(&frame, origin, 1).axis.is_none());
+    let axis = Sides::new(&frame, origin, 2).axis.unwrap();
+    let y = pose.rotation * nalgebra::Vector3::y();
+    assert!(
+        (nalgebra::Vector3::from(axis) - y).norm() < 1e-12,
+        "{axis:?}"
+    );
+    // Laid out by it: in front of the plane first, behind last, the gaps between.
+    let s = Sides::new(&frame, origin, 2);
+    let rays: Vec<_> = (0..RAY_CHUNK)
+        .map(|i| match i % 5 {
+            0 => Ray::new([0.0; 3], SKIPPED, false),
+            _ => {
+                let d = [0, 1, 2].map(|_| rng.f() - 0.5);
+                Ray::new([0, 1, 2].map(|a| origin[a] + d[a]), 0, i % 3 == 0)
+            }
+        })
+        .collect();
+    let mut out = vec![Ray::new([9.0; 3], 1, true); RAY_CHUNK];
+    let [front, back] = s.lay_out(&rays, &mut out).map(|c| c as usize);
+    let ahead = |r: &Ray| {
+        (0..3)
+            .map(|a| (r.end[a] - origin[a]) * axis[a])
+            .sum::<f64>()
+            >= 0.0
+    };
+    assert_eq!(front + back, RAY_CHUNK - RAY_CHUNK.div_ceil(5));
+    assert!(out[..front].iter().all(|r| r.key != SKIPPED && ahead(r)));
+    assert!(out[front..RAY_CHUNK - back]
+        .iter()
+        .all(|r| r.key == SKIPPED));
+    assert!(out[RAY_CHUNK - back..]
+        .iter()
+        .all(|r| r.key != SKIPPED && !ahead(r)));
+    let key = |r: &Ray| (r.end.map(f64::to_bits), r.hit);
+    let mut laid: Vec<_> = out.iter().filter(|r| r.key != SKIPPED).map(key).collect();
+    let mut made: Vec<_> = rays.iter().filter(|r| r.key != SKIPPED).map(key).collect();
+    laid.sort_unstable();
+    made.sort_unstable();
+    assert_eq!(laid, made);
+}
+
+/// The dense walks (eight rays at a time or one, into per-thread bit grids) and the
+/// sparse walk (one ray at a time into shared bricks) give the same map, steps and report,
+/// on frames with fewer rays than lanes, rays ending in their start voxel, rays cut at
+/// max range, negative coordinates, and a frame too big for the dense box.
+/// The vectorised observation of a leaf word gives the values the scalar one does:
+/// random words and marks, under the default model and models that clamp at the ends
+/// of i8 (where the vector add saturates) and inside them.
+#[cfg(all(
+    target_arch = "x86_64",
+    target_feature = "avx512f",
+    target_feature = "avx512dq",
+    target_feature = "avx512bw"
+))]
+#[test]
+fn observing_a_word_at_once_equals_bit_by_bit() {
+    let default = SensorModel::default().quantize().unwrap();
+    let wide = QuantizedModel {
+        hit: 127,
+        miss: -128,
+        min: -128,
+        max: 127,
+        ..default
+    };
+    let narrow = QuantizedModel {
+        hit: 90,
+        miss: -70,
+        min: -50,
+        max: 60,
+        ..default
+    };
+    let mut rng = Rng(7);
+    let word =
+        |rng: &mut Rng| (rng.f() * 2f64.powi(32)) as u64 | ((rng.f() * 2f64.powi(32)) as u64) << 32;
+    for q in [default, wide, narrow] {
+        for _ in 0..2000 {
+            let (free, hit) = (word(&mut rng), word(&mut rng) & word(&mut rng));
+            let any = free | hit;
+            let old: [i8; 64] = std::array::from_fn(|_| rng.i(-128, 127) as i8);
+            let (mut a, mut b) = (old, old);
+            let marks = observe::<false>(&mut a, any, hit, &q);
+            assert_eq!(marks, observe_scalar::<false>(&mut b, any, hit, &q));
+            assert_eq!(a, b);
+            let (mut a, mut b) = ([0i8; 64], [0i8; 64]);
+            let marks = observe::<true>(&mut a, any, hit, &q);
+            assert_eq!(marks, observe_scalar::<true>(&mut b, any, hit, &q));
+            assert_eq!(a, b);
+        }
+    }
+}
+
+#[test]
+fn tables_are_held_one_cache_each_and_merge_their_marks() {
+    let mut marks = FrameMarks::default();
+    let lo = VoxelCoord::new(-300, 0, 0);
+    marks.reset(lo, VoxelCoord::new(300, 15, 15), 4, 2);
+    // Bricks (voxel coordinates >> 3) at both ends of the box and one in between.
+    let shared = VoxelCoord::new(-1, 1, 0);
+    let (only_a, only_b) = (VoxelCoord::new(-37, 0, 0), VoxelCoord::new(37, 1, 1));
+    let mut a = marks.cache();
+    let mut b = marks.cache();
+    assert_ne!(a.table, b.table);
+    let a_table = a.table;
+    a.or_free(shared, &[1, 0, 0, 0, 0, 0, 0, 1 << 63]);
+    a.or_free(only_a, &[0, 2, 0, 0, 0, 0, 0, 0]);
+    b.or_free(shared, &[4, 0, 0, 0, 0, 0, 0, 0]);
+    b.set_hit(shared.shl(3) + VoxelCoord::new(7, 7, 7));
+    b.or_free(only_b, &[0, 0, 8, 0, 0, 0, 0, 0]);
+    drop(a);
+    assert_eq!(
+        marks.cache().table,
+        a_table,
+        "a dropped cache frees its table"
+    );
+    drop(b);
+    let bricks: Vec<_> = marks.bricks_in_order().collect();
+    let origins: Vec<_> = bricks.iter().map(|&(o, _)| o).collect();
+    assert_eq!(origins, [only_a.shl(3), shared.shl(3), only_b.shl(3)]);
+    let words = |s: u32| {
+        let slot = marks.slot(s);
+        let load = |w: &[AtomicU64; 8]| w.each_ref().map(|x| x.load(Relaxed));
+        (load(&slot.free), load(&slot.hit))
+    };
+    let (free, hit) = words(bricks[1].1);
+    assert_eq!(free, [5, 0, 0, 0, 0, 0, 0, 1 << 63]);
+    assert_eq!(hit, [0, 0, 0, 0, 0, 0, 0, 1 << 63]);
+    assert_eq!(words(bricks[0].1).0, [0, 2, 0, 0, 0, 0, 0, 0]);
+    assert_eq!(words(bricks[2].1).0, [0, 0, 8, 0, 0, 0, 0, 0]);
+}
+
+#[test]
+fn dense_and_sparse_walks_agree() {
+    let mut rng = Rng(29);
+    // Short rays and long (lanes refill three at a time or one, see
+    // `avx512::refill_at`), many rays in a small box (most marks repeat, see
+    // `avx512::walk_dense`), and a box too big for the dense grid.
+    let mut frames: Vec<_> = [
+        (5, 2.0),
+        (3000, 4.0),
+        (20000, 9.0),
+        (3000, 25.0),
+        (40000, 0.5),
+        (4000, 45.0),
+    ]
+    .into_iter()
+    .map(|(n, radius)| random_frame(&mut rng, n, radius))
+    .collect();
+    // Rays that end in the sensor's voxel, or along an axis.
+    let (pose, _) = random_frame(&mut rng, 0, 1.0);
+    let inv = pose.inverse();
+    let at = |w: [f64; 3]| {
+        let p = inv * Point3::new(w[0], w[1], w[2]);
+        [p.x as f32, p.y as f32, p.z as f32]
+    };
+    let t = pose.translation.vector;
+    let mut pts = vec![at([t.x, t.y, t.z]), at([t.x + 0.01, t.y, t.z])];
+    pts.extend((0..20).map(|i| at([t.x + 0.1 * f64::from(i), t.y, t.z])));
+    frames.push((pose, pts));
+    // Long rays in the first eighth only: lanes done early take over others' rays.
+    let (pose, mut pts) = random_frame(&mut rng, 16000, 0.5);
+    pts[..2000]
+        .iter_mut()
+        .for_each(|p| *p = p.map(|c| c * 12.0));
+    frames.push((pose, pts));
+    // Non-finite points leave gaps in the rays' chunks (see `Sides`): scattered, and
+    // filling a whole chunk. Then scans with every ray on one side of every sensor
+    // axis, so on one side of the plane: one half of the walk's tasks has all the rays.
+    let (pose, mut pts) = random_frame(&mut rng, 6000, 3.0);
+    pts.iter_mut().step_by(7).for_each(|p| p[1] = f32::NAN);
+    pts[1500..2600]
+        .iter_mut()
+        .for_each(|p| p[2] = f32::INFINITY);
+    frames.push((pose, pts));
+    for sign in [1.0f32, -1.0] {
+        let (pose, mut pts) = random_frame(&mut rng, 5000, 3.0);
+        pts.iter_mut().for_each(|p| *p = p.map(|c| sign * c.abs()));
+        frames.push((pose, pts));
+    }
+    // Exact diagonals in 2 and 3 axes from a voxel centre, on a grid whose
+    // coordinates are exact in binary: every corner and edge crossing is a tie.
+    let q = 0.125;
+    let sensor = Isometry3::translation(q / 2.0, q / 2.0, q / 2.0);
+    let mut diag = Vec::new();
+    for k in 1..40 {
+        let d = (f64::from(k) * q) as f32;
+        for s in [
+            [1., 1., 1.],
+            [-1., 1., -1.],
+            [1., -1., 0.],
+            [0., -1., -1.],
+            [-1., 0., 1.],
+        ] {
+            diag.push([s[0] * d, s[1] * d, s[2] * d]);
+        }
+        // Ends on voxel corners and edges, in directions that are not diagonals.
+        let c = |i: i32| (f64::from(i) * q - q / 2.0) as f32;
+        diag.push([c(k), c(k / 2), c(-k / 3)]);
+        diag.push([c(-k), c(k / 3), c(0)]);
+    }
+    let grids = [(0.1, frames), (q, vec![(sensor, diag)])];
+    let run = |walk: Walk| {
+        let mut out = Vec::new();
+        for (resolution, frames) in &grids {
+            let mut map = OccupancyMap::new(*resolution, SensorModel::default()).unwrap();
+            let mut integ = integrator(2, 40.0, RayMode::Exact);
+            integ.walk = walk;
+            let mut reports = Vec::new();
+            for (pose, pts) in frames {
+                let frame = Frame {
+                    pose: *pose,
+                    points: pts,
+                };
+                let r = integ.integrate(&mut map, &frame).unwrap();
+                reports.push((
+                    r.rays,
+                    r.cut_rays,
+                    r.voxel_steps,
+                    r.touched_leaves,
+                    r.touched_voxels,
+                    r.dense,
+                ));
+            }
+            out.push((snapshot(&map), map.grid().leaf_count(), reports));
+        }
+        out
+    };
+    let sparse = run(Walk::SparseScalar);
+    assert!(sparse.iter().flat_map(|g| &g.2).all(|r| !r.5));
+    for walk in [
+        Walk::Sparse,
+        Walk::Dense,
+        Walk::DenseScalar,
+        Walk::DenseTestFirst,
+        Walk::Auto,
+    ] {
+        let dense = run(walk);
+        let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
+        if walk == Walk::Sparse {
+            assert!(!took_dense.contains(&true));
+        } else if walk != Walk::Auto {
+            assert_eq!(
+                took_dense,
+                [true, true, true, true, true, false, true, true, true, true, true, true]
+            );
+        }
+        for (d, s) in dense.iter().zip(&sparse) {
+            let strip = |r: &(u64, u64, u64, u64, u64, bool)| (r.0, r.1, r.2, r.3, r.4);
+            assert_eq!(
+                d.2.iter().map(strip).collect::<Vec<_>>(),
+                s.2.iter().map(strip).collect::<Vec<_>>(),
+                "{walk:?}"
+            );
+            assert_eq!(d.1, s.1, "{walk:?}");
+            assert!(d.0 == s.0, "{walk:?}: maps differ");
+        }
+    }
+}
+
+/// Sensor inside a closed box room: every wall voxel hit is occupied, the interior the
+/// rays crossed is free, and nothing outside the walls is known.
+#[test]
+fn closed_box_room() {
+    let (hx, hy, hz) = (2.0f64, 1.5f64, 1.2f64); // half extents, metres; walls at +-h
+    let sensor = [0.33f64, -0.21, 0.1];
+    let mut pts = Vec::new();
+    let n = 200_000;
+    for i in 0..n {
+        // Fibonacci sphere directions.
+        let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+        let r = (1.0 - z * z).sqrt();
+        let phi = i as f64 * 2.399963229728653;
+        let d = [r * phi.cos(), r * phi.sin(), z];
+        let t = (0..3)
+            .map(|a| {
+                let h = [hx, hy, hz][a];
+                if d[a] > 0.0 {
+                    (h - 0.01 - sensor[a]) / d[a]
+                } else if d[a] < 0.0 {
+                    (-h + 0.01 - sensor[a]) / d[a]
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .fold(f64::INFINITY, f64::min);
+        pts.push([0, 1, 2].map(|a| (d[a] * t) as f32));
+    }
+    let pose = Isometry3::translation(sensor[0], sensor[1], sensor[2]);
+    let mut map = OccupancyMap::new(0.05, SensorModel::default()).unwrap();
+    let r = integrator(2, 10.0, RayMode::Exact)
+        .integrate(&mut map, &Frame { pose, points: &pts })
+        .unwrap();
+    assert_eq!(r.cut_rays, 0);
+    let tf = *map.transform();
+    let state = |x: f64, y: f64, z: f64| map.state_at(&WorldPointT::new(x, y, z));
+    // The wall voxel of every point is occupied.
+    for p in pts.iter().step_by(97) {
+        let w = pose * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        assert_eq!(map.state_at(&w), VoxelState::Occupied, "{w:?}");
+    }
+    // The interior, at least two voxels from the walls, is free wherever rays crossed it;
+    // with 200k rays from one point that is every voxel (checked on a lattice).
+    let res = tf.resolution();
+    let mut checked = 0;
+    let steps = |h: f64| (-((h - 2.0 * res) / 0.1) as i32)..=(((h - 2.0 * res) / 0.1) as i32);
+    for ix in steps(hx) {
+        for iy in steps(hy) {
+            for iz in steps(hz) {
+                let (x, y, z) = (
+                    ix as f64 * 0.1 + 0.013,
+                    iy as f64 * 0.1 + 0.013,
+                    iz as f64 * 0.1 + 0.013,
+                );
+                assert_eq!(state(x, y, z), VoxelState::Free, "interior ({x}, {y}, {z})");
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 5000);
+    // Outside the walls: unknown, and no known voxel lies beyond them.
+    assert_eq!(state(hx + 0.3, 0.0, 0.0), VoxelState::Unknown);
+    assert_eq!(state(0.0, -hy - 0.3, 0.0), VoxelState::Unknown);
+    assert_eq!(state(0.0, 0.0, hz + 0.5), VoxelState::Unknown);
+    for (v, _) in map.grid().active_voxels() {
+        let c = tf.voxel_center(v);
+        assert!(
+            c.x.abs() < hx + res && c.y.abs() < hy + res && c.z.abs() < hz + res,
+            "known outside: {c:?}"
+        );
+    }
+    let counts = map.counts();
+    assert!(
+        counts.occupied > 1000 && counts.free > 100_000,
+        "{counts:?}"
+    );
+}
+
+type WorldPointT = crate::coord::WorldPoint;
+
+#[test]
+fn max_range_rays_mark_free_only() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let pts = [[5.0f32, 0.05, 0.05], [1.0, 0.05, 0.05]];
+    let r = at_origin(&mut map, 2.0, &pts[..1]);
+    assert_eq!((r.rays, r.cut_rays), (1, 1));
+    assert_eq!(map.counts().occupied, 0);
+    // Cut at 2 m along the ray: x = 1.9998, voxel 19 is the cut end.
+    assert_eq!(map.state(VoxelCoord::new(18, 0, 0)), VoxelState::Free);
+    assert_eq!(
+        map.state(VoxelCoord::new(19, 0, 0)),
+        VoxelState::Unknown,
+        "the cut end itself is not marked"
+    );
+    at_origin(&mut map, 2.0, &pts[1..]);
+    assert_eq!(map.state(VoxelCoord::new(10, 0, 0)), VoxelState::Occupied);
+
+    // Cut at x = 16.5: the end voxel opens leaf 2 but is not marked, so no leaf 2.
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    at_origin(&mut map, 1.65, &pts[..1]);
+    assert_eq!(map.state(VoxelCoord::new(15, 0, 0)), VoxelState::Free);
+    let leaves: Vec<_> = map
+        .grid()
+        .leaves()
+        .map(|(o, l)| (o.x, l.active.count()))
+        .collect();
+    assert_eq!(leaves.len(), 2, "{leaves:?}");
+    assert!(leaves.iter().all(|&(x, n)| x < 16 && n == 8), "{leaves:?}");
+}
+
+/// Leaves mark their voxels at or above the threshold, also exactly at it (here one
+/// hit's value), on every walk, in new leaves and in leaves seen before.
+#[test]
+fn leaves_mark_voxels_at_the_threshold() {
+    let model = SensorModel {
+        occupancy_threshold: SensorModel::default().p_hit,
+        ..Default::default()
+    };
+    for walk in [
+        Walk::Sparse,
+        Walk::SparseScalar,
+        Walk::Dense,
+        Walk::DenseScalar,
+    ] {
+        let mut map = OccupancyMap::new(0.1, model).unwrap();
+        let q = *map.quantized();
+        assert_eq!(q.threshold, q.hit);
+        let mut integ = integrator(2, 5.0, RayMode::Exact);
+        integ.walk = walk;
+        let mut rng = Rng(5);
+        for _ in 0..3 {
+            let (pose, pts) = random_frame(&mut rng, 2000, 4.0);
+            integ
+                .integrate(&mut map, &Frame { pose, points: &pts })
+                .unwrap();
+            map.assert_marks_in_step();
+        }
+        let at = map
+            .grid()
+            .active_voxels()
+            .filter(|&(_, v)| v == q.threshold);
+        assert!(at.count() > 100, "{walk:?}: few voxels at the threshold");
+    }
+}
+
+#[test]
+fn hit_beats_free_within_a_frame_and_degenerate_rays() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    // The second point's ray passes through the first point's voxel.
+    let pts = [
+        [0.55f32, 0.05, 0.05],
+        [1.55, 0.05, 0.05],
+        [0.0, 0.0, 0.0],
+        [0.01, 0.02, 0.03],
+    ];
+    at_origin(&mut map, 10.0, &pts);
+    let q = *map.quantized();
+    assert_eq!(map.value(VoxelCoord::new(5, 0, 0)), Some(q.hit));
+    assert_eq!(map.value(VoxelCoord::new(15, 0, 0)), Some(q.hit));
+    assert_eq!(map.value(VoxelCoord::new(10, 0, 0)), Some(q.miss));
+    // Zero-length rays: the sensor's own voxel is a hit, once.
+    assert_eq!(map.value(VoxelCoord::new(0, 0, 0)), Some(q.hit));
+}
+
+/// `make_all` (eight at a time on AVX-512 builds) makes exactly `make`'s rays: on
+/// random points, non-finite ones, points on voxel faces and at max range, under
+/// rotated poses.
+#[test]
+fn rays_made_in_bulk_equal_rays_made_one_by_one() {
+    let mut rng = Rng(77);
+    let tf = crate::coord::GridTransform::new(0.1).unwrap();
+    for round in 0..20 {
+        let (pose, mut pts) = random_frame(&mut rng, 1003, 8.0);
+        let o = tf.point_to_units(&Point3::from(pose.translation.vector));
+        let range = 5.0 / tf.resolution();
+        // Some points on multiples of the resolution (faces under the identity pose),
+        // exactly at max range, non-finite, or beyond max range.
+        let pose = if round % 4 == 0 {
+            Isometry3::identity()
+        } else {
+            pose
+        };
+        let bad = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY];
+        for (i, p) in pts.iter_mut().enumerate().step_by(3) {
+            match i % 4 {
+                0 => *p = p.map(|c| (c * 10.0).round() / 10.0),
+                1 => *p = [5.0, 0.0, 0.0],
+                2 => p[i % 3] = bad[i / 4 % 3],
+                _ => *p = p.map(|c| c * 3.0),
+            }
+        }
+        let frame = Frame { pose, points: &pts };
+        let maker = RayMaker::new(&frame, &tf, o, range);
+        let mut bulk = vec![Ray::new([0.0; 3], 0, false); pts.len()];
+        maker.make_all(&mut bulk, &pts);
+        for (p, b) in pts.iter().zip(&bulk) {
+            let one = maker.make(p);
+            assert_eq!(
+                (one.end.map(f64::to_bits), one.key, one.hit),
+                (b.end.map(f64::to_bits), b.key, b.hit),
+                "point {p:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn non_finite_points_are_skipped_and_counted() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let pts = [
+        [1.0f32, 0.0, 0.0],
+        [f32::NAN, 0.0, 0.0],
+        [0.0, f32::INFINITY, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    let r = at_origin(&mut map, 10.0, &pts);
+    assert_eq!((r.points, r.skipped_nonfinite, r.rays), (4, 2, 2));
+    assert_eq!(map.counts().occupied, 2);
+}
+
+#[test]
+fn bad_frames_are_rejected_and_change_nothing() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let mut integ = integrator(2, 10.0, RayMode::Exact);
+    integ
+        .integrate(
+            &mut map,
+            &Frame {
+                pose: Isometry3::identity(),
+                points: &[[1.0, 1.0, 1.0]],
+            },
+        )
+        .unwrap();
+    let before = snapshot(&map);
+    let far = Isometry3::translation(1e9, 0.0, 0.0);
+    assert!(matches!(
+        integ.integrate(
+            &mut map,
+            &Frame {
+                pose: far,
+                points: &[[1.0, 0.0, 0.0]]
+            }
+        ),
+        Err(IntegrateError::OriginOutOfRange { .. })
+    ));
+    let nan = Isometry3::translation(f64::NAN, 0.0, 0.0);
+    assert_eq!(
+        integ.integrate(
+            &mut map,
+            &Frame {
+                pose: nan,
+                points: &[[1.0, 0.0, 0.0]]
+            }
+        ),
+        Err(IntegrateError::NonFinitePose)
+    );
+    assert_eq!(snapshot(&map), before);
+    assert!(Integrator::new(IntegratorConfig {
+        threads: 0,
+        ..Default::default()
+    })
+    .is_err());
+    assert!(Integrator::new(IntegratorConfig {
+        max_range: f64::NAN,
+        ..Default::default()
+    })
+    .is_err());
+    let long = IntegratorConfig {
+        max_range: 2000.0,
+        threads: 1,
+        ..Default::default()
+    };
+    assert_eq!(
+        Integrator::new(long).unwrap().integrate(
+            &mut map,
+            &Frame {
+                pose: Isometry3::identity(),
+                points: &[]
+            }
+        ),
+        Err(IntegrateError::RangeTooLong {
+            max_range: 2000.0,
+            resolution: 0.1
+        })
+    );
+    assert_eq!(snapshot(&map), before);
+}
+
+#[test]
+fn trade_off_modes_cast_fewer_rays_and_stay_close() {
+    let mut rng = Rng(5);
+    // Dense: 50k points in a 1 m ball (~4200 voxels) at 0.1 m: many share end voxels.
+    let pts: Vec<_> = (0..50_000).map(|_| rng.ball(1.0)).collect();
+    let frame = Frame {
+        pose: Isometry3::identity(),
+        points: &pts,
+    };
+    let run = |mode| {
+        let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+        let r = integrator(2, 10.0, mode)
+            .integrate(&mut map, &frame)
+            .unwrap();
+        (r, map.counts(), snapshot(&map))
+    };
+    let (exact, ce, se) = run(RayMode::Exact);
+    for mode in [
+        RayMode::UniqueEnd,
+        RayMode::Subsample { factor: 1 },
+        RayMode::Bundle { threshold: 2 },
+    ] {
+        let (r, c, _) = run(mode);
+        assert!(
+            r.rays < exact.rays / 2,
+            "{mode:?}: {} of {} rays",
+            r.rays,
+            exact.rays
+        );
+        // Same end voxels: the occupied set is nearly unchanged.
+        let d = (c.occupied as f64 - ce.occupied as f64).abs() / ce.occupied as f64;
+        assert!(
+            d < 0.05,
+            "{mode:?}: occupied {} vs {}",
+            c.occupied,
+            ce.occupied
+        );
+    }
+    // Unique-end keeps exactly one ray per end voxel: the occupied set is the same.
+    assert_eq!(run(RayMode::UniqueEnd).1.occupied, ce.occupied);
+    // A bundle threshold above every group size changes nothing.
+    assert_eq!(
+        run(RayMode::Bundle {
+            threshold: 1_000_000
+        })
+        .2,
+        se
+    );
+    // A very fine subsample grid (1.6 mm) keeps nearly every ray.
+    assert!(run(RayMode::Subsample { factor: 64 }).0.rays * 1000 > exact.rays * 999);
+}

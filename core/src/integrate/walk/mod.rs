@@ -1,0 +1,217 @@
+//! Phase 2, walk: every ray from the sensor origin through the voxels it crosses, with the
+//! exact DDA ([`crate::raycast::Dda`]), its marks set in per-frame memory. Two walks with
+//! the same result, each scalar and on AVX-512, chosen in one place ([`plan`], [`run`]):
+//!
+//! | walk | marks kept in | file |
+//! |---|---|---|
+//! | dense, one ray at a time | the thread's bit grid over the frame's box ([`dense::DenseBits`]) | `dense.rs` ([`dense::walk_rays`]) |
+//! | dense, eight rays at a time | the same | `avx512.rs` (`avx512::walk_dense`) |
+//! | sparse, one ray at a time | the frame's brick tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
+//! | sparse, eight rays at a time | the same | `avx512.rs` (`avx512::walk_sparse`) |
+//!
+//! `integrate::tests::dense_and_sparse_walks_agree` checks every walk against the others,
+//! map and counts.
+
+use super::marks::FrameMarks;
+use super::prepare::{ray_count, Ray, RAY_CHUNK};
+use super::{lock, Walk, MAX_RANGE_VOXELS};
+use crate::coord::VoxelCoord;
+use rayon::prelude::*;
+
+#[cfg(all(
+    target_arch = "x86_64",
+    target_feature = "avx512f",
+    target_feature = "avx512dq"
+))]
+mod avx512;
+pub(super) mod dense;
+mod sparse;
+
+/// The dense box to walk a frame with `lo..=hi` and about `steps` voxel steps in, or `None`
+/// for the sparse walk.
+pub(super) fn plan(
+    walk: Walk,
+    lo: VoxelCoord,
+    hi: VoxelCoord,
+    steps: f64,
+) -> Option<dense::DenseBox> {
+    match walk {
+        Walk::Sparse | Walk::SparseScalar => None,
+        // Zeroing and merging the dense grids cost about 15 ns per word, and a dense
+        // step saved 4-8 ns against a one-ray sparse one (1.5-2.5 against 4-10 ns):
+        // walk dense when the grid has at most a quarter as many words as the walk
+        // has steps. A few rays in a big box walk sparse. (Not re-tuned for the
+        // AVX-512 sparse walk, 2.5-4 ns a step at 60 m with its memory traffic.)
+        Walk::Auto => dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps),
+        Walk::Dense | Walk::DenseScalar | Walk::DenseTestFirst => dense::DenseBox::new(lo, hi),
+    }
+}
+
+/// Everything one walk needs of the frame and the integrator.
+pub(super) struct WalkInput<'a> {
+    pub origin: [f64; 3],
+    pub rays: &'a [Ray],
+    /// Per chunk of `rays`: how many lie on either side of the sensor (dense walk only).
+    pub sides: &'a [[u32; 2]],
+    /// About the voxel steps of the walk.
+    pub steps: f64,
+    pub walk: Walk,
+}
+
+/// Walk all rays into `marks` (sparse) or the pool threads' dense grids for frame
+/// `frame_no` (when `dense_box` is set); returns voxels visited.
+pub(super) fn run(
+    input: &WalkInput<'_>,
+    marks: &FrameMarks,
+    dense: &[std::sync::Mutex<dense::DenseBits>],
+    dense_box: Option<&dense::DenseBox>,
+    frame_no: u64,
+) -> u64 {
+    match dense_box {
+        None => run_sparse(marks, input),
+        Some(b) => run_dense(dense, b, frame_no, input),
+    }
+}
+
+/// The dense walk: rays laid out by `Sides` with counts `input.sides`, into the pool
+/// threads' grids for frame `frame_no`; returns voxels visited.
+fn run_dense(
+    dense: &[std::sync::Mutex<dense::DenseBits>],
+    dbox: &dense::DenseBox,
+    frame_no: u64,
+    input: &WalkInput<'_>,
+) -> u64 {
+    let &WalkInput {
+        origin,
+        rays,
+        sides,
+        steps,
+        walk,
+    } = input;
+    // Tasks walk the front sides of the chunks first, then the back sides: rayon hands the
+    // first half of the tasks to one thread and the second half to another, so each
+    // thread's rays mostly stay in its half of the box (work stealing evens out uneven
+    // sides). Lane l of a task walks a chunk of the l-th eighth: in a sensor's scan order
+    // (or sorted) these are far apart in direction (see `avx512::walk_dense`).
+    let per_lane = sides.len().div_ceil(8);
+    let part = |back: bool, l: usize, c: usize| {
+        let k = l * per_lane + c;
+        let Some(&[n_front, n_back]) = sides.get(k) else {
+            return 0..0;
+        };
+        let start = k * RAY_CHUNK;
+        let end = (start + RAY_CHUNK).min(rays.len());
+        if back {
+            end - n_back as usize..end
+        } else {
+            start..start + n_front as usize
+        }
+    };
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    ))]
+    let (refill_at, test_first) = (
+        avx512::refill_at(steps / ray_count(sides).max(1) as f64),
+        walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
+    );
+    (0..2 * per_lane)
+        .into_par_iter()
+        .map(|t| {
+            // Each pool thread has its own grids, so the lock is never contended.
+            let mut bits = lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
+            bits.begin(frame_no, dbox.words());
+            let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+            #[cfg(all(
+                target_arch = "x86_64",
+                target_feature = "avx512f",
+                target_feature = "avx512dq"
+            ))]
+            if walk != Walk::DenseScalar {
+                // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
+                // crate (the cfg above), so every CPU that runs this code has them.
+                return unsafe {
+                    avx512::walk_dense(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
+                };
+            }
+            let _ = (walk, steps, ray_count(sides));
+            dense::walk_rays(&mut bits, dbox, origin, rays, ranges)
+        })
+        .sum()
+}
+
+/// The sparse walk: all rays, sorted by direction, into `marks` in parallel chunks;
+/// returns voxels visited.
+fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
+    let &WalkInput {
+        origin,
+        rays,
+        steps,
+        walk,
+        ..
+    } = input;
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "avx512f",
+        target_feature = "avx512dq"
+    ))]
+    if walk != Walk::SparseScalar {
+        let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
+        return rays
+            .par_chunks(RAY_CHUNK)
+            // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
+            // crate (the cfg above), so every CPU that runs this code has them.
+            .map(|chunk| unsafe {
+                avx512::walk_sparse(&mut marks.cache(), origin, chunk, refill_at)
+            })
+            .sum();
+    }
+    let _ = (walk, steps);
+    rays.par_chunks(RAY_CHUNK)
+        .map(|chunk| sparse::walk_rays(marks, origin, chunk))
+        .sum()
+}
+
+/// A voxel of a sparse walk packed in one `u64`, 21 bits per axis, relative to an origin
+/// near the rays' start: a step is one add of a stride, a field's low 3 bits are the
+/// voxel's offset in its brick, and a change above them is a new brick.
+#[derive(Clone, Copy)]
+pub(super) struct Packed {
+    /// The voxel that packs to 0: brick-aligned, `BIAS` below the start on every axis.
+    o: VoxelCoord,
+}
+
+impl Packed {
+    const F: u32 = 21;
+    const BIAS: i32 = 1 << 19;
+    /// Index change of one voxel step along x, y and z.
+    const STRIDES: [i64; 3] = [1, 1 << Self::F, 1 << (2 * Self::F)];
+    /// Bits of a field above its low 3.
+    const BRICK: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
+
+    /// Packing for rays that start at `v`. Rays end within max range of their start, so
+    /// no field under- or overflows.
+    fn around(v: VoxelCoord) -> Self {
+        const _: () = assert!(MAX_RANGE_VOXELS as i32 + 16 < Packed::BIAS);
+        let b = Self::BIAS;
+        Packed {
+            o: v.shr(3).shl(3) - VoxelCoord::new(b, b, b),
+        }
+    }
+
+    #[inline]
+    fn pack(&self, v: VoxelCoord) -> u64 {
+        let d = v - self.o;
+        u64::from(d.x as u32)
+            | u64::from(d.y as u32) << Self::F
+            | u64::from(d.z as u32) << (2 * Self::F)
+    }
+
+    #[inline]
+    fn unpack(&self, p: u64) -> VoxelCoord {
+        let m = (1u64 << Self::F) - 1;
+        let (f, f2) = (Self::F, 2 * Self::F);
+        self.o + VoxelCoord::new((p & m) as i32, (p >> f & m) as i32, (p >> f2) as i32)
+    }
+}
