@@ -20,32 +20,60 @@
 //! # Ok::<(), voxmap_client::ClientError>(())
 //! ```
 
-use iceoryx2::port::listener::Listener;
-use iceoryx2::port::notifier::Notifier;
-use iceoryx2::port::publisher::Publisher;
-use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::client::RequestSendError;
+use iceoryx2::port::listener::{Listener, ListenerCreateError, ListenerWaitError};
+use iceoryx2::port::notifier::{Notifier, NotifierCreateError, NotifierNotifyError};
+use iceoryx2::port::publisher::{Publisher, PublisherCreateError};
+use iceoryx2::port::subscriber::{Subscriber, SubscriberCreateError};
+use iceoryx2::port::{LoanError, ReceiveError, SendError};
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use iceoryx2::sample_mut::SampleMut;
+use iceoryx2::service::port_factory::client::ClientCreateError;
 use std::time::Duration;
+use voxmap_ipc::ports::{open_control, open_event, open_frames, open_snapshots};
 
 pub use nalgebra::Isometry3;
 pub use voxmap_core::snapshot::{InvalidSegment, SnapshotError, SnapshotView};
-pub use voxmap_core::wire::{
-    ControlKind, ControlRequest, ControlResponse, FrameHeader, ServiceNames, StatsWire,
-};
 pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
+pub use voxmap_ipc::{
+    ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, MapScope, OpenError,
+    ServiceNames, SnapshotHeader, StatsWire,
+};
 
-/// Something went wrong talking to iceoryx2 or reading a snapshot.
+/// Something went wrong talking to the service or reading a snapshot. iceoryx2's own error
+/// is kept as the [`std::error::Error::source`].
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum ClientError {
-    /// Creating the node, a service or a port failed (the text says which and why).
-    Connect(String),
-    /// Loaning or sending a sample failed.
-    Send(String),
-    /// Receiving failed.
-    Receive(String),
+    /// Opening the node or a service failed.
+    Connect(OpenError),
+    /// Creating the frame publisher failed.
+    Publisher(PublisherCreateError),
+    /// Creating the snapshot subscriber failed.
+    Subscriber(SubscriberCreateError),
+    /// Creating a wake-up notifier failed.
+    Notifier(NotifierCreateError),
+    /// Creating the snapshot wake-up listener failed.
+    Listener(ListenerCreateError),
+    /// Creating the control client failed.
+    ControlClient(ClientCreateError),
+    /// Loaning shared memory for `points` points failed.
+    Loan { points: usize, source: LoanError },
+    /// Sending a sample failed.
+    Send(SendError),
+    /// Waking the other side failed.
+    Notify(NotifierNotifyError),
+    /// Sending a control request failed.
+    Request(RequestSendError),
+    /// Receiving a sample or a response failed.
+    Receive(ReceiveError),
+    /// Waiting for a wake-up failed.
+    Wait(ListenerWaitError),
+    /// No control response came within this timeout (is the service running?).
+    Timeout(Duration),
+    /// The request could not be built (a path too long).
+    BadRequest(ControlError),
     /// The received snapshot did not validate.
     Snapshot(SnapshotError),
     /// The service answered a control request with an error.
@@ -55,140 +83,63 @@ pub enum ClientError {
 impl std::fmt::Display for ClientError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::Connect(s) => write!(f, "connect: {s}"),
-            Self::Send(s) => write!(f, "send: {s}"),
-            Self::Receive(s) => write!(f, "receive: {s}"),
+            Self::Connect(e) => write!(f, "connect: {e}"),
+            Self::Publisher(_) => write!(f, "creating the frame publisher failed"),
+            Self::Subscriber(_) => write!(f, "creating the snapshot subscriber failed"),
+            Self::Notifier(_) => write!(f, "creating a wake-up notifier failed"),
+            Self::Listener(_) => write!(f, "creating the snapshot listener failed"),
+            Self::ControlClient(_) => write!(f, "creating the control client failed"),
+            Self::Loan { points, .. } => {
+                write!(f, "loaning shared memory for {points} points failed")
+            }
+            Self::Send(_) => write!(f, "sending a sample failed"),
+            Self::Notify(_) => write!(f, "waking the other side failed"),
+            Self::Request(_) => write!(f, "sending a control request failed"),
+            Self::Receive(_) => write!(f, "receiving failed"),
+            Self::Wait(_) => write!(f, "waiting for a wake-up failed"),
+            Self::Timeout(t) => write!(
+                f,
+                "no control response within {:.1} s (is the service running?)",
+                t.as_secs_f64()
+            ),
+            Self::BadRequest(e) => write!(f, "bad control request: {e}"),
             Self::Snapshot(e) => write!(f, "snapshot: {e}"),
             Self::Rejected(m) => write!(f, "rejected by the service: {m}"),
         }
     }
 }
 
-impl std::error::Error for ClientError {}
-
-fn connect_err(what: &str) -> impl Fn(&dyn std::fmt::Debug) -> ClientError + '_ {
-    move |e| ClientError::Connect(format!("{what}: {e:?}"))
+impl std::error::Error for ClientError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Connect(e) => Some(e),
+            Self::Publisher(e) => Some(e),
+            Self::Subscriber(e) => Some(e),
+            Self::Notifier(e) => Some(e),
+            Self::Listener(e) => Some(e),
+            Self::ControlClient(e) => Some(e),
+            Self::Loan { source, .. } => Some(source),
+            Self::Send(e) => Some(e),
+            Self::Notify(e) => Some(e),
+            Self::Request(e) => Some(e),
+            Self::Receive(e) => Some(e),
+            Self::Wait(e) => Some(e),
+            Self::BadRequest(e) => Some(e),
+            Self::Snapshot(e) => Some(e),
+            Self::Timeout(_) | Self::Rejected(_) => None,
+        }
+    }
 }
 
-/// Service-level settings both sides must agree on (when creating; minimums when opening).
-pub mod qos {
-    pub const FRAME_SUBSCRIBER_BUFFER: usize = 4;
-    pub const MAX_FRAME_PUBLISHERS: usize = 16;
-    pub const MAX_SNAPSHOT_SUBSCRIBERS: usize = 16;
-    pub const SNAPSHOT_BORROWED: usize = 2;
-    pub const MAX_NODES: usize = 64;
+impl From<OpenError> for ClientError {
+    fn from(e: OpenError) -> Self {
+        Self::Connect(e)
+    }
 }
 
-pub(crate) fn node(name: &str) -> Result<Node<ipc::Service>, ClientError> {
-    let name = NodeName::new(name).map_err(|e| connect_err("node name")(&e))?;
-    NodeBuilder::new()
-        .name(&name)
-        .config(&Config::default())
-        .signal_handling_mode(SignalHandlingMode::Disabled)
-        .create::<ipc::Service>()
-        .map_err(|e| connect_err("node")(&e))
-}
-
-fn service_name(s: &str) -> Result<ServiceName, ClientError> {
-    s.try_into().map_err(|e| connect_err("service name")(&e))
-}
-
-/// The frames service (shared by publishers and the service).
-pub fn open_frames(
-    node: &Node<ipc::Service>,
-    names: &ServiceNames,
-) -> Result<
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<
-        ipc::Service,
-        [[f32; 3]],
-        FrameHeader,
-    >,
-    ClientError,
-> {
-    node.service_builder(&service_name(&names.frames)?)
-        .publish_subscribe::<[[f32; 3]]>()
-        .user_header::<FrameHeader>()
-        .subscriber_max_buffer_size(qos::FRAME_SUBSCRIBER_BUFFER)
-        .history_size(0)
-        .max_publishers(qos::MAX_FRAME_PUBLISHERS)
-        .max_nodes(qos::MAX_NODES)
-        .enable_safe_overflow(true)
-        .open_or_create()
-        .map_err(|e| connect_err("frames service")(&e))
-}
-
-/// The snapshot service.
-pub fn open_snapshots(
-    node: &Node<ipc::Service>,
-    names: &ServiceNames,
-) -> Result<
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<
-        ipc::Service,
-        [u8],
-        voxmap_core::wire::SnapshotHeader,
-    >,
-    ClientError,
-> {
-    node.service_builder(&service_name(&names.snapshot)?)
-        .publish_subscribe::<[u8]>()
-        .user_header::<voxmap_core::wire::SnapshotHeader>()
-        .history_size(1)
-        .subscriber_max_buffer_size(2)
-        .subscriber_max_borrowed_samples(qos::SNAPSHOT_BORROWED)
-        .max_subscribers(qos::MAX_SNAPSHOT_SUBSCRIBERS)
-        .max_publishers(1)
-        .max_nodes(qos::MAX_NODES)
-        .enable_safe_overflow(true)
-        .open_or_create()
-        .map_err(|e| connect_err("snapshot service")(&e))
-}
-
-/// An event service by name.
-pub fn open_event(
-    node: &Node<ipc::Service>,
-    name: &str,
-) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ClientError> {
-    node.service_builder(&service_name(name)?)
-        .event()
-        .max_nodes(qos::MAX_NODES)
-        .open_or_create()
-        .map_err(|e| connect_err("event service")(&e))
-}
-
-/// The control service.
-pub fn open_control(
-    node: &Node<ipc::Service>,
-    names: &ServiceNames,
-) -> Result<
-    iceoryx2::service::port_factory::request_response::PortFactory<
-        ipc::Service,
-        ControlRequest,
-        (),
-        ControlResponse,
-        (),
-    >,
-    ClientError,
-> {
-    node.service_builder(&service_name(&names.control)?)
-        .request_response::<ControlRequest, ControlResponse>()
-        .max_nodes(qos::MAX_NODES)
-        .open_or_create()
-        .map_err(|e| connect_err("control service")(&e))
-}
-
-/// Where snapshots cover the map.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum SnapshotScope {
-    Whole,
-    /// A box of these half extents (metres) around the latest sensor pose.
-    AroundSensor {
-        half_extents: [f64; 3],
-    },
-    /// A fixed box in the map frame.
-    Fixed {
-        min: [f64; 3],
-        max: [f64; 3],
-    },
+/// A client node: it leaves SIGINT/SIGTERM to the process.
+fn node(name: &str) -> Result<Node<ipc::Service>, ClientError> {
+    Ok(voxmap_ipc::ports::node(name, SignalHandlingMode::Disabled)?)
 }
 
 /// Requests to a running service: stats, save, load, clear, snapshot scope.
@@ -206,12 +157,12 @@ impl MapControl {
         let client = open_control(&node, &names)?
             .client_builder()
             .create()
-            .map_err(|e| connect_err("control client")(&e))?;
+            .map_err(ClientError::ControlClient)?;
         // Requests are served when the service wakes; frames and requests share its wake-up.
         let wake = open_event(&node, &names.frames_event)?
             .notifier_builder()
             .create()
-            .map_err(|e| connect_err("control notifier")(&e))?;
+            .map_err(ClientError::Notifier)?;
         Ok(Self {
             client,
             wake,
@@ -227,25 +178,15 @@ impl MapControl {
 
     /// Send a raw request and wait for the answer.
     pub fn request(&self, req: ControlRequest) -> Result<ControlResponse, ClientError> {
-        let pending = self
-            .client
-            .send_copy(req)
-            .map_err(|e| ClientError::Send(format!("control request: {e:?}")))?;
-        self.wake
-            .notify()
-            .map_err(|e| ClientError::Send(format!("notify: {e:?}")))?;
+        let pending = self.client.send_copy(req).map_err(ClientError::Request)?;
+        self.wake.notify().map_err(ClientError::Notify)?;
         let deadline = std::time::Instant::now() + self.timeout;
         loop {
-            if let Some(r) = pending
-                .receive()
-                .map_err(|e| ClientError::Receive(format!("{e:?}")))?
-            {
+            if let Some(r) = pending.receive().map_err(ClientError::Receive)? {
                 return Ok(*r.payload());
             }
             if std::time::Instant::now() > deadline {
-                return Err(ClientError::Receive(
-                    "no control response before the timeout (is the service running?)".into(),
-                ));
+                return Err(ClientError::Timeout(self.timeout));
             }
             std::thread::sleep(Duration::from_millis(1));
         }
@@ -266,15 +207,15 @@ impl MapControl {
 
     /// Save the map to `path` on the service's machine.
     pub fn save(&self, path: &str) -> Result<(), ClientError> {
-        let req = ControlRequest::with_path(ControlKind::Save, path)
-            .ok_or(ClientError::Rejected("path too long".into()))?;
+        let req =
+            ControlRequest::with_path(ControlKind::Save, path).map_err(ClientError::BadRequest)?;
         self.checked(req).map(|_| ())
     }
 
     /// Replace the service's map with the file at `path`.
     pub fn load(&self, path: &str) -> Result<(), ClientError> {
-        let req = ControlRequest::with_path(ControlKind::Load, path)
-            .ok_or(ClientError::Rejected("path too long".into()))?;
+        let req =
+            ControlRequest::with_path(ControlKind::Load, path).map_err(ClientError::BadRequest)?;
         self.checked(req).map(|_| ())
     }
 
@@ -283,21 +224,9 @@ impl MapControl {
             .map(|_| ())
     }
 
-    pub fn set_scope(&self, scope: SnapshotScope) -> Result<(), ClientError> {
-        let mut r = ControlRequest::new(ControlKind::SetScope);
-        match scope {
-            SnapshotScope::Whole => {}
-            SnapshotScope::AroundSensor { half_extents } => {
-                r.scope_kind = 1;
-                r.scope[..3].copy_from_slice(&half_extents);
-            }
-            SnapshotScope::Fixed { min, max } => {
-                r.scope_kind = 2;
-                r.scope[..3].copy_from_slice(&min);
-                r.scope[3..].copy_from_slice(&max);
-            }
-        }
-        self.checked(r).map(|_| ())
+    /// Set where snapshots cover the map.
+    pub fn set_scope(&self, scope: MapScope) -> Result<(), ClientError> {
+        self.checked(ControlRequest::with_scope(scope)).map(|_| ())
     }
 }
 
@@ -334,11 +263,11 @@ impl FramePublisher {
             .initial_max_slice_len(65536)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
-            .map_err(|e| connect_err("frame publisher")(&e))?;
+            .map_err(ClientError::Publisher)?;
         let notifier = open_event(&node, &names.frames_event)?
             .notifier_builder()
             .create()
-            .map_err(|e| connect_err("frame notifier")(&e))?;
+            .map_err(ClientError::Notifier)?;
         Ok(Self {
             publisher,
             notifier,
@@ -353,7 +282,7 @@ impl FramePublisher {
         let sample = self
             .publisher
             .loan_slice(n)
-            .map_err(|e| ClientError::Send(format!("loan {n} points: {e:?}")))?;
+            .map_err(|source| ClientError::Loan { points: n, source })?;
         Ok(FrameLoan {
             sample,
             owner: self,
@@ -395,14 +324,9 @@ impl FrameLoan<'_> {
     /// Send with the header as already written by [`Self::header_mut`] (for tests of bad input).
     pub fn send_raw(self) -> Result<u64, ClientError> {
         let seq = self.sample.user_header().sequence;
-        self.sample
-            .send()
-            .map_err(|e| ClientError::Send(format!("{e:?}")))?;
+        self.sample.send().map_err(ClientError::Send)?;
         self.owner.sequence += 1;
-        self.owner
-            .notifier
-            .notify()
-            .map_err(|e| ClientError::Send(format!("notify: {e:?}")))?;
+        self.owner.notifier.notify().map_err(ClientError::Notify)?;
         Ok(seq)
     }
 
@@ -414,9 +338,9 @@ impl FrameLoan<'_> {
 
 /// Receives snapshots of a map; holds the newest sample and lends views into it.
 pub struct SnapshotSubscriber {
-    subscriber: Subscriber<ipc::Service, [u8], voxmap_core::wire::SnapshotHeader>,
+    subscriber: Subscriber<ipc::Service, [u8], SnapshotHeader>,
     listener: Listener<ipc::Service>,
-    current: Option<Sample<ipc::Service, [u8], voxmap_core::wire::SnapshotHeader>>,
+    current: Option<Sample<ipc::Service, [u8], SnapshotHeader>>,
     _node: Node<ipc::Service>,
 }
 
@@ -427,11 +351,11 @@ impl SnapshotSubscriber {
         let subscriber = open_snapshots(&node, &names)?
             .subscriber_builder()
             .create()
-            .map_err(|e| connect_err("snapshot subscriber")(&e))?;
+            .map_err(ClientError::Subscriber)?;
         let listener = open_event(&node, &names.snapshot_event)?
             .listener_builder()
             .create()
-            .map_err(|e| connect_err("snapshot listener")(&e))?;
+            .map_err(ClientError::Listener)?;
         Ok(Self {
             subscriber,
             listener,
@@ -443,11 +367,7 @@ impl SnapshotSubscriber {
     /// Take any newer snapshot; true if one arrived.
     fn poll(&mut self) -> Result<bool, ClientError> {
         let mut got = false;
-        while let Some(s) = self
-            .subscriber
-            .receive()
-            .map_err(|e| ClientError::Receive(format!("{e:?}")))?
-        {
+        while let Some(s) = self.subscriber.receive().map_err(ClientError::Receive)? {
             self.current = Some(s); // drops (returns) the older sample
             got = true;
         }
@@ -464,7 +384,7 @@ impl SnapshotSubscriber {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             self.listener
                 .timed_wait(|_| {}, left.max(Duration::from_millis(1)))
-                .map_err(|e| ClientError::Receive(format!("{e:?}")))?;
+                .map_err(ClientError::Wait)?;
             if self.poll()? {
                 return Ok(true);
             }
@@ -487,7 +407,7 @@ impl SnapshotSubscriber {
     }
 
     /// The wire header of the held sample (sequence, length, when it was published).
-    pub fn wire_header(&self) -> Option<voxmap_core::wire::SnapshotHeader> {
+    pub fn wire_header(&self) -> Option<SnapshotHeader> {
         self.current.as_ref().map(|s| *s.user_header())
     }
 

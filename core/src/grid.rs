@@ -15,40 +15,9 @@
 use crate::coord::VoxelCoord;
 use crate::mask::{BitIter, Mask512};
 use crate::pages::{Zeroed, HUGE_PAGE};
+pub use crate::tree::*;
 use hashbrown::HashMap;
 
-/// log2 of a leaf's edge in voxels.
-pub const LEAF_LOG2: u32 = 3;
-/// Voxels per leaf.
-pub const LEAF_VOXELS: usize = 1 << (3 * LEAF_LOG2);
-/// log2 of an internal node's edge in leaves.
-pub const INTERNAL_LOG2: u32 = 4;
-/// log2 of an internal node's edge in voxels.
-pub const INTERNAL_TOTAL_LOG2: u32 = LEAF_LOG2 + INTERNAL_LOG2;
-/// Children (leaves) per internal node.
-pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
-/// Leaves per block: the 8x8x8 leaves (64^3 voxels) that snapshots index together, eight
-/// to an internal node.
-pub const BLOCK_LEAVES: usize = 512;
-
-/// Origin (minimum corner) of the block holding `v`.
-#[inline]
-pub fn block_origin(v: VoxelCoord) -> VoxelCoord {
-    VoxelCoord::new(v.x & !63, v.y & !63, v.z & !63)
-}
-
-/// In-block index of the leaf holding `v`: its leaf coordinates mod 8, x | y << 3 | z << 6.
-#[inline]
-pub fn leaf_in_block(v: VoxelCoord) -> usize {
-    ((v.x >> 3 & 7) | (v.y >> 3 & 7) << 3 | (v.z >> 3 & 7) << 6) as usize
-}
-
-/// Origin of the leaf with in-block index `j` of the block with origin `b` (the inverse of
-/// [`leaf_in_block`]).
-#[inline]
-pub fn leaf_of_block(b: VoxelCoord, j: usize) -> VoxelCoord {
-    voxel_at(VoxelCoord::default(), j).shl(LEAF_LOG2) + b
-}
 /// Leaves per pool chunk: as many `Leaf<i8>`, in whole [`UPDATE_SPAN`]s, as fill one
 /// huge page (3272 of 3276 640-byte leaves). Each chunk is its own mapping ([`Zeroed`]):
 /// with chunks of 256 leaves a 60 m frame made 7000 mmap calls in the merge; 1024 cut the
@@ -61,51 +30,6 @@ const SPANS_PER_CHUNK: usize = 8;
 /// Leaves per parallel task of [`LeafPool::par_update`].
 const UPDATE_SPAN: usize = POOL_CHUNK / SPANS_PER_CHUNK;
 const _: () = assert!(UPDATE_SPAN >= 256);
-
-/// In-leaf offset of a voxel.
-#[inline]
-pub fn leaf_offset(v: VoxelCoord) -> usize {
-    ((v.x & 7) | (v.y & 7) << 3 | (v.z & 7) << 6) as usize
-}
-
-/// Origin (minimum corner) of the leaf holding `v`.
-#[inline]
-pub fn leaf_origin(v: VoxelCoord) -> VoxelCoord {
-    VoxelCoord::new(v.x & !7, v.y & !7, v.z & !7)
-}
-
-/// The voxels of the leaf with origin `o` that lie in the inclusive voxel box [lo, hi].
-pub fn leaf_box_mask(o: VoxelCoord, lo: VoxelCoord, hi: VoxelCoord) -> Mask512 {
-    // Per axis, the in-leaf coordinates inside the box as 8 bits.
-    let axis = |o: i32, lo: i32, hi: i32| -> u64 {
-        let a = (i64::from(lo) - i64::from(o)).clamp(0, 8);
-        let b = (i64::from(hi) - i64::from(o) + 1).clamp(0, 8);
-        if a >= b {
-            0
-        } else {
-            (1 << b) - (1 << a)
-        }
-    };
-    let (mx, my, mz) = (
-        axis(o.x, lo.x, hi.x),
-        axis(o.y, lo.y, hi.y),
-        axis(o.z, lo.z, hi.z),
-    );
-    // Word z holds the slice at that z, bit x | y << 3.
-    let slice = (0..8)
-        .filter(|y| my >> y & 1 != 0)
-        .fold(0u64, |s, y| s | mx << (8 * y));
-    Mask512 {
-        words: std::array::from_fn(|z| if mz >> z & 1 != 0 { slice } else { 0 }),
-    }
-}
-
-/// Voxel at in-leaf offset `i` of the leaf with origin `o`.
-#[inline]
-pub fn voxel_at(o: VoxelCoord, i: usize) -> VoxelCoord {
-    let i = i as i32;
-    VoxelCoord::new(o.x + (i & 7), o.y + (i >> 3 & 7), o.z + (i >> 6))
-}
 
 #[inline]
 fn internal_key(v: VoxelCoord) -> VoxelCoord {

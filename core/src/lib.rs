@@ -1,5 +1,9 @@
 //! voxmap-core: a sparse 3D log-odds occupancy map with a parallel raycasting core.
 //!
+//! Feature `map` (default): the map, the integrator, file formats and the snapshot writer.
+//! Without it: the snapshot reader ([`snapshot::SnapshotView`]) and what it needs
+//! (coordinates, masks, the sensor model, the DDA), with no thread pool.
+//!
 //! The principal types:
 //! - [`OccupancyMap`]: the map (a VDB-style [`grid::Grid`] of fixed-point log-odds, its
 //!   resolution and [`SensorModel`]).
@@ -21,24 +25,36 @@
 //! ```
 
 pub mod coord;
-mod cpus;
-pub mod grid;
-pub mod integrate;
-pub mod io;
-pub mod map;
 pub mod mask;
 pub mod model;
-mod pages;
 pub mod raycast;
 pub mod snapshot;
-pub mod wire;
+pub mod tree;
+
+// The map and what writes it: left out with `default-features = false`, so that a planner
+// reading snapshots links no thread pool.
+#[cfg(feature = "map")]
+mod cpus;
+#[cfg(feature = "map")]
+pub mod grid;
+#[cfg(feature = "map")]
+pub mod integrate;
+#[cfg(feature = "map")]
+pub mod io;
+#[cfg(feature = "map")]
+pub mod map;
+#[cfg(feature = "map")]
+mod pages;
 
 #[cfg(test)]
 mod test_rng;
 
 pub use coord::{GridTransform, VoxelCoord, WorldPoint};
+#[cfg(feature = "map")]
 pub use integrate::{
     Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode,
 };
-pub use map::{LeafOccupancy, MapCounts, OccupancyMap};
+#[cfg(feature = "map")]
+pub use map::{MapCounts, OccupancyMap};
 pub use model::{SensorModel, VoxelState};
+pub use tree::LeafOccupancy;

@@ -2,8 +2,8 @@
 
 use crate::coord::{ConfigError, GridTransform, VoxelCoord, WorldPoint};
 use crate::grid::{leaf_offset, Grid};
-use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel, VoxelState};
+pub use crate::tree::LeafOccupancy;
 
 /// Counts of known voxels by state.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -11,16 +11,6 @@ pub struct MapCounts {
     pub occupied: u64,
     pub free: u64,
     pub leaves: u64,
-}
-
-/// The occupancy of one 8x8x8 leaf as two masks: which voxels are known, and which of
-/// those are occupied. What exporters and renderers read, from a map or a snapshot alike.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct LeafOccupancy {
-    pub origin: VoxelCoord,
-    pub known: Mask512,
-    /// A subset of `known`.
-    pub occupied: Mask512,
 }
 
 /// A 3D log-odds occupancy map. Voxels never observed are inactive (unknown); observed
@@ -143,7 +133,7 @@ impl OccupancyMap {
     #[cfg(test)]
     pub(crate) fn assert_marks_in_step(&self) {
         for (origin, leaf) in self.grid.leaves() {
-            let mut want = Mask512::EMPTY;
+            let mut want = crate::mask::Mask512::EMPTY;
             for i in leaf.active.iter_ones() {
                 if leaf.values[i] >= self.q.threshold {
                     want.set(i);

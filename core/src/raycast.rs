@@ -6,6 +6,21 @@
 //! (x, then y, then z), so the walk is deterministic. Step counts are fixed up front, so
 //! rounding can never carry the walk past the end voxel. [`LeafWalk`] follows the same walk
 //! leaf by leaf (8x8x8 voxels) for walks that can pass whole leaves.
+//!
+//! Every DDA walk in the crate is this one, stepped in its own way:
+//!
+//! | walk | where | what for |
+//! |---|---|---|
+//! | [`Dda::step`], [`for_each_voxel`] | here | the reference; tests' slow paths |
+//! | sparse, one ray at a time | `integrate::walk::sparse::walk_rays` | integration, frames with a large box |
+//! | sparse, eight rays per vector | `integrate::walk::avx512::walk_sparse` | the same, on AVX-512 |
+//! | dense, one ray at a time | `integrate::walk::dense::walk_rays` | integration, frames with a small box |
+//! | dense, eight rays per vector | `integrate::walk::avx512::walk_dense` | the same, on AVX-512 |
+//! | [`LeafWalk`] (whole leaves) and [`Dda::after_crossing`] | `snapshot::view` (`first_hit`) | line of sight on a snapshot |
+//!
+//! `integrate::tests::dense_and_sparse_walks_agree` ties the integration walks together
+//! (map and step counts); the tests here pin [`Dda`] against a brute-force walk, and
+//! `snapshot::tests::first_hit_agrees_on_long_and_lattice_segments` the snapshot's.
 
 use crate::coord::VoxelCoord;
 
@@ -212,7 +227,7 @@ impl Dda {
             }
         };
         LeafWalk {
-            origin: crate::grid::leaf_origin(self.voxel()),
+            origin: crate::tree::leaf_origin(self.voxel()),
             exit: [
                 exit(self.x, self.sx, self.tx, self.dx, self.lx),
                 exit(self.y, self.sy, self.ty, self.dy, self.ly),

@@ -6,9 +6,41 @@ use clap::Args;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use voxmap_core::{Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+use voxmap_ipc::ports::qos::FRAME_SUBSCRIBER_BUFFER;
 
 /// The embedded defaults: `voxmap serve` with no file and no flags runs on these.
 pub const DEFAULT_TOML: &str = include_str!("../default.toml");
+
+/// How rays are chosen from a frame's points (with `subsample_factor` and
+/// `bundle_threshold`, a [`RayMode`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+#[value(rename_all = "snake_case")]
+pub enum Mode {
+    Exact,
+    Subsample,
+    Bundle,
+    UniqueEnd,
+}
+
+/// What the service does with frames that arrive faster than it integrates them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Intake {
+    /// The newest waiting frame wins; the others are dropped and counted.
+    Latest,
+    /// Up to `queue_depth` waiting frames are integrated in order.
+    Queue,
+}
+
+impl std::fmt::Display for Intake {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Latest => "latest",
+            Self::Queue => "queue",
+        })
+    }
+}
 
 /// Every setting, as the TOML file spells it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -22,16 +54,14 @@ pub struct Config {
     pub threads: usize,
     /// Pin integration thread i to the i-th CPU the service may use.
     pub pin_threads: bool,
-    /// exact | subsample | bundle | unique_end
-    pub mode: String,
+    pub mode: Mode,
     pub subsample_factor: u32,
     pub bundle_threshold: u32,
     pub sensor_model: SensorModel,
     pub snapshot_values: bool,
     /// Publish at most one snapshot per this many milliseconds (0 = after every frame).
     pub snapshot_interval_ms: f64,
-    /// latest | queue
-    pub intake: String,
+    pub intake: Intake,
     /// Frames kept waiting under `intake = "queue"` (1..=4).
     pub queue_depth: usize,
     /// SCHED_FIFO priority of the service's frame/snapshot thread (0 = normal scheduling).
@@ -56,9 +86,9 @@ pub struct MappingArgs {
     /// Pin integration thread i to the i-th CPU the service may use: true or false.
     #[arg(long)]
     pub pin_threads: Option<bool>,
-    /// Ray selection: exact, subsample, bundle or unique_end.
-    #[arg(long)]
-    pub mode: Option<String>,
+    /// Ray selection.
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
     /// For --mode subsample: sub-cells per voxel edge.
     #[arg(long)]
     pub subsample_factor: Option<u32>,
@@ -121,18 +151,17 @@ fn merge_toml(base: &Config, text: &str) -> Result<Config> {
 }
 
 impl Config {
-    pub fn ray_mode(&self) -> Result<RayMode> {
-        Ok(match self.mode.as_str() {
-            "exact" => RayMode::Exact,
-            "subsample" => RayMode::Subsample {
+    pub fn ray_mode(&self) -> RayMode {
+        match self.mode {
+            Mode::Exact => RayMode::Exact,
+            Mode::Subsample => RayMode::Subsample {
                 factor: self.subsample_factor,
             },
-            "bundle" => RayMode::Bundle {
+            Mode::Bundle => RayMode::Bundle {
                 threshold: self.bundle_threshold,
             },
-            "unique_end" => RayMode::UniqueEnd,
-            m => bail!("unknown mode '{m}' (exact, subsample, bundle, unique_end)"),
-        })
+            Mode::UniqueEnd => RayMode::UniqueEnd,
+        }
     }
 
     pub fn threads(&self) -> usize {
@@ -143,15 +172,8 @@ impl Config {
     }
 
     pub fn check(&self) -> Result<()> {
-        self.ray_mode()?;
-        if !matches!(self.intake.as_str(), "latest" | "queue") {
-            bail!("intake must be 'latest' or 'queue', not '{}'", self.intake);
-        }
-        if !(1..=voxmap_client::qos::FRAME_SUBSCRIBER_BUFFER).contains(&self.queue_depth) {
-            bail!(
-                "queue_depth must be 1..={}",
-                voxmap_client::qos::FRAME_SUBSCRIBER_BUFFER
-            );
+        if !(1..=FRAME_SUBSCRIBER_BUFFER).contains(&self.queue_depth) {
+            bail!("queue_depth must be 1..={FRAME_SUBSCRIBER_BUFFER}");
         }
         if !(0..=99).contains(&self.rt_priority) {
             bail!("rt_priority must be 0..=99");
@@ -182,7 +204,7 @@ impl Config {
         Ok(Integrator::new(IntegratorConfig {
             threads: self.threads(),
             max_range: self.max_range,
-            mode: self.ray_mode()?,
+            mode: self.ray_mode(),
             pin_threads: self.pin_threads,
         })?)
     }
@@ -197,7 +219,7 @@ mod tests {
         let c = MappingArgs::default().resolve().unwrap();
         assert_eq!(c.resolution, 0.1);
         assert_eq!(c.sensor_model, SensorModel::default());
-        assert_eq!(c.ray_mode().unwrap(), RayMode::Exact);
+        assert_eq!(c.ray_mode(), RayMode::Exact);
         let dir = std::env::temp_dir().join(format!("voxmap-config-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let f = dir.join("c.toml");
@@ -215,11 +237,12 @@ mod tests {
         assert_eq!(c.resolution, 0.2, "flag beats file");
         assert_eq!(c.sensor_model.p_hit, 0.8, "file beats default");
         assert_eq!(c.sensor_model.p_miss, 0.4, "untouched keys keep defaults");
-        assert_eq!(c.ray_mode().unwrap(), RayMode::Bundle { threshold: 8 });
+        assert_eq!(c.ray_mode(), RayMode::Bundle { threshold: 8 });
         for (bad, why) in [
             ("resolutoin = 0.1\n", "unknown setting"),
             ("resolution = -1.0\n", "resolution"),
-            ("mode = \"fast\"\n", "unknown mode"),
+            ("mode = \"fast\"\n", "unknown variant `fast`"),
+            ("intake = \"all\"\n", "unknown variant `all`"),
             ("[sensor_model]\np_hit = 0.3\n", "p_hit"),
             ("resolution = \"x\"\n", "invalid type"),
             ("max_range = 1000.0\n", "8192"),

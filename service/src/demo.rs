@@ -294,7 +294,7 @@ pub fn planner(a: SimArgs) -> Result<()> {
     let snaps = latencies_ms.len();
     latencies_ms.sort_by(f64::total_cmp);
     handover_us.sort_by(f64::total_cmp);
-    use crate::serve::percentile;
+    use crate::quantile::percentile;
     let pct = |p: f64| percentile(&latencies_ms, p);
     if a.json {
         println!(

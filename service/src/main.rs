@@ -6,6 +6,7 @@ mod demo;
 mod filejobs;
 mod files;
 mod os;
+mod quantile;
 mod render;
 mod replay;
 mod rng;

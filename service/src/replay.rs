@@ -12,8 +12,8 @@ use std::time::{Duration, Instant};
 use voxmap_client::{FramePublisher, MapControl, SnapshotSubscriber};
 use voxmap_core::io::scans::StampedPose;
 use voxmap_core::io::{mapfile, pcd, ply, scans};
-use voxmap_core::wire::FrameHeader;
 use voxmap_core::Frame;
+use voxmap_ipc::FrameHeader;
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {

@@ -360,7 +360,7 @@ fn a_slow_load_stalls_neither_frames_nor_requests() {
 
 #[test]
 fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
-    use voxmap_client::{ControlKind, ControlRequest, MapControl, SnapshotScope};
+    use voxmap_client::{ControlKind, ControlRequest, MapControl, MapScope};
     let prefix = unique_prefix("ctl");
     let Scanned {
         svc,
@@ -414,7 +414,7 @@ fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     );
 
     // Scope: a 1 m box around the sensor holds fewer voxels than the whole room.
-    ctl.set_scope(SnapshotScope::AroundSensor {
+    ctl.set_scope(MapScope::AroundSensor {
         half_extents: [0.5, 0.5, 0.5],
     })
     .unwrap();
@@ -425,7 +425,7 @@ fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     let boxed = sub.latest().unwrap().unwrap().counts().0;
     assert!(boxed > 0 && boxed < known / 4, "{boxed} of {known}");
     assert!(ctl
-        .set_scope(SnapshotScope::AroundSensor {
+        .set_scope(MapScope::AroundSensor {
             half_extents: [-1.0, 1.0, 1.0]
         })
         .is_err());

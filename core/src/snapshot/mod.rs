@@ -10,11 +10,13 @@
 pub mod layout;
 pub mod record;
 pub mod view;
+#[cfg(feature = "map")]
 pub mod writer;
 
 pub use layout::{Header, SnapshotError, FORMAT_VERSION, MAGIC};
 pub use view::{InvalidSegment, SnapshotView};
+#[cfg(feature = "map")]
 pub use writer::{Meta, Plan, Scope};
 
-#[cfg(test)]
+#[cfg(all(test, feature = "map"))]
 mod tests;

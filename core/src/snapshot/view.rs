@@ -3,11 +3,11 @@
 use super::layout::*;
 use super::record::{self, MaskRef};
 use crate::coord::{GridTransform, VoxelCoord, WorldPoint};
-use crate::grid::{
-    block_origin, leaf_box_mask, leaf_in_block, leaf_of_block, leaf_offset, leaf_origin, voxel_at,
-};
 use crate::mask::BitIter;
 use crate::model::{QuantizedModel, VoxelState};
+use crate::tree::{
+    block_origin, leaf_box_mask, leaf_in_block, leaf_of_block, leaf_offset, leaf_origin, voxel_at,
+};
 use bytemuck::Zeroable;
 
 /// Longest segment [`SnapshotView::first_hit`] walks, per axis, in voxels.
@@ -737,7 +737,7 @@ impl<'a> SnapshotView<'a> {
 
     /// Every leaf's occupancy masks, in leaf order. Occupied bits outside the known mask
     /// (possible only in corrupt bytes) are dropped.
-    pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::map::LeafOccupancy> + '_ {
+    pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::tree::LeafOccupancy> + '_ {
         self.stored_leaves().map(move |(origin, e)| {
             let (k, o) = self.masks_of(&e);
             let known = k.decode(self.masks);
@@ -747,7 +747,7 @@ impl<'a> SnapshotView<'a> {
                 .iter_mut()
                 .zip(known.words)
                 .for_each(|(o, k)| *o &= k);
-            crate::map::LeafOccupancy {
+            crate::tree::LeafOccupancy {
                 origin,
                 known,
                 occupied,

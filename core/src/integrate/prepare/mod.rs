@@ -133,7 +133,7 @@ pub(super) fn prepare_rays(
             *side = counts;
             sum
         })
-        .reduce(|| ExtentSum::new(origin), ExtentSum::merge);
+        .reduce(|| ExtentSum::new(origin), ExtentSum::join);
     let skipped = sums.skipped;
     if mode == RayMode::Exact {
         return (skipped, sums.extent());
@@ -356,7 +356,7 @@ impl RayMaker {
 pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
         .map(|c| ExtentSum::of(origin, c))
-        .reduce(|| ExtentSum::new(origin), ExtentSum::merge)
+        .reduce(|| ExtentSum::new(origin), ExtentSum::join)
         .extent()
 }
 
@@ -406,7 +406,7 @@ impl ExtentSum {
         self.cut += u64::from(!r.hit);
     }
 
-    pub(in crate::integrate) fn merge(a: Self, b: Self) -> Self {
+    pub(in crate::integrate) fn join(a: Self, b: Self) -> Self {
         ExtentSum {
             origin: a.origin,
             lo: [0, 1, 2].map(|i| a.lo[i].min(b.lo[i])),

@@ -1,0 +1,206 @@
+//! Control requests (stats, save, load, clear, scope), answered between frames.
+//!
+//! Saves and loads run on the file worker ([`crate::filejobs`]); while one runs, requests
+//! other than stats wait behind it in order ([`Control::deferred`]), so that they see the
+//! map as the file job leaves it and one save at a time holds a copy. A finished file job
+//! is answered first (a loaded map swapped in), then the requests deferred behind it, then
+//! new ones.
+
+use super::MapState;
+use crate::filejobs::{Done, FileWorker, Job};
+use anyhow::{anyhow, Result};
+use iceoryx2::active_request::ActiveRequest;
+use iceoryx2::port::server::Server;
+use iceoryx2::prelude::*;
+use std::collections::VecDeque;
+use voxmap_core::io::mapfile;
+use voxmap_ipc::{ControlKind, ControlRequest, ControlResponse};
+
+type Request = ActiveRequest<ipc::Service, ControlRequest, (), ControlResponse, ()>;
+
+/// An answer: success, message, and whether the map changed so that a snapshot is due.
+struct Answer {
+    ok: bool,
+    message: String,
+    republish: bool,
+}
+
+impl Answer {
+    fn ok(message: String, republish: bool) -> Self {
+        Self {
+            ok: true,
+            message,
+            republish,
+        }
+    }
+
+    fn err(message: String) -> Self {
+        Self {
+            ok: false,
+            message,
+            republish: false,
+        }
+    }
+}
+
+/// The control server with its queues of requests in flight.
+pub(super) struct Control {
+    server: Server<ipc::Service, ControlRequest, (), ControlResponse, ()>,
+    files: FileWorker,
+    /// Requests whose file job is running, in the order of the jobs.
+    waiting: VecDeque<Request>,
+    /// Requests that came while a file job ran, in order.
+    deferred: VecDeque<Request>,
+}
+
+impl Control {
+    pub fn new(
+        server: Server<ipc::Service, ControlRequest, (), ControlResponse, ()>,
+    ) -> Result<Self> {
+        Ok(Self {
+            server,
+            files: FileWorker::spawn()
+                .map_err(|e| anyhow!(e).context("starting the file worker"))?,
+            waiting: VecDeque::new(),
+            deferred: VecDeque::new(),
+        })
+    }
+
+    /// Answer every request that can be answered now; `publish` is called when a request
+    /// changed the map or its scope, before the answer goes out.
+    pub fn serve(
+        &mut self,
+        s: &mut MapState,
+        mut publish: impl FnMut(&mut MapState),
+    ) -> Result<()> {
+        loop {
+            let (req, answer) = if let Some(done) = self.files.try_done() {
+                let req = self
+                    .waiting
+                    .pop_front()
+                    .expect("one waiting request per file job");
+                (req, finish_file_job(done, s))
+            } else {
+                let next = match self.waiting.is_empty() {
+                    true => self.deferred.pop_front(),
+                    false => None,
+                };
+                let req = match next {
+                    Some(req) => req,
+                    None => match self
+                        .server
+                        .receive()
+                        .map_err(|e| anyhow!(e).context("receiving a control request"))?
+                    {
+                        Some(req) => req,
+                        None => return Ok(()),
+                    },
+                };
+                let r = *req.payload();
+                if !self.waiting.is_empty() && r.kind().ok() != Some(ControlKind::Stats) {
+                    self.deferred.push_back(req);
+                    continue;
+                }
+                match self.answer(&r, s) {
+                    Some(a) => (req, a),
+                    // A file job took it; it is answered when the job is done.
+                    None => {
+                        self.waiting.push_back(req);
+                        continue;
+                    }
+                }
+            };
+            if !answer.ok {
+                eprintln!("voxmap serve: control request failed: {}", answer.message);
+            }
+            if answer.republish {
+                publish(s);
+            }
+            let _ = req.send_copy(ControlResponse::new(
+                answer.ok,
+                &answer.message,
+                s.stats.wire(&s.map),
+            ));
+        }
+    }
+
+    /// The answer to `r`, or `None` when a file job was started for it.
+    fn answer(&mut self, r: &ControlRequest, s: &mut MapState) -> Option<Answer> {
+        let kind = match r.kind() {
+            Ok(k) => k,
+            Err(e) => return Some(Answer::err(e.to_string())),
+        };
+        Some(match kind {
+            ControlKind::Stats => Answer::ok(String::new(), false),
+            ControlKind::Save | ControlKind::Load => {
+                let Some(p) = r.path() else {
+                    return Some(Answer::err("bad path".into()));
+                };
+                let path = p.into();
+                let job = if kind == ControlKind::Save {
+                    let (integ, map) = (&s.integ, &s.map);
+                    let file = integ.install(|| mapfile::encode_map_parts(map));
+                    Job::Save { path, file }
+                } else {
+                    Job::Load { path }
+                };
+                match self.files.submit(job) {
+                    Ok(()) => return None,
+                    Err(e) => Answer::err(e),
+                }
+            }
+            ControlKind::Clear => {
+                s.map.clear();
+                Answer::ok("cleared".into(), true)
+            }
+            ControlKind::SetScope => match r.scope() {
+                Ok(scope) => {
+                    s.scope = scope;
+                    Answer::ok(format!("scope {scope:?}"), true)
+                }
+                Err(e) => Answer::err(e.to_string()),
+            },
+        })
+    }
+
+    /// At exit: a save being written is finished and answered; a load is not waited for
+    /// (nor swapped in if it is done), and requests still deferred are refused.
+    pub fn finish(self, s: &mut MapState) {
+        let mut finished = self.files.finish().into_iter();
+        for req in self.waiting.into_iter().chain(self.deferred) {
+            let answer = match finished.next() {
+                Some(Done::Loaded(_, Ok(_))) | None => {
+                    Answer::err("not done: the service is exiting".into())
+                }
+                Some(done) => finish_file_job(done, s),
+            };
+            let _ = req.send_copy(ControlResponse::new(
+                answer.ok,
+                &answer.message,
+                s.stats.wire(&s.map),
+            ));
+        }
+    }
+}
+
+/// Apply a finished file job: a loaded map replaces the map unless the integrator cannot
+/// work at its resolution.
+fn finish_file_job(done: Done, s: &mut MapState) -> Answer {
+    match done {
+        Done::Saved(p, Ok(())) => Answer::ok(format!("saved to {}", p.display()), false),
+        Done::Loaded(p, Ok(m)) => {
+            if !s.integ.fits_resolution(m.resolution()) {
+                return Answer::err(format!(
+                    "{} not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
+                    p.display(),
+                    m.resolution(),
+                    s.integ.config().max_range,
+                    voxmap_core::integrate::MAX_RANGE_VOXELS
+                ));
+            }
+            s.map = m;
+            Answer::ok(format!("loaded {}", p.display()), true)
+        }
+        Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e)) => Answer::err(e),
+    }
+}

@@ -1,0 +1,261 @@
+//! `voxmap serve`: the mapping daemon. Frames in over iceoryx2 ([`intake`]), integrated
+//! on a thread pool, snapshots out, encoded straight into loaned shared-memory samples
+//! ([`publish`]); control requests answered between frames ([`control`]); counters in
+//! [`stats`]. This file sets it up and runs the event loop.
+
+mod control;
+mod intake;
+mod publish;
+mod stats;
+
+use crate::config::{Config, Intake, MappingArgs};
+use crate::os::now_ns;
+use anyhow::{anyhow, Context, Result};
+use clap::Args;
+use iceoryx2::prelude::*;
+use iceoryx2::waitset::WaitSetRunResult;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use voxmap_core::io::mapfile;
+use voxmap_core::snapshot::Scope;
+use voxmap_core::{Integrator, OccupancyMap};
+use voxmap_ipc::ports::{self, open_control, open_event, open_frames, open_snapshots, qos};
+use voxmap_ipc::{MapScope, ServiceNames};
+
+#[derive(Args, Debug, Clone)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    pub mapping: MappingArgs,
+    /// Service-name prefix: isolates one deployment (or test) from another.
+    #[arg(long)]
+    pub prefix: Option<String>,
+    /// Map name under the prefix.
+    #[arg(long)]
+    pub map: Option<String>,
+    /// Resume from this map file (its resolution and sensor model replace the configured).
+    #[arg(long)]
+    pub load: Option<PathBuf>,
+    /// Save the map here on SIGINT/SIGTERM.
+    #[arg(long)]
+    pub save_on_exit: Option<PathBuf>,
+    /// Include per-voxel log-odds in snapshots (512 bytes per leaf).
+    #[arg(long)]
+    pub snapshot_values: bool,
+    /// Publish at most one snapshot per this many milliseconds (0 = after every frame).
+    #[arg(long)]
+    pub snapshot_interval_ms: Option<f64>,
+    /// Frames arriving faster than they integrate: the newest wins, or a queue.
+    #[arg(long, value_enum)]
+    pub intake: Option<Intake>,
+    /// Frames kept waiting under --intake queue (1..=4).
+    #[arg(long)]
+    pub queue_depth: Option<usize>,
+    /// Run the frame/snapshot thread under SCHED_FIFO at this priority (1..=99; 0 = off).
+    #[arg(long)]
+    pub rt_priority: Option<i32>,
+    /// Exit after this many seconds (for demos and tests); 0 = run until a signal.
+    #[arg(long, default_value_t = 0.0)]
+    pub exit_after: f64,
+}
+
+impl ServeArgs {
+    /// The configuration with this command's own flags applied.
+    pub fn resolve(&self) -> Result<crate::config::Config> {
+        let mut c = self.mapping.resolve()?;
+        if let Some(p) = &self.prefix {
+            c.prefix = p.clone();
+        }
+        if let Some(m) = &self.map {
+            c.map = m.clone();
+        }
+        c.snapshot_values |= self.snapshot_values;
+        if let Some(v) = self.snapshot_interval_ms {
+            c.snapshot_interval_ms = v;
+        }
+        if let Some(v) = self.intake {
+            c.intake = v;
+        }
+        if let Some(v) = self.queue_depth {
+            c.queue_depth = v;
+        }
+        if let Some(v) = self.rt_priority {
+            c.rt_priority = v;
+        }
+        c.check()?;
+        Ok(c)
+    }
+}
+
+/// The map and what the loop knows about it.
+pub(crate) struct MapState {
+    map: OccupancyMap,
+    integ: Integrator,
+    /// Sequence number of the last integrated frame (0 before any).
+    sequence: u64,
+    /// Time stamp of the data in the map: the last integrated frame's (or now, before any).
+    stamp_ns: u64,
+    /// The last integrated frame's sensor position, for `MapScope::AroundSensor`.
+    sensor: [f64; 3],
+    scope: MapScope,
+    stats: stats::Stats,
+}
+
+impl MapState {
+    /// What the next snapshot covers.
+    fn snapshot_scope(&self) -> Scope {
+        match self.scope.bounds(self.sensor) {
+            None => Scope::Whole,
+            Some((min, max)) => Scope::Box { min, max },
+        }
+    }
+}
+
+pub fn run(a: ServeArgs) -> Result<()> {
+    let cfg = a.resolve()?;
+    let names = ServiceNames::new(&cfg.prefix, &cfg.map);
+    let node = ports::node(
+        "voxmap-serve",
+        SignalHandlingMode::HandleTerminationRequests,
+    )?;
+    let cleanup = node.try_cleanup_dead_nodes();
+    eprintln!("voxmap serve: dead iceoryx2 nodes cleaned up: {cleanup:?}");
+    let subscriber = open_frames(&node, &names)?
+        .subscriber_builder()
+        .buffer_size(match cfg.intake {
+            Intake::Queue => cfg.queue_depth,
+            Intake::Latest => qos::FRAME_SUBSCRIBER_BUFFER,
+        })
+        .create()
+        .map_err(|e| anyhow!(e).context("creating the frame subscriber"))?;
+    let mut intake = intake::FrameIntake::new(subscriber, cfg.intake);
+    let frame_events = open_event(&node, &names.frames_event)?
+        .listener_builder()
+        .create()
+        .map_err(|e| anyhow!(e).context("creating the frame listener"))?;
+    let out = publish::SnapshotOut {
+        publisher: open_snapshots(&node, &names)?
+            .publisher_builder()
+            .initial_max_slice_len(1 << 20)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .map_err(|e| anyhow!(e).context("creating the snapshot publisher"))?,
+        notifier: open_event(&node, &names.snapshot_event)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| anyhow!(e).context("creating the snapshot notifier"))?,
+        with_values: cfg.snapshot_values,
+    };
+    let mut control = control::Control::new(
+        open_control(&node, &names)?
+            .server_builder()
+            .create()
+            .map_err(|e| anyhow!(e).context("creating the control server"))?,
+    )?;
+    let mut s = MapState {
+        map: match &a.load {
+            Some(p) => mapfile::load_map(p)?,
+            None => cfg.new_map()?,
+        },
+        integ: cfg.integrator()?,
+        sequence: 0,
+        stamp_ns: now_ns(),
+        sensor: [0.0; 3],
+        scope: MapScope::Whole,
+        stats: stats::Stats::default(),
+    };
+    // After the integration pool exists, so only this (I/O) thread runs real-time.
+    if cfg.rt_priority > 0 {
+        crate::os::set_realtime(cfg.rt_priority)?;
+    }
+    out.publish(&mut s);
+    log_start(&cfg, &names, &s);
+
+    let waitset = WaitSetBuilder::new()
+        .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!(e).context("creating the waitset"))?;
+    let frame_guard = waitset
+        .attach_notification(&frame_events)
+        .map_err(|e| anyhow!(e).context("attaching the frame listener"))?;
+    let tick = waitset
+        .attach_interval(Duration::from_millis(200))
+        .map_err(|e| anyhow!(e).context("attaching the tick"))?;
+    let started = Instant::now();
+    let mut last_log = Instant::now();
+    let interval = Duration::from_secs_f64(cfg.snapshot_interval_ms / 1e3);
+    let mut last_publish = Instant::now();
+    // Integrated frames not yet in a published snapshot (under snapshot_interval_ms).
+    let mut unpublished = false;
+    loop {
+        let (mut frames_ready, mut ticked) = (false, false);
+        let timeout = if unpublished {
+            interval.saturating_sub(last_publish.elapsed())
+        } else {
+            Duration::from_secs(1)
+        };
+        let r = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    frames_ready |= id.has_event_from(&frame_guard);
+                    ticked |= id.has_event_from(&tick);
+                    CallbackProgression::Continue
+                },
+                timeout,
+            )
+            .map_err(|e| anyhow!(e).context("waiting for events"))?;
+        if matches!(
+            r,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            break;
+        }
+        if frames_ready {
+            frame_events
+                .try_wait(|_| {})
+                .map_err(|e| anyhow!(e).context("taking frame events"))?;
+        }
+        unpublished |= intake.integrate_waiting(&mut s)?;
+        if unpublished && last_publish.elapsed() >= interval {
+            out.publish(&mut s);
+            last_publish = Instant::now();
+            unpublished = false;
+        }
+        control.serve(&mut s, |s| {
+            out.publish(s);
+            last_publish = Instant::now();
+            unpublished = false;
+        })?;
+        if ticked {
+            out.update_connections();
+        }
+        if last_log.elapsed() >= Duration::from_secs(5) {
+            last_log = Instant::now();
+            eprintln!("voxmap serve: {}", s.stats.log_line(&s.map));
+        }
+        if a.exit_after > 0.0 && started.elapsed().as_secs_f64() >= a.exit_after {
+            break;
+        }
+    }
+    control.finish(&mut s);
+    out.publish(&mut s);
+    if let Some(p) = &a.save_on_exit {
+        mapfile::save_map(&s.map, p).with_context(|| format!("saving map to {}", p.display()))?;
+        eprintln!("voxmap serve: map saved to {}", p.display());
+    }
+    eprintln!("voxmap serve: exiting; {}", s.stats.log_line(&s.map));
+    Ok(())
+}
+
+fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
+    eprintln!(
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, intake {}; frames on '{}'",
+        cfg.prefix,
+        cfg.map,
+        s.map.resolution(),
+        cfg.max_range,
+        cfg.ray_mode().name(),
+        cfg.threads(),
+        cfg.intake,
+        names.frames
+    );
+}

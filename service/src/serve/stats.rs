@@ -1,0 +1,70 @@
+//! The service's counters: for the periodic log line and the `stats` control request.
+
+use crate::quantile::percentile;
+use voxmap_core::OccupancyMap;
+use voxmap_ipc::StatsWire;
+
+/// Counters for the periodic log line and the `stats` request.
+#[derive(Default, Debug)]
+pub(super) struct Stats {
+    pub received: u64,
+    pub integrated: u64,
+    pub dropped: u64,
+    pub rejected: u64,
+    pub points: u64,
+    pub skipped_points: u64,
+    /// Integration times (ms) of the last frames, oldest first.
+    pub integrate_ms: std::collections::VecDeque<f64>,
+    /// Send-to-receive times (us) of the last time-stamped frames.
+    pub intake_us: std::collections::VecDeque<f64>,
+    pub last_snapshot_bytes: usize,
+    pub last_encode_ms: f64,
+    pub sequence: u64,
+    pub publish_failures: u64,
+}
+
+impl Stats {
+    pub(super) fn record(window: &mut std::collections::VecDeque<f64>, x: f64) {
+        if window.len() == 1024 {
+            window.pop_front();
+        }
+        window.push_back(x);
+    }
+
+    pub(super) fn wire(&self, map: &OccupancyMap) -> StatsWire {
+        let sorted = |w: &std::collections::VecDeque<f64>| {
+            let mut t: Vec<f64> = w.iter().copied().collect();
+            t.sort_by(f64::total_cmp);
+            t
+        };
+        let (t, intake) = (sorted(&self.integrate_ms), sorted(&self.intake_us));
+        StatsWire {
+            frames_received: self.received,
+            frames_integrated: self.integrated,
+            frames_dropped: self.dropped,
+            frames_rejected: self.rejected,
+            points_integrated: self.points,
+            points_skipped: self.skipped_points,
+            map_leaves: map.grid().leaf_count() as u64,
+            map_memory_bytes: map.memory_bytes() as u64,
+            snapshot_bytes: self.last_snapshot_bytes as u64,
+            snapshot_sequence: self.sequence,
+            integrate_ms_p50: percentile(&t, 0.5),
+            integrate_ms_p99: percentile(&t, 0.99),
+            integrate_ms_max: t.last().copied().unwrap_or(0.0),
+            encode_ms_last: self.last_encode_ms,
+            intake_us_p50: percentile(&intake, 0.5),
+            intake_us_p99: percentile(&intake, 0.99),
+        }
+    }
+
+    pub(super) fn log_line(&self, map: &OccupancyMap) -> String {
+        let w = self.wire(map);
+        format!(
+            "frames received {} integrated {} dropped {} rejected {}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
+             snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes",
+            w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
+            w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, self.publish_failures, w.map_leaves, w.map_memory_bytes
+        )
+    }
+}
