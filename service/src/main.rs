@@ -12,6 +12,7 @@ mod replay;
 mod rng;
 mod serve;
 mod sim;
+mod simproc;
 
 use clap::{Parser, Subcommand};
 
@@ -46,15 +47,28 @@ enum Cmd {
     Bench(bench::BenchArgs),
     /// The demo's simulated LiDAR (a separate process).
     #[command(hide = true)]
-    SimSensor(demo::SimArgs),
+    SimSensor(simproc::SimArgs),
     /// The demo's planner (a separate process).
     #[command(hide = true)]
-    SimPlanner(demo::SimArgs),
+    SimPlanner(simproc::SimArgs),
 }
 
-fn main() -> anyhow::Result<()> {
+/// Errors are reported as one line, the error and its causes (`a: b: c`), with a non-zero
+/// exit; never with a backtrace, whatever `RUST_BACKTRACE` says: they are expected
+/// failures (a bad file, a full disk), not bugs.
+fn main() -> std::process::ExitCode {
     os::keep_freed_memory();
-    match Cli::parse().cmd {
+    match run(Cli::parse().cmd) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("voxmap: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cmd: Cmd) -> anyhow::Result<()> {
+    match cmd {
         Cmd::Demo(a) => demo::run(a),
         Cmd::Serve(a) => serve::run(a),
         Cmd::Replay(a) => replay::run(a),
@@ -66,7 +80,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Bench(a) => bench::run(a),
-        Cmd::SimSensor(a) => demo::sensor(a),
-        Cmd::SimPlanner(a) => demo::planner(a),
+        Cmd::SimSensor(a) => simproc::sensor(a),
+        Cmd::SimPlanner(a) => simproc::planner(a),
     }
 }

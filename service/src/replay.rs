@@ -118,9 +118,12 @@ pub fn read_scan(path: &Path, index: usize, poses: Option<&[StampedPose]>) -> Re
     let points = match ext {
         "bin" => scans::parse_kitti_bin(&bytes),
         "ply" => ply::parse(&bytes),
-        _ => Err(format!("unknown extension '{ext}' (pcd, bin, ply)")),
+        _ => bail!(
+            "{}: unknown extension '{ext}' (pcd, bin, ply)",
+            path.display()
+        ),
     }
-    .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    .with_context(|| path.display().to_string())?;
     let poses =
         poses.ok_or_else(|| anyhow!("{}: .{ext} scans need --poses FILE", path.display()))?;
     let stamp = stem_stamp(path);
@@ -185,7 +188,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         Some(p) => {
             let text =
                 std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            let mut v = scans::parse_poses(&text).map_err(|e| anyhow!("{}: {e}", p.display()))?;
+            let mut v = scans::parse_poses(&text).with_context(|| p.display().to_string())?;
             if v.iter().all(|p| p.stamp.is_some()) {
                 v.sort_by(|x, y| x.stamp.unwrap_or(0.0).total_cmp(&y.stamp.unwrap_or(0.0)));
             }

@@ -410,10 +410,21 @@ fn inspect_and_render_read_maps_and_say_what_is_wrong_with_bad_files() {
     ] {
         let p = dir.join("bad.vxm");
         std::fs::write(&p, &bytes).unwrap();
-        let out = voxmap(&["inspect", p.to_str().unwrap()]);
+        // An expected failure is one line with its causes and a non-zero exit, never a
+        // backtrace, even where RUST_BACKTRACE asks for them.
+        let out = Command::new(voxmap_bin())
+            .args(["inspect", p.to_str().unwrap()])
+            .env("RUST_BACKTRACE", "1")
+            .output()
+            .expect("run voxmap");
         assert!(!out.status.success());
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(why) && err.contains("bad.vxm"), "{why}: {err}");
+        assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+        assert!(
+            err.starts_with("voxmap: error: ") && !err.contains("backtrace"),
+            "{err}"
+        );
     }
 
     // Render: top-down and slice PNGs of the room's size.

@@ -1,8 +1,9 @@
 //! PCD v0.7 point clouds (ascii and binary) with float `x y z` fields among others; the
 //! sensor pose comes from `VIEWPOINT` (tx ty tz qw qx qy qz).
 
+use super::{Format, ParseError, ReadError, ReadErrorKind};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// A point cloud in the sensor frame with the sensor's pose.
 #[derive(Clone, Debug, PartialEq)]
@@ -11,31 +12,19 @@ pub struct PointCloud {
     pub pose: Isometry3<f64>,
 }
 
-/// A PCD file could not be read; names the file and the problem.
-#[derive(Debug)]
-pub struct PcdError {
-    pub path: PathBuf,
-    pub problem: String,
-}
-
-impl std::fmt::Display for PcdError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}: {}", self.path.display(), self.problem)
-    }
-}
-
-impl std::error::Error for PcdError {}
-
 /// Read a PCD file.
-pub fn read(path: &Path) -> Result<PointCloud, PcdError> {
-    let bytes = std::fs::read(path).map_err(|e| PcdError {
+pub fn read(path: &Path) -> Result<PointCloud, ReadError> {
+    let fail = |kind| ReadError {
         path: path.into(),
-        problem: format!("cannot read: {e}"),
-    })?;
-    parse(&bytes).map_err(|problem| PcdError {
-        path: path.into(),
-        problem,
-    })
+        kind,
+    };
+    let bytes = std::fs::read(path).map_err(|e| fail(ReadErrorKind::Io(e)))?;
+    parse(&bytes).map_err(|e| fail(ReadErrorKind::Parse(e)))
+}
+
+/// Parse PCD bytes.
+pub fn parse(bytes: &[u8]) -> Result<PointCloud, ParseError> {
+    parse_pcd(bytes).map_err(ParseError::new(Format::Pcd))
 }
 
 #[derive(Clone, Copy)]
@@ -45,8 +34,7 @@ struct Field {
     float: bool,
 }
 
-/// Parse PCD bytes.
-pub fn parse(bytes: &[u8]) -> Result<PointCloud, String> {
+fn parse_pcd(bytes: &[u8]) -> Result<PointCloud, String> {
     let mut pos = 0;
     let mut fields: Vec<String> = Vec::new();
     let (mut sizes, mut types, mut counts) = (Vec::new(), Vec::new(), Vec::new());
@@ -364,7 +352,10 @@ mod tests {
         ];
         for (text, want) in cases {
             let err = parse(text.as_bytes()).unwrap_err();
-            assert!(err.contains(want), "{err:?} should mention {want:?}");
+            assert!(
+                err.problem.contains(want),
+                "{err:?} should mention {want:?}"
+            );
         }
         let e = read(Path::new("/nonexistent/x.pcd")).unwrap_err();
         assert!(e.to_string().contains("/nonexistent/x.pcd"));

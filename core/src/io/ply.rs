@@ -2,8 +2,14 @@
 //! little-endian, other properties and elements skipped) and write occupied voxel centres
 //! coloured by height (binary little-endian, `x y z` float and `red green blue` uchar).
 
+use super::{Format, ParseError};
+
 /// Read the vertex positions of a PLY file.
-pub fn parse(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
+pub fn parse(bytes: &[u8]) -> Result<Vec<[f32; 3]>, ParseError> {
+    parse_ply(bytes).map_err(ParseError::new(Format::Ply))
+}
+
+fn parse_ply(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
     let mut pos = 0;
     let mut lines = Vec::new();
     loop {
@@ -239,7 +245,10 @@ mod tests {
         let pts = vec![([1.0, -2.5, 3.25], [1, 2, 3]), ([0.0, 0.0, 1e6], [9, 9, 9])];
         let b = encode_colored(&pts);
         assert_eq!(parse(&b).unwrap(), vec![[1.0, -2.5, 3.25], [0.0, 0.0, 1e6]]);
-        assert!(parse(&b[..b.len() - 1]).unwrap_err().contains("truncated"));
+        assert!(parse(&b[..b.len() - 1])
+            .unwrap_err()
+            .problem
+            .contains("truncated"));
     }
 
     #[test]
@@ -266,7 +275,8 @@ mod tests {
         ];
         for (text, why) in cases {
             let e = parse(text.as_bytes()).unwrap_err();
-            assert!(e.contains(why), "{e} should mention {why}");
+            assert!(e.problem.contains(why), "{e} should mention {why}");
+            assert_eq!(e.format, Format::Ply);
         }
         assert!(parse(b"ply\nformat ascii 1.0\n").is_err());
     }

@@ -2,10 +2,15 @@
 //! intensity` records) and the pose files that go with them, KITTI odometry (12 numbers
 //! per line: a 3x4 row-major `[R | t]`) or TUM (`t tx ty tz qx qy qz qw`).
 
+use super::{Format, ParseError};
 use nalgebra::{Isometry3, Matrix3, Quaternion, Rotation3, Translation3, UnitQuaternion};
 
 /// Points of a KITTI `.bin` scan.
-pub fn parse_kitti_bin(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
+pub fn parse_kitti_bin(bytes: &[u8]) -> Result<Vec<[f32; 3]>, ParseError> {
+    kitti_bin(bytes).map_err(ParseError::new(Format::KittiBin))
+}
+
+fn kitti_bin(bytes: &[u8]) -> Result<Vec<[f32; 3]>, String> {
     if !bytes.len().is_multiple_of(16) {
         return Err(format!(
             "{} bytes is not a whole number of 16-byte (x y z intensity) records",
@@ -31,7 +36,11 @@ pub struct StampedPose {
 
 /// Parse a KITTI or TUM pose file (told apart by the count of numbers on a line; `#`
 /// starts a comment). Rotations must be orthonormal and quaternions unit length to 1e-3.
-pub fn parse_poses(text: &str) -> Result<Vec<StampedPose>, String> {
+pub fn parse_poses(text: &str) -> Result<Vec<StampedPose>, ParseError> {
+    poses(text).map_err(ParseError::new(Format::Poses))
+}
+
+fn poses(text: &str) -> Result<Vec<StampedPose>, String> {
     let mut out = Vec::new();
     for (n, line) in text.lines().enumerate() {
         let line = line.split('#').next().unwrap_or("").trim();
@@ -108,7 +117,10 @@ mod tests {
             parse_kitti_bin(&b).unwrap(),
             vec![[1.0, 2.0, 3.0], [-1.0, -2.0, -3.0]]
         );
-        assert!(parse_kitti_bin(&b[..20]).unwrap_err().contains("16-byte"));
+        assert!(parse_kitti_bin(&b[..20])
+            .unwrap_err()
+            .problem
+            .contains("16-byte"));
     }
 
     #[test]
@@ -137,7 +149,7 @@ mod tests {
             ("0 1 2 3 0 0 0 1\n1 0 0 0 0 1 0 0 0 0 1 0\n", "mixed"),
         ] {
             let e = parse_poses(t).unwrap_err();
-            assert!(e.contains(why), "{e}");
+            assert!(e.problem.contains(why), "{e}");
         }
     }
 }

@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! offset  size                 what
-//! 0       176                  Header
+//! 0       200                  Header
 //! table   4 * table_capacity   u32 per slot: block index + 1, 0 = empty; a dense 3D array
 //!                              over the blocks' bounds, or a hash table (linear probing)
 //! blocks  96 * block_count     BlockEntry: origin, first leaf, which of its 512 leaves exist
@@ -218,16 +218,9 @@ pub enum SnapshotError {
     /// The table points at a block that does not exist, the blocks do not name each leaf
     /// once, or a leaf entry's kinds or mask record are malformed.
     BadIndex(&'static str),
-    /// The map needs more mask bytes than a leaf entry can address.
-    TooLarge,
     ChecksumMismatch {
         stored: u32,
         computed: u32,
-    },
-    /// The destination buffer is smaller than `encoded_len`.
-    BufferTooSmall {
-        needed: usize,
-        got: usize,
     },
 }
 
@@ -245,13 +238,32 @@ impl std::fmt::Display for SnapshotError {
             Self::BadHeader(what) => write!(f, "bad snapshot header: {what}"),
             Self::SectionOutOfBounds(s) => write!(f, "snapshot section '{s}' out of bounds"),
             Self::BadIndex(what) => write!(f, "bad snapshot index: {what}"),
-            Self::TooLarge => write!(f, "map too large for one snapshot (> 4 GiB of masks)"),
             Self::ChecksumMismatch { stored, computed } => {
                 write!(
                     f,
                     "snapshot checksum mismatch: stored {stored:#010x}, computed {computed:#010x}"
                 )
             }
+        }
+    }
+}
+
+impl std::error::Error for SnapshotError {}
+
+/// Why a snapshot could not be written (see `writer::Plan::write`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum EncodeError {
+    /// The map needs more mask bytes than a leaf entry can address.
+    TooLarge,
+    /// The destination buffer is smaller than `encoded_len`.
+    BufferTooSmall { needed: usize, got: usize },
+}
+
+impl std::fmt::Display for EncodeError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::TooLarge => write!(f, "map too large for one snapshot (> 4 GiB of masks)"),
             Self::BufferTooSmall { needed, got } => {
                 write!(f, "buffer too small: need {needed} bytes, have {got}")
             }
@@ -259,4 +271,4 @@ impl std::fmt::Display for SnapshotError {
     }
 }
 
-impl std::error::Error for SnapshotError {}
+impl std::error::Error for EncodeError {}

@@ -13,7 +13,7 @@ pub mod view;
 #[cfg(feature = "map")]
 pub mod writer;
 
-pub use layout::{Header, SnapshotError, FORMAT_VERSION, MAGIC};
+pub use layout::{EncodeError, Header, SnapshotError, FORMAT_VERSION, MAGIC};
 pub use view::{InvalidSegment, SnapshotView};
 #[cfg(feature = "map")]
 pub use writer::{Meta, Plan, Scope};

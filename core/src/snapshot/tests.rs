@@ -330,7 +330,7 @@ fn empty_map_and_exact_buffer_sizes() {
     let mut small = vec![0u8; plan.encoded_len() - 1];
     assert!(matches!(
         plan.write(&mut small),
-        Err(SnapshotError::BufferTooSmall { .. })
+        Err(EncodeError::BufferTooSmall { .. })
     ));
     // Writing into a larger, dirty buffer (a reused sample) gives the same bytes: every
     // byte is written, not assumed zero.

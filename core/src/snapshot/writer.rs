@@ -403,7 +403,7 @@ impl<'a> Plan<'a> {
     }
 
     /// Write the snapshot into `buf[..encoded_len()]`; returns the length written.
-    pub fn write(&self, buf: &mut [u8]) -> Result<usize, SnapshotError> {
+    pub fn write(&self, buf: &mut [u8]) -> Result<usize, EncodeError> {
         let Sections {
             table,
             blocks,
@@ -416,11 +416,11 @@ impl<'a> Plan<'a> {
             || self.table_capacity >= 1 << 32
             || self.leaves.len() as u64 >= u64::from(u32::MAX)
         {
-            return Err(SnapshotError::TooLarge);
+            return Err(EncodeError::TooLarge);
         }
         let total_us = total as usize;
         if buf.len() < total_us {
-            return Err(SnapshotError::BufferTooSmall {
+            return Err(EncodeError::BufferTooSmall {
                 needed: total_us,
                 got: buf.len(),
             });

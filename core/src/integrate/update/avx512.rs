@@ -7,7 +7,7 @@ use std::arch::x86_64::*;
 /// of a leaf word take their observation at once instead of one set bit at a time. The
 /// same values and marks:
 /// an i8 add saturates only beyond the clamps, which are within i8. Random 500k 60 m, 2
-/// threads, update phase: see the README.
+/// threads, update phase: see `docs/design.md` ("One byte per voxel").
 #[cfg(target_feature = "avx512bw")]
 #[inline]
 pub(in crate::integrate) fn observe<const FRESH: bool>(

@@ -1,6 +1,8 @@
 //! `voxmap bench`: integration speed and map quality on the paper's synthetic workloads,
 //! side by side with the paper's numbers.
 
+mod e2e;
+
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -166,7 +168,7 @@ fn ms(d: std::time::Duration) -> f64 {
 
 pub fn run(a: BenchArgs) -> Result<()> {
     if let Some(secs) = a.e2e {
-        return crate::demo::e2e(secs, a.pin_threads);
+        return e2e::run(secs, a.pin_threads);
     }
     let dir = match &a.workloads {
         Some(d) => d.clone(),
