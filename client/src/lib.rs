@@ -41,8 +41,9 @@ pub use voxmap_ipc::{
     ServiceNames, SnapshotHeader, StatsWire,
 };
 
-/// Something went wrong talking to the service or reading a snapshot. iceoryx2's own error
-/// is kept as the [`std::error::Error::source`].
+/// Something went wrong talking to the service or reading a snapshot. The cause (iceoryx2's
+/// own error, the snapshot's or the request's) is the [`std::error::Error::source`], not
+/// repeated in the message.
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum ClientError {
@@ -83,7 +84,7 @@ pub enum ClientError {
 impl std::fmt::Display for ClientError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::Connect(e) => write!(f, "connect: {e}"),
+            Self::Connect(_) => write!(f, "connecting to the service failed"),
             Self::Publisher(_) => write!(f, "creating the frame publisher failed"),
             Self::Subscriber(_) => write!(f, "creating the snapshot subscriber failed"),
             Self::Notifier(_) => write!(f, "creating a wake-up notifier failed"),
@@ -102,8 +103,8 @@ impl std::fmt::Display for ClientError {
                 "no control response within {:.1} s (is the service running?)",
                 t.as_secs_f64()
             ),
-            Self::BadRequest(e) => write!(f, "bad control request: {e}"),
-            Self::Snapshot(e) => write!(f, "snapshot: {e}"),
+            Self::BadRequest(_) => write!(f, "bad control request"),
+            Self::Snapshot(_) => write!(f, "the snapshot did not validate"),
             Self::Rejected(m) => write!(f, "rejected by the service: {m}"),
         }
     }

@@ -61,11 +61,13 @@ pub enum ReadErrorKind {
     Parse(ParseError),
 }
 
+/// Names the file only: what went wrong is the [`std::error::Error::source`], so that an
+/// error chain (`{:#}` in anyhow) says it once.
 impl std::fmt::Display for ReadError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match &self.kind {
-            ReadErrorKind::Io(e) => write!(f, "{}: cannot read: {e}", self.path.display()),
-            ReadErrorKind::Parse(e) => write!(f, "{}: {e}", self.path.display()),
+            ReadErrorKind::Io(_) => write!(f, "{}: cannot read", self.path.display()),
+            ReadErrorKind::Parse(_) => write!(f, "{}", self.path.display()),
         }
     }
 }

@@ -1,6 +1,7 @@
 //! Frames in: received under the intake policy (latest wins, or a queue), validated, and
 //! integrated; rejections and drops counted.
 
+use super::stats::Stats;
 use super::MapState;
 use crate::config::Intake;
 use crate::os::now_ns;
@@ -64,7 +65,7 @@ impl FrameIntake {
             let h = sample.user_header();
             if h.timestamp_ns != 0 {
                 let us = now_ns().saturating_sub(h.timestamp_ns) as f64 / 1e3;
-                super::stats::Stats::record(&mut stats.intake_us, us);
+                Stats::record(&mut stats.intake_us, us);
             }
             let seq = h.sequence;
             if let Some(prev) = self.last_seq.insert(sample.header().publisher_id(), seq) {
@@ -114,7 +115,7 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
             stats.points += rep.points;
             stats.skipped_points += rep.skipped_nonfinite;
             let ms = rep.times.total().as_secs_f64() * 1e3;
-            super::stats::Stats::record(&mut stats.integrate_ms, ms);
+            Stats::record(&mut stats.integrate_ms, ms);
             s.sequence = h.sequence;
             s.stamp_ns = if h.timestamp_ns != 0 {
                 h.timestamp_ns

@@ -13,7 +13,7 @@
 //! map and counts.
 
 use super::marks::FrameMarks;
-use super::prepare::{ray_count, Ray, RAY_CHUNK};
+use super::prepare::{Ray, RAY_CHUNK};
 use super::{lock, Walk, MAX_RANGE_VOXELS};
 use crate::coord::VoxelCoord;
 use rayon::prelude::*;
@@ -113,7 +113,7 @@ fn run_dense(
         target_feature = "avx512dq"
     ))]
     let (refill_at, test_first) = (
-        avx512::refill_at(steps / ray_count(sides).max(1) as f64),
+        avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
     (0..2 * per_lane)
@@ -135,7 +135,7 @@ fn run_dense(
                     avx512::walk_dense(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
                 };
             }
-            let _ = (walk, steps, ray_count(sides));
+            let _ = (walk, steps);
             dense::walk_rays(&mut bits, dbox, origin, rays, ranges)
         })
         .sum()
