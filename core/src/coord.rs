@@ -85,6 +85,8 @@ pub enum ConfigError {
         value: f64,
         why: &'static str,
     },
+    /// `VOXMAP_KERNEL` names a kernel this build or CPU lacks.
+    Kernel(crate::kernel::KernelError),
 }
 
 impl std::fmt::Display for ConfigError {
@@ -99,6 +101,7 @@ impl std::fmt::Display for ConfigError {
             ConfigError::Invalid { name, value, why } => {
                 write!(f, "{name} = {value} is invalid: {why}")
             }
+            ConfigError::Kernel(e) => write!(f, "{e}"),
         }
     }
 }

@@ -25,6 +25,7 @@
 //! ```
 
 pub mod coord;
+pub mod kernel;
 pub mod mask;
 pub mod model;
 pub mod raycast;
@@ -54,6 +55,7 @@ pub use coord::{GridTransform, VoxelCoord, WorldPoint};
 pub use integrate::{
     Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, RayMode,
 };
+pub use kernel::Kernel;
 #[cfg(feature = "map")]
 pub use map::{MapCounts, OccupancyMap};
 pub use model::{SensorModel, VoxelState};

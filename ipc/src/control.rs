@@ -199,7 +199,7 @@ impl ControlRequest {
 
 /// Service counters, as reported by a `Stats` request.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::StatsWire::v2")]
+#[type_name("voxmap::StatsWire::v3")]
 #[repr(C)]
 pub struct StatsWire {
     pub frames_received: u64,
@@ -220,11 +220,32 @@ pub struct StatsWire {
     /// last 1024 frames with a time stamp.
     pub intake_us_p50: f64,
     pub intake_us_p99: f64,
+    /// The integrator's vector kernels (`scalar`, `avx512`), ASCII, zero-padded.
+    pub kernel: [u8; 16],
+}
+
+impl StatsWire {
+    /// `kernel` as text (empty if not ASCII).
+    pub fn kernel(&self) -> &str {
+        let n = self.kernel.iter().position(|&b| b == 0).unwrap_or(16);
+        std::str::from_utf8(&self.kernel[..n])
+            .ok()
+            .filter(|s| s.is_ascii())
+            .unwrap_or("")
+    }
+
+    /// `name` (at most 16 bytes kept) as a `kernel` field.
+    pub fn kernel_field(name: &str) -> [u8; 16] {
+        let mut k = [0u8; 16];
+        let n = name.len().min(16);
+        k[..n].copy_from_slice(&name.as_bytes()[..n]);
+        k
+    }
 }
 
 /// A control response: `ok` 1 or 0, a message, and the current stats.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::ControlResponse::v2")]
+#[type_name("voxmap::ControlResponse::v3")]
 #[repr(C)]
 pub struct ControlResponse {
     pub ok: u32,

@@ -371,6 +371,8 @@ fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
     let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
 
     let st = ctl.stats().unwrap();
+    // The stats name the kernel the service runs: this CPU's best.
+    assert_eq!(st.kernel(), voxmap_core::Kernel::detect().name());
     assert_eq!(
         (
             st.frames_received,

@@ -508,6 +508,40 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
             assert_eq!(m[0][k], m[1][k], "{mode} {k}");
         }
     }
+    // Every row names its kernel; the scalar kernel, forced, gives the same maps.
+    let kernel = frames[0]["kernel"].as_str().expect("kernel").to_string();
+    assert!(["scalar", "avx512"].contains(&kernel.as_str()), "{kernel}");
+    assert!(frames.iter().all(|r| r["kernel"] == kernel.as_str()));
+    let scalar = Command::new(voxmap_bin())
+        .args(["bench", "--workloads", dir.to_str().unwrap(), "--runs", "1"])
+        .args(["--threads", "1,2", "--modes", "exact,unique_end", "--json"])
+        .env("VOXMAP_KERNEL", "scalar")
+        .output()
+        .unwrap();
+    assert!(scalar.status.success(), "{scalar:?}");
+    let scalar: Vec<serde_json::Value> = String::from_utf8_lossy(&scalar.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|r: &serde_json::Value| r["section"].is_null())
+        .collect();
+    assert_eq!(scalar.len(), frames.len());
+    for (a, b) in frames.iter().zip(&scalar) {
+        assert_eq!(b["kernel"], "scalar");
+        for k in ["mode", "threads", "rays", "voxel_steps", "occupied", "free"] {
+            assert_eq!(a[k], b[k], "{k}: {kernel} against scalar");
+        }
+    }
+    // A kernel that does not exist is a clear error.
+    let bad = Command::new(voxmap_bin())
+        .args(["bench", "--workloads", dir.to_str().unwrap(), "--runs", "1"])
+        .env("VOXMAP_KERNEL", "avx9000")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        !bad.status.success() && err.contains("VOXMAP_KERNEL"),
+        "{err}"
+    );
     let rays = |mode: &str| u(frames.iter().find(|r| r["mode"] == mode).unwrap(), "rays");
     assert_eq!(rays("exact"), n);
     assert!(rays("unique_end") < n);
@@ -703,5 +737,56 @@ fn real_tum_depth_frames_line_up_through_replay() {
             "right {right}, rotated about {axis:?} {wrong}"
         );
     }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// One binary for every x86-64: the release binary, run as a CPU without AVX (QEMU's
+/// Nehalem model), integrates a frame into the same map as natively (Debian's `qemu-user`;
+/// `.ci/run` installs it and sets VOXMAP_REQUIRE_QEMU=1, which turns its absence into a
+/// failure).
+#[cfg(target_arch = "x86_64")]
+#[test]
+fn the_binary_runs_on_a_cpu_without_avx_and_makes_the_same_map() {
+    let dir = tmpdir("nehalem");
+    let (pose, points) = frames().swap_remove(0);
+    let frame = dir.join("frame.pcd");
+    pcd::write(&frame, &pcd::PointCloud { points, pose }).unwrap();
+    let (native, emulated) = (dir.join("native.vxm"), dir.join("nehalem.vxm"));
+    ok(&[
+        "replay",
+        "--offline",
+        "--out",
+        native.to_str().unwrap(),
+        frame.to_str().unwrap(),
+    ]);
+    let run = Command::new("qemu-x86_64")
+        .args(["-cpu", "Nehalem"])
+        .arg(voxmap_bin())
+        .args(["replay", "--offline", "--out", emulated.to_str().unwrap()])
+        .arg(&frame)
+        .output();
+    let out = match run {
+        Ok(o) => o,
+        Err(e) => {
+            assert!(
+                std::env::var_os("VOXMAP_REQUIRE_QEMU").is_none(),
+                "qemu-x86_64: {e} (install Debian's qemu-user)"
+            );
+            eprintln!("NOTICE: qemu-x86_64 not installed; the Nehalem run is skipped");
+            return;
+        }
+    };
+    assert!(
+        out.status.success(),
+        "under qemu-x86_64 -cpu Nehalem: {:?}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (a, b) = (
+        mapfile::load_map(&native).unwrap(),
+        mapfile::load_map(&emulated).unwrap(),
+    );
+    assert!(voxels(&a).len() > 1000);
+    assert!(voxels(&a) == voxels(&b), "the maps differ");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -23,12 +23,16 @@
 //! - **table**: one thread's share of the mark tables; **lane**: one ray of a vector walk.
 //! - **chunk**: [`prepare::RAY_CHUNK`] rays, the unit of parallel work and of the layout.
 //!
+//! Each phase with a vector form runs the integrator's [`Kernel`], picked once when it is
+//! created (`VOXMAP_KERNEL` forces one); every kernel gives the same map.
+//!
 //! The walks are 2-4x faster dense than sparse with AVX-512, 1.3-2x without. The sparse walk
 //! is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread dense grids made
 //! the merge dominate: threads walk rays of different directions, so their tables share
 //! bricks only near the sensor.
 
 use crate::coord::{ConfigError, MAX_VOXEL_INDEX};
+use crate::kernel::Kernel;
 use crate::map::OccupancyMap;
 use marks::FrameMarks;
 use nalgebra::{Isometry3, Point3};
@@ -205,6 +209,8 @@ pub struct Integrator {
     frames: u64,
     /// Which walk to take (tests compare them).
     walk: Walk,
+    /// Which kernels run the phases (tests compare them).
+    kernel: Kernel,
 }
 
 impl Integrator {
@@ -240,6 +246,7 @@ impl Integrator {
             }
             _ => {}
         }
+        let kernel = Kernel::from_env().map_err(ConfigError::Kernel)?;
         let cpus = if cfg.pin_threads {
             crate::cpus::allowed()
         } else {
@@ -268,6 +275,7 @@ impl Integrator {
             sides: Vec::new(),
             frames: 0,
             walk: Walk::Auto,
+            kernel,
         })
     }
 
@@ -279,6 +287,11 @@ impl Integrator {
 
     pub fn config(&self) -> &IntegratorConfig {
         &self.cfg
+    }
+
+    /// The kernels this integrator runs: the CPU's best, or `VOXMAP_KERNEL`'s.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
     }
 
     /// Whether this integrator can work on a map of `resolution`: its max range spans at
@@ -312,13 +325,14 @@ impl Integrator {
         let mode = self.cfg.mode;
         self.frames += 1;
         let frame_no = self.frames;
-        let (pool, marks, rays, sides, dense, walk) = (
+        let (pool, marks, rays, sides, dense, walk, kernel) = (
             &self.pool,
             &mut self.marks,
             &mut self.rays,
             &mut self.sides,
             &self.dense,
             self.walk,
+            self.kernel,
         );
         let mut report = IntegrateReport {
             points: frame.points.len() as u64,
@@ -328,8 +342,17 @@ impl Integrator {
             let t0 = Instant::now();
             // Prepare.
             let halves = Sides::new(frame, origin, rayon::current_num_threads());
-            let (skipped, extent) =
-                prepare::prepare_rays(rays, sides, halves, frame, &tf, origin, range_units, mode);
+            let (skipped, extent) = prepare::prepare_rays(
+                rays,
+                sides,
+                halves,
+                frame,
+                &tf,
+                origin,
+                range_units,
+                mode,
+                kernel,
+            );
             let Extent {
                 lo,
                 hi,
@@ -364,6 +387,7 @@ impl Integrator {
                 sides,
                 steps,
                 walk,
+                kernel,
             };
             report.voxel_steps = walk::run(&input, marks, dense, dense_box.as_ref(), frame_no);
             let t2 = Instant::now();
@@ -386,7 +410,7 @@ impl Integrator {
                 .grid_mut()
                 .leaf_pool_mut()
                 .par_update(&items, |leaf, &(slot, fresh)| {
-                    update::apply(leaf, marks.slot(slot), &q, fresh)
+                    update::apply(kernel, leaf, marks.slot(slot), &q, fresh)
                 });
             marks.clear_used();
             let t4 = Instant::now();
@@ -439,19 +463,14 @@ impl Integrator {
 #[cfg_attr(not(test), allow(dead_code))]
 enum Walk {
     /// Dense when the frame's box fits the budget and its rays are many enough to pay for
-    /// the grids (eight rays at a time where the build has AVX-512, one at a time
-    /// otherwise), sparse otherwise.
+    /// the grids, sparse otherwise.
     Auto,
-    /// Sparse, eight rays at a time where the build has AVX-512.
+    /// Sparse.
     Sparse,
-    /// Sparse one ray at a time, even where the build has AVX-512.
-    SparseScalar,
     /// Dense whenever the box fits the budget.
     Dense,
-    /// Dense one ray at a time, even where the build has AVX-512.
-    DenseScalar,
     /// Dense, testing each mark before writing it on every frame (see
-    /// `walk::avx512::walk_dense`), where the build has AVX-512.
+    /// `walk::avx512::walk_dense`; the scalar kernel walks `Dense`).
     DenseTestFirst,
 }
 

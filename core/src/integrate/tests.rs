@@ -3,9 +3,12 @@
 
 use super::marks::FrameMarks;
 use super::prepare::{RayMaker, Sides, SKIPPED};
-use super::update::{observe, observe_scalar};
+#[cfg(target_arch = "x86_64")]
+use super::update::avx512::Avx512;
+use super::update::{observe_scalar, Observe};
 use super::*;
 use crate::coord::VoxelCoord;
+use crate::kernel::Kernel;
 use crate::model::QuantizedModel;
 use crate::model::{SensorModel, VoxelState};
 use crate::raycast::for_each_voxel;
@@ -33,6 +36,27 @@ fn integrator(threads: usize, max_range: f64, mode: RayMode) -> Integrator {
         ..Default::default()
     })
     .unwrap()
+}
+
+/// Whether the CPU runs `kernel`; prints a notice when it does not, so that a skipped test
+/// of a kernel is seen, not silently absent.
+fn kernel_or_notice(kernel: Kernel, test: &str) -> bool {
+    let yes = kernel.supported();
+    if !yes {
+        eprintln!(
+            "NOTICE: {test}: the {} kernel is skipped, this CPU lacks its instructions",
+            kernel.name()
+        );
+    }
+    yes
+}
+
+/// The kernels to test on this CPU (each other kernel skipped with a notice).
+fn kernels(test: &str) -> Vec<Kernel> {
+    Kernel::ALL
+        .into_iter()
+        .filter(|&k| kernel_or_notice(k, test))
+        .collect()
 }
 
 fn snapshot(map: &OccupancyMap) -> Vec<(VoxelCoord, i8)> {
@@ -89,20 +113,32 @@ fn random_frame(rng: &mut Rng, n: usize, radius: f64) -> (Isometry3<f64>, Vec<[f
 #[test]
 fn matches_the_reference_update_over_several_frames() {
     let mut rng = Rng(3);
-    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    let frames: Vec<_> = (0..4).map(|_| random_frame(&mut rng, 3000, 4.0)).collect();
     let mut want = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-    let mut integ = integrator(2, 3.0, RayMode::Exact);
-    for _ in 0..4 {
-        let (pose, pts) = random_frame(&mut rng, 3000, 4.0);
-        let frame = Frame { pose, points: &pts };
-        let r = integ.integrate(&mut map, &frame).unwrap();
-        assert!(
-            r.cut_rays > 0 && r.cut_rays < r.rays,
-            "both kinds of rays: {r:?}"
-        );
+    for (pose, pts) in &frames {
+        let frame = Frame {
+            pose: *pose,
+            points: pts,
+        };
         reference_integrate(&mut want, &frame, 3.0);
     }
-    assert_eq!(snapshot(&map), snapshot(&want));
+    for kernel in kernels("matches_the_reference_update_over_several_frames") {
+        let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+        let mut integ = integrator(2, 3.0, RayMode::Exact);
+        integ.kernel = kernel;
+        for (pose, pts) in &frames {
+            let frame = Frame {
+                pose: *pose,
+                points: pts,
+            };
+            let r = integ.integrate(&mut map, &frame).unwrap();
+            assert!(
+                r.cut_rays > 0 && r.cut_rays < r.rays,
+                "both kinds of rays: {r:?}"
+            );
+        }
+        assert_eq!(snapshot(&map), snapshot(&want), "{kernel:?}");
+    }
 }
 
 #[test]
@@ -118,9 +154,10 @@ fn result_is_identical_for_any_thread_count() {
             (pose, pts)
         })
         .collect();
-    let run = |threads, mode| {
+    let run = |kernel, threads, mode| {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let mut integ = integrator(threads, 10.0, mode);
+        integ.kernel = kernel;
         let mut steps = 0;
         for (pose, pts) in &frames {
             steps += integ
@@ -142,10 +179,18 @@ fn result_is_identical_for_any_thread_count() {
         RayMode::Bundle { threshold: 2 },
         RayMode::UniqueEnd,
     ] {
-        let one = run(1, mode);
+        // One thread of the scalar kernel is the reference for every kernel and count.
+        let one = run(Kernel::Scalar, 1, mode);
         assert!(one.0.len() > 100_000);
-        for t in [2, 3, 4] {
-            assert!(run(t, mode) == one, "{mode:?}: {t} threads differ from 1");
+        for kernel in kernels("result_is_identical_for_any_thread_count") {
+            for t in [1, 2, 3, 4] {
+                if (kernel, t) != (Kernel::Scalar, 1) {
+                    assert!(
+                        run(kernel, t, mode) == one,
+                        "{mode:?}: {kernel:?} on {t} threads differs from scalar on 1"
+                    );
+                }
+            }
         }
     }
 }
@@ -213,14 +258,11 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
 /// The vectorised observation of a leaf word gives the values the scalar one does:
 /// random words and marks, under the default model and models that clamp at the ends
 /// of i8 (where the vector add saturates) and inside them.
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq",
-    target_feature = "avx512bw"
-))]
 #[test]
 fn observing_a_word_at_once_equals_bit_by_bit() {
+    if !kernel_or_notice(Kernel::Avx512, "observing_a_word_at_once_equals_bit_by_bit") {
+        return;
+    }
     let default = SensorModel::default().quantize().unwrap();
     let wide = QuantizedModel {
         hit: 127,
@@ -245,11 +287,11 @@ fn observing_a_word_at_once_equals_bit_by_bit() {
             let any = free | hit;
             let old: [i8; 64] = std::array::from_fn(|_| rng.i(-128, 127) as i8);
             let (mut a, mut b) = (old, old);
-            let marks = observe::<false>(&mut a, any, hit, &q);
+            let marks = Avx512::observe::<false>(&mut a, any, hit, &q);
             assert_eq!(marks, observe_scalar::<false>(&mut b, any, hit, &q));
             assert_eq!(a, b);
             let (mut a, mut b) = ([0i8; 64], [0i8; 64]);
-            let marks = observe::<true>(&mut a, any, hit, &q);
+            let marks = Avx512::observe::<true>(&mut a, any, hit, &q);
             assert_eq!(marks, observe_scalar::<true>(&mut b, any, hit, &q));
             assert_eq!(a, b);
         }
@@ -365,12 +407,13 @@ fn dense_and_sparse_walks_agree() {
         diag.push([c(-k), c(k / 3), c(0)]);
     }
     let grids = [(0.1, frames), (q, vec![(sensor, diag)])];
-    let run = |walk: Walk| {
+    let run = |kernel: Kernel, walk: Walk| {
         let mut out = Vec::new();
         for (resolution, frames) in &grids {
             let mut map = OccupancyMap::new(*resolution, SensorModel::default()).unwrap();
             let mut integ = integrator(2, 40.0, RayMode::Exact);
             integ.walk = walk;
+            integ.kernel = kernel;
             let mut reports = Vec::new();
             for (pose, pts) in frames {
                 let frame = Frame {
@@ -391,34 +434,31 @@ fn dense_and_sparse_walks_agree() {
         }
         out
     };
-    let sparse = run(Walk::SparseScalar);
+    let sparse = run(Kernel::Scalar, Walk::Sparse);
     assert!(sparse.iter().flat_map(|g| &g.2).all(|r| !r.5));
-    for walk in [
-        Walk::Sparse,
-        Walk::Dense,
-        Walk::DenseScalar,
-        Walk::DenseTestFirst,
-        Walk::Auto,
-    ] {
-        let dense = run(walk);
-        let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
-        if walk == Walk::Sparse {
-            assert!(!took_dense.contains(&true));
-        } else if walk != Walk::Auto {
-            assert_eq!(
-                took_dense,
-                [true, true, true, true, true, false, true, true, true, true, true, true]
-            );
-        }
-        for (d, s) in dense.iter().zip(&sparse) {
-            let strip = |r: &(u64, u64, u64, u64, u64, bool)| (r.0, r.1, r.2, r.3, r.4);
-            assert_eq!(
-                d.2.iter().map(strip).collect::<Vec<_>>(),
-                s.2.iter().map(strip).collect::<Vec<_>>(),
-                "{walk:?}"
-            );
-            assert_eq!(d.1, s.1, "{walk:?}");
-            assert!(d.0 == s.0, "{walk:?}: maps differ");
+    let walks = [Walk::Sparse, Walk::Dense, Walk::DenseTestFirst, Walk::Auto];
+    for kernel in kernels("dense_and_sparse_walks_agree") {
+        for walk in walks {
+            let dense = run(kernel, walk);
+            let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
+            if walk == Walk::Sparse {
+                assert!(!took_dense.contains(&true));
+            } else if walk != Walk::Auto {
+                assert_eq!(
+                    took_dense,
+                    [true, true, true, true, true, false, true, true, true, true, true, true]
+                );
+            }
+            for (d, s) in dense.iter().zip(&sparse) {
+                let strip = |r: &(u64, u64, u64, u64, u64, bool)| (r.0, r.1, r.2, r.3, r.4);
+                assert_eq!(
+                    d.2.iter().map(strip).collect::<Vec<_>>(),
+                    s.2.iter().map(strip).collect::<Vec<_>>(),
+                    "{kernel:?} {walk:?}"
+                );
+                assert_eq!(d.1, s.1, "{kernel:?} {walk:?}");
+                assert!(d.0 == s.0, "{kernel:?} {walk:?}: maps differ");
+            }
         }
     }
 }
@@ -541,17 +581,17 @@ fn leaves_mark_voxels_at_the_threshold() {
         occupancy_threshold: SensorModel::default().p_hit,
         ..Default::default()
     };
-    for walk in [
-        Walk::Sparse,
-        Walk::SparseScalar,
-        Walk::Dense,
-        Walk::DenseScalar,
-    ] {
+    let kernels = kernels("leaves_mark_voxels_at_the_threshold");
+    let runs = kernels
+        .iter()
+        .flat_map(|&k| [(k, Walk::Sparse), (k, Walk::Dense)]);
+    for (kernel, walk) in runs {
         let mut map = OccupancyMap::new(0.1, model).unwrap();
         let q = *map.quantized();
         assert_eq!(q.threshold, q.hit);
         let mut integ = integrator(2, 5.0, RayMode::Exact);
         integ.walk = walk;
+        integ.kernel = kernel;
         let mut rng = Rng(5);
         for _ in 0..3 {
             let (pose, pts) = random_frame(&mut rng, 2000, 4.0);
@@ -564,7 +604,10 @@ fn leaves_mark_voxels_at_the_threshold() {
             .grid()
             .active_voxels()
             .filter(|&(_, v)| v == q.threshold);
-        assert!(at.count() > 100, "{walk:?}: few voxels at the threshold");
+        assert!(
+            at.count() > 100,
+            "{kernel:?} {walk:?}: few voxels at the threshold"
+        );
     }
 }
 
@@ -587,7 +630,7 @@ fn hit_beats_free_within_a_frame_and_degenerate_rays() {
     assert_eq!(map.value(VoxelCoord::new(0, 0, 0)), Some(q.hit));
 }
 
-/// `make_all` (eight at a time on AVX-512 builds) makes exactly `make`'s rays: on
+/// `make_all` (eight at a time with the AVX-512 kernel) makes exactly `make`'s rays: on
 /// random points, non-finite ones, points on voxel faces and at max range, under
 /// rotated poses.
 #[test]
@@ -615,16 +658,18 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
             }
         }
         let frame = Frame { pose, points: &pts };
-        let maker = RayMaker::new(&frame, &tf, o, range);
-        let mut bulk = vec![Ray::new([0.0; 3], 0, false); pts.len()];
-        maker.make_all(&mut bulk, &pts);
-        for (p, b) in pts.iter().zip(&bulk) {
-            let one = maker.make(p);
-            assert_eq!(
-                (one.end.map(f64::to_bits), one.key, one.hit),
-                (b.end.map(f64::to_bits), b.key, b.hit),
-                "point {p:?}"
-            );
+        for kernel in kernels("rays_made_in_bulk_equal_rays_made_one_by_one") {
+            let maker = RayMaker::new(&frame, &tf, o, range, kernel);
+            let mut bulk = vec![Ray::new([0.0; 3], 0, false); pts.len()];
+            maker.make_all(&mut bulk, &pts);
+            for (p, b) in pts.iter().zip(&bulk) {
+                let one = maker.make(p);
+                assert_eq!(
+                    (one.end.map(f64::to_bits), one.key, one.hit),
+                    (b.end.map(f64::to_bits), b.key, b.hit),
+                    "{kernel:?}, point {p:?}"
+                );
+            }
         }
     }
 }

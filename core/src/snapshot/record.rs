@@ -272,36 +272,18 @@ pub fn encode(
 }
 
 /// Write the bytes of `rows` whose bit is set in `present`, in order, at the start of
-/// `out`; returns how many. With AVX-512 VBMI2 one compressing store: the whole-map encode
-/// of the random 500k 60 m map took 277-305 ms against 314-389 (minimum of 12 encodes,
-/// three alternated probe runs).
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512vbmi2"
-))]
+/// `out`; returns how many. With AVX-512 VBMI2 (and the AVX-512 kernel) one compressing
+/// store: the whole-map encode of the random 500k 60 m map took 277-305 ms against
+/// 314-389 (minimum of 12 encodes, three alternated probe runs).
 #[inline]
 fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
-    use std::arch::x86_64::*;
-    let n = present.count_ones() as usize;
-    assert!(n <= out.len(), "record shorter than its rows");
-    // SAFETY: this function is only compiled where the build enables AVX-512F and VBMI2
-    // for the whole crate. The load reads the 64 bytes of `rows`; the compressing store
-    // writes n bytes from `out`'s start, and n <= out.len() (checked above).
-    unsafe {
-        let v = _mm512_loadu_si512(rows.as_ptr().cast());
-        _mm512_mask_compressstoreu_epi8(out.as_mut_ptr().cast(), present, v);
+    #[cfg(target_arch = "x86_64")]
+    if vbmi2() {
+        let n = present.count_ones() as usize;
+        assert!(n <= out.len(), "record shorter than its rows");
+        // SAFETY: `vbmi2()` checked that the CPU has AVX-512F and VBMI2, and n <= out.len().
+        return unsafe { compress_rows_vbmi2(rows, present, out) };
     }
-    n
-}
-
-#[cfg(not(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512vbmi2"
-)))]
-#[inline]
-fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
     let bytes: &[u8] = bytemuck::cast_slice(rows);
     let mut at = 0;
     for r in crate::mask::BitIter(present) {
@@ -309,6 +291,31 @@ fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
         at += 1;
     }
     at
+}
+
+/// Whether the AVX-512 kernel runs and the CPU has VBMI2's compressing byte store.
+#[cfg(target_arch = "x86_64")]
+fn vbmi2() -> bool {
+    static YES: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *YES.get_or_init(|| {
+        crate::kernel::Kernel::process() == crate::kernel::Kernel::Avx512
+            && std::arch::is_x86_feature_detected!("avx512vbmi2")
+    })
+}
+
+/// # Safety
+/// The CPU must have AVX-512F and VBMI2, and `out` must hold `present.count_ones()` bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vbmi2")]
+unsafe fn compress_rows_vbmi2(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
+    use std::arch::x86_64::*;
+    // SAFETY: the load reads the 64 bytes of `rows`; the compressing store writes
+    // `present.count_ones()` bytes from `out`'s start, which the caller guarantees fit.
+    unsafe {
+        let v = _mm512_loadu_si512(rows.as_ptr().cast());
+        _mm512_mask_compressstoreu_epi8(out.as_mut_ptr().cast(), present, v);
+    }
+    present.count_ones() as usize
 }
 
 /// A mask inside a record, ready to answer per-voxel reads from `bytes` (the masks

@@ -189,8 +189,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
             std::thread::available_parallelism().map_or(1, |n| n.get())
         );
         println!(
-            "{:<22} {:>2} {:<10} {:<6} {:>7} {:>10} {:>9} {:>8} {:>8} {:>7} {:>6} | {:>6} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} | {:>8}",
-            "workload", "th", "mode", "walk", "rays", "steps", "median", "min", "max", "Mpt/s", "ns/st",
+            "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>9} {:>8} {:>8} {:>7} {:>6} | {:>6} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} | {:>8}",
+            "workload", "th", "mode", "kernel", "walk", "rays", "steps", "median", "min", "max", "Mpt/s", "ns/st",
             "prep", "ray", "merge", "upd", "occupied", "free", "B/vox", "paper"
         );
     }
@@ -261,7 +261,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let walk = if r.dense { "dense" } else { "sparse" };
                 if a.json {
                     let mut o = serde_json::json!({
-                        "workload": name, "threads": threads, "mode": mode.name(), "walk": walk, "runs": a.runs,
+                        "workload": name, "threads": threads, "mode": mode.name(), "kernel": integ.kernel().name(), "walk": walk, "runs": a.runs,
                         "median_ms": med, "min_ms": min, "max_ms": max, "points": r.points, "rays": r.rays,
                         "voxel_steps": r.voxel_steps, "occupied": counts.occupied, "free": counts.free,
                         "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
@@ -278,8 +278,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     println!("{o}");
                 } else {
                     println!(
-                        "{:<22} {:>2} {:<10} {:<6} {:>7} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
-                        name, threads, mode.name(), walk, r.rays, r.voxel_steps, med, min, max, mpts, ns_step,
+                        "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
+                        name, threads, mode.name(), integ.kernel().name(), walk, r.rays, r.voxel_steps, med, min, max, mpts, ns_step,
                         ms(p.prepare), ms(p.raycast), ms(p.merge), ms(p.update),
                         counts.occupied, counts.free, bpv, paper.map_or("-".into(), |v| format!("{v:.0}")),
                     );
@@ -288,7 +288,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     }
     if !a.json {
-        println!("walk = dense (per-thread bit grids over a small frame's box) or sparse; ns/st = median ns per voxel step per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
+        println!("kernel = the vector kernels in use (VOXMAP_KERNEL forces one); walk = dense (per-thread bit grids over a small frame's box) or sparse; ns/st = median ns per voxel step per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
         if !snapshots.is_empty() {
             println!();
             println!(

@@ -163,6 +163,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         scope: MapScope::Whole,
         stats: stats::Stats::default(),
     };
+    s.stats.kernel = s.integ.kernel().name();
     // After the integration pool exists, so only this (I/O) thread runs real-time.
     if cfg.rt_priority > 0 {
         crate::os::set_realtime(cfg.rt_priority)?;
@@ -248,13 +249,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
 
 fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
     eprintln!(
-        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, intake {}; frames on '{}'",
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}; frames on '{}'",
         cfg.prefix,
         cfg.map,
         s.map.resolution(),
         cfg.max_range,
         cfg.ray_mode().name(),
         cfg.threads(),
+        s.integ.kernel().name(),
         cfg.intake,
         names.frames
     );

@@ -21,6 +21,8 @@ pub(super) struct Stats {
     pub last_encode_ms: f64,
     pub sequence: u64,
     pub publish_failures: u64,
+    /// The integrator's kernel name.
+    pub kernel: &'static str,
 }
 
 impl Stats {
@@ -55,6 +57,7 @@ impl Stats {
             encode_ms_last: self.last_encode_ms,
             intake_us_p50: percentile(&intake, 0.5),
             intake_us_p99: percentile(&intake, 0.99),
+            kernel: StatsWire::kernel_field(self.kernel),
         }
     }
 

@@ -7,13 +7,10 @@
 use super::thin::thin_out;
 use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
+use crate::kernel::Kernel;
 use rayon::prelude::*;
 
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq"
-))]
+#[cfg(target_arch = "x86_64")]
 mod avx512;
 
 /// Rays per parallel task of the walk, and per chunk of the layout by sides.
@@ -102,8 +99,9 @@ pub(super) fn prepare_rays(
     origin: [f64; 3],
     range_units: f64,
     mode: RayMode,
+    kernel: Kernel,
 ) -> (u64, Extent) {
-    let maker = RayMaker::new(frame, tf, origin, range_units);
+    let maker = RayMaker::new(frame, tf, origin, range_units, kernel);
     // One pass writes the rays and sums up their extent: a frame's rays (16 MB for 500k
     // points) outgrow the cache, and passes of their own to count the skipped points and
     // take the bounds cost a third of the prepare phase (structured 500k 6 m: 7.8 ms, of
@@ -286,6 +284,8 @@ pub(in crate::integrate) struct RayMaker {
     /// Below this squared length a ray surely ends within range; above it, the same
     /// comparison as the reference, `sqrt(len2) <= range_units`, decides.
     pub(in crate::integrate) surely_in: f64,
+    /// Which kernel `make_all` runs.
+    pub(in crate::integrate) kernel: Kernel,
 }
 
 impl RayMaker {
@@ -294,6 +294,7 @@ impl RayMaker {
         tf: &crate::coord::GridTransform,
         origin: [f64; 3],
         range_units: f64,
+        kernel: Kernel,
     ) -> Self {
         let r = frame.pose.rotation.to_rotation_matrix().into_inner();
         RayMaker {
@@ -303,6 +304,7 @@ impl RayMaker {
             origin,
             range_units,
             surely_in: range_units * range_units * (1.0 - 1e-9),
+            kernel,
         }
     }
 
@@ -330,22 +332,15 @@ impl RayMaker {
         Ray::new(e, 0, hit)
     }
 
-    /// `out[i] = self.make(&pts[i])`, eight at a time where the build has AVX-512.
+    /// `out[i] = self.make(&pts[i])`, eight at a time with the AVX-512 kernel.
     pub(in crate::integrate) fn make_all(&self, out: &mut [Ray], pts: &[[f32; 3]]) {
-        #[cfg(all(
-            target_arch = "x86_64",
-            target_feature = "avx512f",
-            target_feature = "avx512dq"
-        ))]
-        // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole crate
-        // (the cfg above), so every CPU that runs this code has them.
-        let done = unsafe { avx512::make_rays(self, out, pts) };
-        #[cfg(not(all(
-            target_arch = "x86_64",
-            target_feature = "avx512f",
-            target_feature = "avx512dq"
-        )))]
-        let done = 0;
+        let done = match self.kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
+            // (`Kernel::supported`); `make_rays` needs F and DQ.
+            Kernel::Avx512 => unsafe { avx512::make_rays(self, out, pts) },
+            _ => 0,
+        };
         for (r, p) in out.iter_mut().zip(pts).skip(done) {
             *r = self.make(p);
         }

@@ -1,29 +1,42 @@
-//! The update's observation on AVX-512BW: a leaf word's 64 voxels at once.
+//! The update on AVX-512BW: a leaf word's 64 voxels observed at once.
 
+use super::{apply_with, Observe};
+use crate::grid::Leaf;
+use crate::integrate::marks::Slot;
 use crate::model::QuantizedModel;
 use std::arch::x86_64::*;
 
-/// `super::observe` in one masked saturating add, clamp, store and compare: the 64 values
-/// of a leaf word take their observation at once instead of one set bit at a time. The
-/// same values and marks:
-/// an i8 add saturates only beyond the clamps, which are within i8. Random 500k 60 m, 2
-/// threads, update phase: see `docs/design.md` ("One byte per voxel").
-#[cfg(target_feature = "avx512bw")]
-#[inline]
-pub(in crate::integrate) fn observe<const FRESH: bool>(
-    values: &mut [i8; 64],
-    any: u64,
-    hit: u64,
-    q: &QuantizedModel,
-) -> u64 {
-    // SAFETY: this module is only compiled where the build enables AVX-512F (and DQ) for
-    // the whole crate, and this function where it enables BW too.
-    unsafe { observe_impl::<FRESH>(values, any, hit, q) }
+/// [`super::apply`] with [`Avx512`] observations.
+#[target_feature(enable = "avx512f,avx512dq,avx512bw")]
+pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u64 {
+    apply_with::<Avx512>(leaf, slot, q, fresh)
 }
 
-#[cfg(target_feature = "avx512bw")]
+/// [`Observe`] in one masked saturating add, clamp, store and compare: the 64 values of a
+/// leaf word take their observation at once instead of one set bit at a time. The same
+/// values and marks: an i8 add saturates only beyond the clamps, which are within i8.
+/// Random 500k 60 m, 2 threads, update phase: see `docs/design.md` ("One byte per voxel").
+pub(in crate::integrate) struct Avx512;
+
+impl Observe for Avx512 {
+    #[inline(always)]
+    fn observe<const FRESH: bool>(
+        values: &mut [i8; 64],
+        any: u64,
+        hit: u64,
+        q: &QuantizedModel,
+    ) -> u64 {
+        // SAFETY: `Avx512` observations are only made inside `apply` above (which enables
+        // AVX-512F and BW, and is only called with a checked `Kernel::Avx512`) and by the
+        // tests, after checking `Kernel::Avx512.supported()`.
+        unsafe { observe::<FRESH>(values, any, hit, q) }
+    }
+}
+
+/// # Safety
+/// The CPU must have AVX-512F and BW.
 #[target_feature(enable = "avx512f,avx512bw")]
-fn observe_impl<const FRESH: bool>(
+pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
     values: &mut [i8; 64],
     any: u64,
     hit: u64,

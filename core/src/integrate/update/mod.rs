@@ -3,17 +3,13 @@
 
 use super::marks::Slot;
 use crate::grid::Leaf;
+use crate::kernel::Kernel;
 use crate::mask::BitIter;
 use crate::model::QuantizedModel;
 use std::sync::atomic::Ordering::Relaxed;
 
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq",
-    target_feature = "avx512bw"
-))]
-mod avx512;
+#[cfg(target_arch = "x86_64")]
+pub(super) mod avx512;
 
 /// Apply one brick's marks to its leaf; returns the voxels updated. `fresh`: the leaf was
 /// created by this frame's merge, so it is all zero and may sit on a page never touched.
@@ -21,7 +17,58 @@ mod avx512;
 /// the shared zero page, and the first write then copies it with a TLB flush that
 /// interrupts every other core running the process (a fifth of a 60 m frame's time with
 /// 2 threads). Written first, it gets a private page at once.
-pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u64 {
+pub(super) fn apply(
+    kernel: Kernel,
+    leaf: &mut Leaf<i8>,
+    slot: &Slot,
+    q: &QuantizedModel,
+    fresh: bool,
+) -> u64 {
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
+        // (`Kernel::supported`), the features `avx512::apply` enables.
+        Kernel::Avx512 => unsafe { avx512::apply(leaf, slot, q, fresh) },
+        _ => apply_with::<Scalar>(leaf, slot, q, fresh),
+    }
+}
+
+/// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
+/// where set in `hit` too; returns those of them now at or above the occupancy threshold.
+/// `FRESH`: the values are all zero, and are not read (see [`apply`]).
+pub(super) trait Observe {
+    fn observe<const FRESH: bool>(
+        values: &mut [i8; 64],
+        any: u64,
+        hit: u64,
+        q: &QuantizedModel,
+    ) -> u64;
+}
+
+/// [`Observe`] one set bit at a time.
+pub(super) struct Scalar;
+
+impl Observe for Scalar {
+    #[inline(always)]
+    fn observe<const FRESH: bool>(
+        values: &mut [i8; 64],
+        any: u64,
+        hit: u64,
+        q: &QuantizedModel,
+    ) -> u64 {
+        observe_scalar::<FRESH>(values, any, hit, q)
+    }
+}
+
+/// [`apply`] with observations by `O`; inlined into each kernel's entry point, so that the
+/// kernel's observation inlines into the loop.
+#[inline(always)]
+pub(super) fn apply_with<O: Observe>(
+    leaf: &mut Leaf<i8>,
+    slot: &Slot,
+    q: &QuantizedModel,
+    fresh: bool,
+) -> u64 {
     let mut n = 0;
     for w in 0..8 {
         let free = slot.free[w].load(Relaxed);
@@ -38,38 +85,20 @@ pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh:
         // select, and that load is the read this avoids.
         if fresh {
             leaf.active.words[w] = any;
-            leaf.marked.words[w] = observe::<true>(values, any, hit, q);
+            leaf.marked.words[w] = O::observe::<true>(values, any, hit, q);
         } else {
             leaf.active.words[w] |= any;
-            let occupied = observe::<false>(values, any, hit, q);
+            let occupied = O::observe::<false>(values, any, hit, q);
             leaf.marked.words[w] = leaf.marked.words[w] & !any | occupied;
         }
     }
     n
 }
 
-// `observe` is `avx512::observe` where the build has AVX-512BW, `observe_scalar` elsewhere.
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq",
-    target_feature = "avx512bw"
-))]
-pub(super) use avx512::observe;
-
 /// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
 /// where set in `hit` too; returns those of them now at or above the occupancy threshold.
 /// `FRESH`: the values are all zero, and are not read (see [`apply`]). `avx512::observe`
 /// does the same in one masked add.
-#[cfg_attr(
-    all(
-        target_arch = "x86_64",
-        target_feature = "avx512f",
-        target_feature = "avx512dq",
-        target_feature = "avx512bw"
-    ),
-    allow(dead_code)
-)]
 #[inline]
 pub(super) fn observe_scalar<const FRESH: bool>(
     values: &mut [i8; 64],
@@ -85,11 +114,3 @@ pub(super) fn observe_scalar<const FRESH: bool>(
     }
     occupied
 }
-
-#[cfg(not(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq",
-    target_feature = "avx512bw"
-)))]
-pub(super) use observe_scalar as observe;

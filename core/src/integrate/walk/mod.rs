@@ -9,20 +9,18 @@
 //! | sparse, one ray at a time | the frame's brick tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
 //! | sparse, eight rays at a time | the same | `avx512.rs` (`avx512::walk_sparse`) |
 //!
-//! `integrate::tests::dense_and_sparse_walks_agree` checks every walk against the others,
-//! map and counts.
+//! `integrate::tests::dense_and_sparse_walks_agree` checks every walk of every kernel the CPU
+//! has against the others, map and counts. The kernel is the integrator's
+//! ([`crate::kernel::Kernel`]), chosen once at run time.
 
 use super::marks::FrameMarks;
 use super::prepare::{Ray, RAY_CHUNK};
 use super::{lock, Walk, MAX_RANGE_VOXELS};
 use crate::coord::VoxelCoord;
+use crate::kernel::Kernel;
 use rayon::prelude::*;
 
-#[cfg(all(
-    target_arch = "x86_64",
-    target_feature = "avx512f",
-    target_feature = "avx512dq"
-))]
+#[cfg(target_arch = "x86_64")]
 mod avx512;
 pub(super) mod dense;
 mod sparse;
@@ -36,14 +34,14 @@ pub(super) fn plan(
     steps: f64,
 ) -> Option<dense::DenseBox> {
     match walk {
-        Walk::Sparse | Walk::SparseScalar => None,
+        Walk::Sparse => None,
         // Zeroing and merging the dense grids cost about 15 ns per word, and a dense
         // step saved 4-8 ns against a one-ray sparse one (1.5-2.5 against 4-10 ns):
         // walk dense when the grid has at most a quarter as many words as the walk
         // has steps. A few rays in a big box walk sparse. (Not re-tuned for the
         // AVX-512 sparse walk, 2.5-4 ns a step at 60 m with its memory traffic.)
         Walk::Auto => dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps),
-        Walk::Dense | Walk::DenseScalar | Walk::DenseTestFirst => dense::DenseBox::new(lo, hi),
+        Walk::Dense | Walk::DenseTestFirst => dense::DenseBox::new(lo, hi),
     }
 }
 
@@ -56,6 +54,7 @@ pub(super) struct WalkInput<'a> {
     /// About the voxel steps of the walk.
     pub steps: f64,
     pub walk: Walk,
+    pub kernel: Kernel,
 }
 
 /// Walk all rays into `marks` (sparse) or the pool threads' dense grids for frame
@@ -87,6 +86,7 @@ fn run_dense(
         sides,
         steps,
         walk,
+        kernel,
     } = input;
     // Tasks walk the front sides of the chunks first, then the back sides: rayon hands the
     // first half of the tasks to one thread and the second half to another, so each
@@ -107,11 +107,7 @@ fn run_dense(
             start..start + n_front as usize
         }
     };
-    #[cfg(all(
-        target_arch = "x86_64",
-        target_feature = "avx512f",
-        target_feature = "avx512dq"
-    ))]
+    #[cfg(target_arch = "x86_64")]
     let (refill_at, test_first) = (
         avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
@@ -123,20 +119,15 @@ fn run_dense(
             let mut bits = lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
             bits.begin(frame_no, dbox.words());
             let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
-            #[cfg(all(
-                target_arch = "x86_64",
-                target_feature = "avx512f",
-                target_feature = "avx512dq"
-            ))]
-            if walk != Walk::DenseScalar {
-                // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
-                // crate (the cfg above), so every CPU that runs this code has them.
-                return unsafe {
+            match kernel {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
+                // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
+                Kernel::Avx512 => unsafe {
                     avx512::walk_dense(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
-                };
+                },
+                _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges),
             }
-            let _ = (walk, steps);
-            dense::walk_rays(&mut bits, dbox, origin, rays, ranges)
         })
         .sum()
 }
@@ -148,29 +139,28 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
         origin,
         rays,
         steps,
-        walk,
+        kernel,
         ..
     } = input;
-    #[cfg(all(
-        target_arch = "x86_64",
-        target_feature = "avx512f",
-        target_feature = "avx512dq"
-    ))]
-    if walk != Walk::SparseScalar {
-        let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
-        return rays
-            .par_chunks(RAY_CHUNK)
-            // SAFETY: only compiled when the build enables AVX-512F and DQ for the whole
-            // crate (the cfg above), so every CPU that runs this code has them.
-            .map(|chunk| unsafe {
-                avx512::walk_sparse(&mut marks.cache(), origin, chunk, refill_at)
-            })
-            .sum();
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx512 => {
+            let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
+            rays.par_chunks(RAY_CHUNK)
+                // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
+                // and BW (`Kernel::supported`); `walk_sparse` needs F and DQ.
+                .map(|chunk| unsafe {
+                    avx512::walk_sparse(&mut marks.cache(), origin, chunk, refill_at)
+                })
+                .sum()
+        }
+        _ => {
+            let _ = steps;
+            rays.par_chunks(RAY_CHUNK)
+                .map(|chunk| sparse::walk_rays(marks, origin, chunk))
+                .sum()
+        }
     }
-    let _ = (walk, steps);
-    rays.par_chunks(RAY_CHUNK)
-        .map(|chunk| sparse::walk_rays(marks, origin, chunk))
-        .sum()
 }
 
 /// A voxel of a sparse walk packed in one `u64`, 21 bits per axis, relative to an origin
