@@ -258,6 +258,7 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
 /// The vectorised observation of a leaf word gives the values the scalar one does:
 /// random words and marks, under the default model and models that clamp at the ends
 /// of i8 (where the vector add saturates) and inside them.
+#[cfg(target_arch = "x86_64")]
 #[test]
 fn observing_a_word_at_once_equals_bit_by_bit() {
     if !kernel_or_notice(Kernel::Avx512, "observing_a_word_at_once_equals_bit_by_bit") {

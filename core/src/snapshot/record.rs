@@ -37,7 +37,7 @@ use crate::mask::Mask512;
 pub const MAX_OCCUPIED_KIND: u8 = 4;
 
 /// Transpose an 8x8 bit matrix held as byte `i` = row `i`, bit `j` = column `j`.
-#[inline]
+#[inline(always)]
 fn transpose8(mut x: u64) -> u64 {
     let t = (x ^ (x >> 7)) & 0x00AA_00AA_00AA_00AA;
     x ^= t ^ (t << 7);
@@ -48,7 +48,7 @@ fn transpose8(mut x: u64) -> u64 {
 }
 
 /// Byte `y` of each word, gathered into one word (byte `z` from word `z`).
-#[inline]
+#[inline(always)]
 fn gather_bytes(words: &[u64; 8], y: usize) -> u64 {
     words
         .iter()
@@ -58,6 +58,7 @@ fn gather_bytes(words: &[u64; 8], y: usize) -> u64 {
 
 /// The mask's rows along `axis` (0, 1, 2), as 64 bytes held in 8 words (row `r` is byte
 /// `r & 7` of word `r >> 3`).
+#[inline(always)]
 fn to_rows(m: &Mask512, axis: u8) -> [u64; 8] {
     match axis {
         0 => m.words,
@@ -82,7 +83,7 @@ fn from_rows(rows: &[u64; 8], axis: u8) -> Mask512 {
 }
 
 /// Bit `i` of a word per non-zero byte of `v`.
-#[inline]
+#[inline(always)]
 fn nonzero_bytes(v: u64) -> u8 {
     const LOW7: u64 = 0x7F7F_7F7F_7F7F_7F7F;
     let high = (v | ((v & LOW7) + LOW7)) & !LOW7;
@@ -90,6 +91,7 @@ fn nonzero_bytes(v: u64) -> u8 {
 }
 
 /// The presence word of `rows`.
+#[inline(always)]
 fn presence(rows: &[u64; 8]) -> u64 {
     rows.iter()
         .enumerate()
@@ -171,6 +173,7 @@ pub struct Choice {
 /// Rows present along x, y and z, in the mask (`[0..3]`) and in its complement
 /// (`[3..6]`), in one pass: a row of the complement is present where the mask's row is
 /// not full, so AND-folds count those as OR-folds count the mask's.
+#[inline(always)]
 fn row_counts(m: &Mask512) -> [u32; 6] {
     let (mut x, mut y, mut ix, mut iy) = (0, 0, 0, 0);
     let (mut any, mut all) = (0u64, !0u64);
@@ -188,6 +191,7 @@ fn row_counts(m: &Mask512) -> [u32; 6] {
 }
 
 /// The smallest encoding of a known mask.
+#[inline(always)]
 pub fn choose_known(m: &Mask512) -> Choice {
     if m.words.iter().all(|&w| w == !0) {
         return Choice { kind: 0, len: 0 };
@@ -196,6 +200,7 @@ pub fn choose_known(m: &Mask512) -> Choice {
 }
 
 /// The smallest encoding of an occupied mask.
+#[inline(always)]
 pub fn choose_occupied(m: &Mask512) -> Choice {
     if m.is_empty() {
         return Choice { kind: 0, len: 0 };
@@ -206,6 +211,7 @@ pub fn choose_occupied(m: &Mask512) -> Choice {
 }
 
 /// Dense, or the rows (kinds 2 + i for `rows[i]`) that take fewer bytes.
+#[inline(always)]
 fn smallest(rows: &[u32; 6]) -> Choice {
     let mut best = Choice { kind: 1, len: 64 };
     for (i, &n) in rows.iter().enumerate() {
@@ -220,13 +226,16 @@ fn smallest(rows: &[u32; 6]) -> Choice {
 }
 
 /// The record's bytes for masks of the given kinds (the kinds chosen for them); returns
-/// the length written at the start of `out`.
-pub fn encode(
+/// the length written at the start of `out`. With `avx512`, rows are compressed with one
+/// VBMI2 store.
+#[inline(always)]
+pub(crate) fn encode(
     known: &Mask512,
     known_kind: u8,
     occupied: &Mask512,
     occupied_kind: u8,
     out: &mut [u8],
+    avx512: Option<Avx512Encode>,
 ) -> usize {
     let rows_of = |m: &Mask512, kind: u8| -> [u64; 8] {
         match kind {
@@ -265,25 +274,32 @@ pub fn encode(
                 out[at..at + 64].copy_from_slice(bytes);
                 at += 64;
             }
-            _ => at += compress_rows(rows, p, &mut out[at..]),
+            _ => at += compress_rows(rows, p, &mut out[at..], avx512),
         }
     }
     at
 }
 
 /// Write the bytes of `rows` whose bit is set in `present`, in order, at the start of
-/// `out`; returns how many. With AVX-512 VBMI2 (and the AVX-512 kernel) one compressing
-/// store: the whole-map encode of the random 500k 60 m map took 277-305 ms against
-/// 314-389 (minimum of 12 encodes, three alternated probe runs).
-#[inline]
-fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
+/// `out`; returns how many. With AVX-512 VBMI2 one compressing store: the whole-map encode
+/// of the random 500k 60 m map took 277-305 ms against 314-389 (minimum of 12 encodes,
+/// three alternated probe runs).
+#[inline(always)]
+fn compress_rows(
+    rows: &[u64; 8],
+    present: u64,
+    out: &mut [u8],
+    avx512: Option<Avx512Encode>,
+) -> usize {
     #[cfg(target_arch = "x86_64")]
-    if vbmi2() {
+    if avx512.is_some() {
         let n = present.count_ones() as usize;
         assert!(n <= out.len(), "record shorter than its rows");
-        // SAFETY: `vbmi2()` checked that the CPU has AVX-512F and VBMI2, and n <= out.len().
+        // SAFETY: an `Avx512Encode` exists only where the CPU has AVX-512F and VBMI2
+        // (`Avx512Encode::detect`), and n <= out.len() (checked above).
         return unsafe { compress_rows_vbmi2(rows, present, out) };
     }
+    let _ = avx512;
     let bytes: &[u8] = bytemuck::cast_slice(rows);
     let mut at = 0;
     for r in crate::mask::BitIter(present) {
@@ -293,14 +309,37 @@ fn compress_rows(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
     at
 }
 
-/// Whether the AVX-512 kernel runs and the CPU has VBMI2's compressing byte store.
-#[cfg(target_arch = "x86_64")]
-fn vbmi2() -> bool {
-    static YES: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *YES.get_or_init(|| {
-        crate::kernel::Kernel::process() == crate::kernel::Kernel::Avx512
-            && std::arch::is_x86_feature_detected!("avx512vbmi2")
-    })
+/// Proof that the snapshot encoder may run its AVX-512 form: the process runs the AVX-512
+/// kernel ([`crate::kernel::Kernel::process`]) and the CPU has every feature that
+/// `writer::encode_piece_avx512` enables (the list in `detect` is the same).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Avx512Encode(());
+
+impl Avx512Encode {
+    /// `Some` where the CPU and kernel allow it; checked once per process.
+    pub fn detect() -> Option<Avx512Encode> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            static YES: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+            let yes = *YES.get_or_init(|| {
+                use std::arch::is_x86_feature_detected as has;
+                crate::kernel::Kernel::process() == crate::kernel::Kernel::Avx512
+                    && has!("avx512f")
+                    && has!("avx512bw")
+                    && has!("avx512vl")
+                    && has!("avx512vbmi2")
+                    && has!("avx512vpopcntdq")
+                    && has!("bmi1")
+                    && has!("bmi2")
+                    && has!("lzcnt")
+                    && has!("popcnt")
+            });
+            if yes {
+                return Some(Avx512Encode(()));
+            }
+        }
+        None
+    }
 }
 
 /// # Safety
@@ -544,13 +583,23 @@ mod tests {
                 .for_each(|(o, k)| *o &= k);
             masks.push((known, occ));
         }
+        let avx512 = Avx512Encode::detect();
+        if avx512.is_none() {
+            eprintln!("NOTICE: the AVX-512 record encoder is skipped (CPU or VOXMAP_KERNEL)");
+        }
         for (known, occ) in masks {
             let (ck, co) = (choose_known(&known), choose_occupied(&occ));
             kinds[ck.kind as usize] += 1;
             let at = 3usize;
             let mut rec = vec![0xAAu8; at + (ck.len + co.len) as usize];
-            let len = encode(&known, ck.kind, &occ, co.kind, &mut rec[at..]);
+            let len = encode(&known, ck.kind, &occ, co.kind, &mut rec[at..], None);
             assert_eq!(len, (ck.len + co.len) as usize);
+            // The AVX-512 encoder, where this CPU has it, writes the same bytes.
+            if let Some(t) = avx512 {
+                let mut vec_rec = vec![0xAAu8; rec.len()];
+                let n = encode(&known, ck.kind, &occ, co.kind, &mut vec_rec[at..], Some(t));
+                assert_eq!((n, &vec_rec), (len, &rec));
+            }
             let len = Some(len as u64);
             assert_eq!(checked_len(&rec, at as u64, ck.kind, co.kind), len);
             let (k, o) = masks_at(&rec, at as u64, ck.kind, co.kind);

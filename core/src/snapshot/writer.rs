@@ -66,6 +66,7 @@ const EMPTY: u8 = u8::MAX;
 
 /// Grow inclusive bounds by the voxels of `keep` in the leaf at `origin`, using the mask's
 /// extent per axis rather than visiting voxels.
+#[inline(always)]
 fn extend_bounds(lo: &mut [i32; 3], hi: &mut [i32; 3], origin: VoxelCoord, keep: &Mask512) {
     // Bit x|y<<3 of a word; word index z.
     let (mut xs, mut ys, mut zs) = (0u8, 0u8, 0u8);
@@ -97,6 +98,68 @@ fn keep_of<'k>(keeps: &'k [Mask512], p: &'k PlannedLeaf<'_>) -> &'k Mask512 {
     } else {
         &keeps[p.keep as usize]
     }
+}
+
+/// Encode the records of one piece of leaves: their bytes, sums and how many had nothing
+/// known. Inlined into [`encode_piece_avx512`] too, so that one body serves both.
+#[inline(always)]
+fn encode_piece(
+    piece: &mut [PlannedLeaf<'_>],
+    keeps: &[Mask512],
+    avx512: Option<record::Avx512Encode>,
+) -> (Vec<u8>, Sums, usize) {
+    // The most a record takes (two dense masks), so the piece never grows by
+    // copying; pages not written to are never touched.
+    let mut bytes = Vec::with_capacity(piece.len() * 2 * 64);
+    let (mut sums, mut empty) = (Sums::default(), 0);
+    for k in 0..piece.len() {
+        if let Some(ahead) = piece.get(k + PREFETCH_AHEAD) {
+            ahead.leaf.prefetch_masks();
+        }
+        let p = &mut piece[k];
+        let keep = *keep_of(keeps, p);
+        if keep.is_empty() {
+            p.kinds = (EMPTY, 0);
+            empty += 1;
+            continue;
+        }
+        let occupied = p.leaf.marked.and(&keep);
+        let known_choice = record::choose_known(&keep);
+        let occupied_choice = record::choose_occupied(&occupied);
+        p.kinds = (known_choice.kind, occupied_choice.kind);
+        p.record = bytes.len() as u32;
+        let at = bytes.len();
+        bytes.resize(at + (known_choice.len + occupied_choice.len) as usize, 0);
+        record::encode(
+            &keep,
+            p.kinds.0,
+            &occupied,
+            p.kinds.1,
+            &mut bytes[at..],
+            avx512,
+        );
+        extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, &keep);
+        sums.known += u64::from(keep.count());
+        sums.occupied += u64::from(occupied.count());
+    }
+    (bytes, sums, empty)
+}
+
+/// [`encode_piece`] compiled for AVX-512: the mask work, popcounts and VBMI2 stores.
+///
+/// # Safety
+/// The CPU must have every feature enabled here; `token` proves it
+/// (`record::Avx512Encode::detect` checks the same list).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(
+    enable = "avx512f,avx512bw,avx512vl,avx512vbmi2,avx512vpopcntdq,bmi1,bmi2,lzcnt,popcnt"
+)]
+unsafe fn encode_piece_avx512(
+    piece: &mut [PlannedLeaf<'_>],
+    keeps: &[Mask512],
+    token: record::Avx512Encode,
+) -> (Vec<u8>, Sums, usize) {
+    encode_piece(piece, keeps, Some(token))
 }
 
 /// The first `len` bytes of `bytes`, leaving it the rest.
@@ -294,37 +357,15 @@ impl<'a> Plan<'a> {
         // Encode every leaf's record once, in pieces; `record` is the offset within the
         // piece until the pieces' offsets are known. Leaves with nothing known (possible
         // only in the whole scope) get no record and are dropped after.
+        let avx512 = record::Avx512Encode::detect();
         let pieces: Vec<(Vec<u8>, Sums, usize)> = leaves
             .par_chunks_mut(PIECE)
-            .map(|piece| {
-                // The most a record takes (two dense masks), so the piece never grows by
-                // copying; pages not written to are never touched.
-                let mut bytes = Vec::with_capacity(piece.len() * 2 * 64);
-                let (mut sums, mut empty) = (Sums::default(), 0);
-                for k in 0..piece.len() {
-                    if let Some(ahead) = piece.get(k + PREFETCH_AHEAD) {
-                        ahead.leaf.prefetch_masks();
-                    }
-                    let p = &mut piece[k];
-                    let keep = *keep_of(&keeps, p);
-                    if keep.is_empty() {
-                        p.kinds = (EMPTY, 0);
-                        empty += 1;
-                        continue;
-                    }
-                    let occupied = p.leaf.marked.and(&keep);
-                    let known_choice = record::choose_known(&keep);
-                    let occupied_choice = record::choose_occupied(&occupied);
-                    p.kinds = (known_choice.kind, occupied_choice.kind);
-                    p.record = bytes.len() as u32;
-                    let at = bytes.len();
-                    bytes.resize(at + (known_choice.len + occupied_choice.len) as usize, 0);
-                    record::encode(&keep, p.kinds.0, &occupied, p.kinds.1, &mut bytes[at..]);
-                    extend_bounds(&mut sums.lo, &mut sums.hi, p.origin, &keep);
-                    sums.known += u64::from(keep.count());
-                    sums.occupied += u64::from(occupied.count());
-                }
-                (bytes, sums, empty)
+            .map(|piece| match avx512 {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Avx512Encode::detect` checked every feature `encode_piece_avx512`
+                // enables.
+                Some(t) => unsafe { encode_piece_avx512(piece, &keeps, t) },
+                _ => encode_piece(piece, &keeps, None),
             })
             .collect();
         let mut starts = Vec::with_capacity(pieces.len());
