@@ -1,0 +1,338 @@
+//! rosbag2 bags: a directory with `metadata.yaml` and its storage files, or one `.mcap` or
+//! `.db3` file. [`Bag::open`] finds the files and the topics; [`Bag::read_file`] streams a
+//! file's messages, in recording order, to a callback with the serialized bytes borrowed.
+
+mod mcap;
+mod metadata;
+mod sqlite;
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+
+/// rosbag2's two storage plugins.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Storage {
+    /// MCAP (rosbag2's default since Iron), chunks uncompressed, zstd or lz4.
+    Mcap,
+    /// SQLite 3 (`.db3`, the default before).
+    Sqlite3,
+}
+
+impl std::fmt::Display for Storage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Mcap => "mcap",
+            Self::Sqlite3 => "sqlite3",
+        })
+    }
+}
+
+/// A topic of the bag.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TopicInfo {
+    pub name: String,
+    /// `pkg/msg/Type`.
+    pub type_name: String,
+    /// The serialization (`cdr` for every ROS 2 bag voxmap reads).
+    pub encoding: String,
+    /// Messages, when the bag's summary or metadata says.
+    pub count: Option<u64>,
+}
+
+/// One message, borrowed from the reader for the length of the callback.
+#[derive(Debug, Clone, Copy)]
+pub struct Message<'a> {
+    pub topic: &'a str,
+    pub type_name: &'a str,
+    /// When the recorder received it (nanoseconds since the epoch).
+    pub log_time_ns: u64,
+    /// The serialized message: the CDR encapsulation header, then CDR.
+    pub data: &'a [u8],
+}
+
+/// Why a bag cannot be opened or read any further. Each names the file.
+#[derive(Debug)]
+pub enum BagError {
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// Not a rosbag2 directory, `.mcap` or `.db3` file.
+    NotABag { path: PathBuf, why: String },
+    /// `metadata.yaml` cannot be read as rosbag2 metadata.
+    Metadata { path: PathBuf, why: String },
+    /// A bag voxmap does not read (file- or message-level compression, another storage).
+    Unsupported { path: PathBuf, why: String },
+    /// The MCAP reader stopped: a truncated or damaged file. `offset` is how far into the
+    /// file it had read.
+    Mcap {
+        path: PathBuf,
+        offset: u64,
+        len: u64,
+        source: ::mcap::McapError,
+    },
+    /// SQLite refused the file or a query on it.
+    Sqlite {
+        path: PathBuf,
+        source: rusqlite::Error,
+    },
+}
+
+impl std::fmt::Display for BagError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Io { path, .. } => write!(f, "{}: cannot read", path.display()),
+            Self::NotABag { path, why } => write!(f, "{}: not a ROS 2 bag: {why}", path.display()),
+            Self::Metadata { path, why } => {
+                write!(f, "{}: bad rosbag2 metadata: {why}", path.display())
+            }
+            Self::Unsupported { path, why } => write!(f, "{}: {why}", path.display()),
+            Self::Mcap {
+                path, offset, len, ..
+            } => write!(
+                f,
+                "{}: MCAP damaged at byte {offset} of {len} (truncated or corrupt)",
+                path.display()
+            ),
+            Self::Sqlite { path, .. } => write!(f, "{}: SQLite bag unreadable", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for BagError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Io { source, .. } => Some(source),
+            Self::Mcap { source, .. } => Some(source),
+            Self::Sqlite { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// A storage file of a bag.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BagFile {
+    pub path: PathBuf,
+    pub storage: Storage,
+}
+
+/// An opened bag: its files and topics. Reading is by [`Bag::read_file`].
+#[derive(Debug, Clone)]
+pub struct Bag {
+    pub path: PathBuf,
+    pub files: Vec<BagFile>,
+    pub topics: Vec<TopicInfo>,
+    /// First and last log time (ns), when the summary or metadata says.
+    pub span_ns: Option<(u64, u64)>,
+}
+
+/// True if `path` looks like a bag: a directory with `metadata.yaml` or with `.mcap` or
+/// `.db3` files, or such a file.
+pub fn is_bag(path: &Path) -> bool {
+    if path.is_dir() {
+        return path.join("metadata.yaml").is_file() || !storage_files(path).is_empty();
+    }
+    storage_of(path).is_some()
+}
+
+fn storage_of(path: &Path) -> Option<Storage> {
+    match path.extension()?.to_str()? {
+        "mcap" => Some(Storage::Mcap),
+        "db3" => Some(Storage::Sqlite3),
+        _ => None,
+    }
+}
+
+fn storage_files(dir: &Path) -> Vec<BagFile> {
+    let mut v: Vec<BagFile> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter_map(|path| storage_of(&path).map(|storage| BagFile { path, storage }))
+        .collect();
+    // rosbag2 names split files <bag>_0, <bag>_1, ...: order by that number, then name.
+    v.sort_by_key(|f| (split_index(&f.path), f.path.clone()));
+    v
+}
+
+fn split_index(p: &Path) -> u64 {
+    p.file_stem()
+        .and_then(|s| s.to_str())
+        .and_then(|s| s.rsplit('_').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(0)
+}
+
+impl Bag {
+    /// Open a bag directory or a single storage file, and learn its topics: from
+    /// `metadata.yaml`, else the MCAP summary or the SQLite tables (a damaged MCAP without
+    /// a summary is scanned up to the damage).
+    pub fn open(path: &Path) -> Result<Self, BagError> {
+        let io = |source| BagError::Io {
+            path: path.into(),
+            source,
+        };
+        if !path.is_dir() {
+            let storage = storage_of(path).ok_or_else(|| BagError::NotABag {
+                path: path.into(),
+                why: "expected a rosbag2 directory, a .mcap or a .db3 file".into(),
+            })?;
+            std::fs::metadata(path).map_err(io)?;
+            let files = vec![BagFile {
+                path: path.into(),
+                storage,
+            }];
+            let (topics, span_ns) = topics_of(&files)?;
+            return Ok(Self {
+                path: path.into(),
+                files,
+                topics,
+                span_ns,
+            });
+        }
+        let meta_path = path.join("metadata.yaml");
+        if !meta_path.is_file() {
+            let files = storage_files(path);
+            if files.is_empty() {
+                return Err(BagError::NotABag {
+                    path: path.into(),
+                    why: "no metadata.yaml and no .mcap or .db3 file".into(),
+                });
+            }
+            let (topics, span_ns) = topics_of(&files)?;
+            return Ok(Self {
+                path: path.into(),
+                files,
+                topics,
+                span_ns,
+            });
+        }
+        let text = std::fs::read_to_string(&meta_path).map_err(|source| BagError::Io {
+            path: meta_path.clone(),
+            source,
+        })?;
+        let bad = |why: String| BagError::Metadata {
+            path: meta_path.clone(),
+            why,
+        };
+        let m = metadata::parse(&text).map_err(bad)?;
+        let storage = match m.storage_identifier.as_str() {
+            "mcap" => Storage::Mcap,
+            "sqlite3" => Storage::Sqlite3,
+            s => {
+                return Err(BagError::Unsupported {
+                    path: path.into(),
+                    why: format!("storage '{s}' (voxmap reads mcap and sqlite3)"),
+                })
+            }
+        };
+        if !matches!(
+            m.compression_mode.to_ascii_lowercase().as_str(),
+            "" | "none"
+        ) {
+            return Err(BagError::Unsupported {
+                path: path.into(),
+                why: format!(
+                    "{} compression by {} (decompress it with `ros2 bag convert` or record with \
+                     MCAP chunk compression instead)",
+                    m.compression_mode.to_ascii_lowercase(),
+                    m.compression_format
+                ),
+            });
+        }
+        if m.relative_file_paths.is_empty() {
+            return Err(bad(format!(
+                "version {}: no relative_file_paths",
+                m.version
+            )));
+        }
+        let mut files = Vec::new();
+        for rel in &m.relative_file_paths {
+            if Path::new(rel).is_absolute() || rel.split('/').any(|c| c == "..") {
+                return Err(bad(format!("file path '{rel}' leaves the bag directory")));
+            }
+            let p = path.join(rel);
+            std::fs::metadata(&p).map_err(|source| BagError::Io {
+                path: p.clone(),
+                source,
+            })?;
+            files.push(BagFile { path: p, storage });
+        }
+        let topics = m
+            .topics_with_message_count
+            .iter()
+            .map(|t| TopicInfo {
+                name: t.topic_metadata.name.clone(),
+                type_name: t.topic_metadata.type_name.clone(),
+                encoding: t.topic_metadata.serialization_format.clone(),
+                count: Some(t.message_count),
+            })
+            .collect();
+        let span_ns = match (m.starting_time, m.duration) {
+            (Some(s), Some(d)) if s.nanoseconds_since_epoch >= 0 && d.nanoseconds >= 0 => Some((
+                s.nanoseconds_since_epoch as u64,
+                (s.nanoseconds_since_epoch as u64).saturating_add(d.nanoseconds as u64),
+            )),
+            _ => None,
+        };
+        Ok(Self {
+            path: path.into(),
+            files,
+            topics,
+            span_ns,
+        })
+    }
+
+    /// The topics of type `type_name`.
+    pub fn topics_of_type<'a>(&'a self, type_name: &'a str) -> impl Iterator<Item = &'a TopicInfo> {
+        self.topics.iter().filter(move |t| t.type_name == type_name)
+    }
+
+    /// Stream the messages of file `index` whose topic `wanted` accepts, in recording order,
+    /// to `f`, until the file ends, `f` breaks, or the file turns out damaged (the error
+    /// comes after every message before the damage).
+    pub fn read_file(
+        &self,
+        index: usize,
+        wanted: &dyn Fn(&str) -> bool,
+        f: &mut dyn FnMut(Message<'_>) -> ControlFlow<()>,
+    ) -> Result<(), BagError> {
+        let Some(file) = self.files.get(index) else {
+            return Ok(());
+        };
+        match file.storage {
+            Storage::Mcap => mcap::read(&file.path, wanted, f),
+            Storage::Sqlite3 => sqlite::read(&file.path, wanted, f),
+        }
+    }
+}
+
+type Topics = (Vec<TopicInfo>, Option<(u64, u64)>);
+
+/// Topics of bag files without metadata, merged over the files.
+fn topics_of(files: &[BagFile]) -> Result<Topics, BagError> {
+    let mut all: Vec<TopicInfo> = Vec::new();
+    let mut span: Option<(u64, u64)> = None;
+    for f in files {
+        let (topics, s) = match f.storage {
+            Storage::Mcap => mcap::topics(&f.path)?,
+            Storage::Sqlite3 => sqlite::topics(&f.path)?,
+        };
+        for t in topics {
+            match all.iter_mut().find(|a| a.name == t.name) {
+                Some(a) => {
+                    a.count = match (a.count, t.count) {
+                        (Some(x), Some(y)) => Some(x + y),
+                        _ => None,
+                    }
+                }
+                None => all.push(t),
+            }
+        }
+        if let Some((a, b)) = s {
+            span = Some(span.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+        }
+    }
+    Ok((all, span))
+}

@@ -1,0 +1,301 @@
+//! Clouds matched to their poses, as tf2's message filter does: each cloud waits until the
+//! TF buffer can give the transform from the map frame to the cloud's frame at its stamp,
+//! or until the recording has moved on by the wait time, then comes out posed or dropped
+//! with the reason. Clouds come out in the order they went in.
+
+use crate::cloud::{self, CloudError, CloudPoints};
+use crate::msg::{self, DecodeError, Odometry, PointCloud2, PoseStamped, TfMessage, Time};
+use crate::tf::{InsertError, LookupError, TfBuffer};
+use nalgebra::Isometry3;
+use std::collections::VecDeque;
+
+/// Where poses come from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PoseSource {
+    /// `/tf` and `/tf_static`.
+    Tf,
+    /// A pose topic (`nav_msgs/msg/Odometry` or `geometry_msgs/msg/PoseStamped`) gives the
+    /// dynamic link from its `header.frame_id` to its child frame (the odometry's
+    /// `child_frame_id`; for a `PoseStamped`, `pose_frame`). `/tf_static` still gives the
+    /// rest; `/tf` samples for that same child are ignored.
+    Topic {
+        topic: String,
+        pose_frame: Option<String>,
+    },
+}
+
+/// How clouds are matched to poses.
+#[derive(Debug, Clone)]
+pub struct SyncConfig {
+    /// The frame the map is built in (tf2's target frame).
+    pub map_frame: String,
+    /// How long (recording time) a cloud waits for its transform.
+    pub wait_ns: i64,
+    pub poses: PoseSource,
+}
+
+impl Default for SyncConfig {
+    fn default() -> Self {
+        Self {
+            map_frame: "map".into(),
+            wait_ns: 1_000_000_000,
+            poses: PoseSource::Tf,
+        }
+    }
+}
+
+/// A cloud with its pose in the map frame.
+#[derive(Debug, Clone)]
+pub struct PosedCloud {
+    pub topic: String,
+    /// Index of the cloud among its topic's messages (from 0).
+    pub index: u64,
+    pub stamp: Time,
+    pub frame_id: String,
+    pub pose: Isometry3<f64>,
+    pub points: CloudPoints,
+}
+
+/// Why a cloud was dropped.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DropReason {
+    Decode(DecodeError),
+    Cloud(CloudError),
+    Transform(LookupError),
+}
+
+impl DropReason {
+    /// A short name of the reason, for counting.
+    pub fn kind(&self) -> String {
+        match self {
+            Self::Decode(_) => "not a PointCloud2".into(),
+            Self::Cloud(e) => e.kind().into(),
+            Self::Transform(e) => format!("no transform ({})", e.kind()),
+        }
+    }
+}
+
+impl std::fmt::Display for DropReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Decode(e) => write!(f, "cannot decode: {e}"),
+            Self::Cloud(e) => e.fmt(f),
+            Self::Transform(e) => write!(f, "no transform: {e}"),
+        }
+    }
+}
+
+/// A dropped cloud: which, and why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dropped {
+    pub topic: String,
+    pub index: u64,
+    pub reason: DropReason,
+}
+
+impl std::fmt::Display for Dropped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} cloud {}: {}", self.topic, self.index, self.reason)
+    }
+}
+
+impl std::error::Error for Dropped {}
+
+/// A TF or pose message that could not go into the buffer.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TfRejected {
+    Decode(DecodeError),
+    Insert(InsertError),
+    /// A `PoseStamped` pose topic without a pose frame.
+    NoPoseFrame,
+}
+
+impl std::fmt::Display for TfRejected {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Decode(e) => write!(f, "cannot decode: {e}"),
+            Self::Insert(e) => e.fmt(f),
+            Self::NoPoseFrame => f.write_str(
+                "a PoseStamped has no child frame: say which frame it gives the pose of",
+            ),
+        }
+    }
+}
+
+struct Pending {
+    topic: String,
+    index: u64,
+    log_time_ns: u64,
+    stamp: Time,
+    frame_id: String,
+    data: Vec<u8>,
+}
+
+/// Most clouds waiting at once; beyond, the oldest is resolved with what the buffer has.
+const MAX_PENDING: usize = 256;
+
+/// The message filter. Feed it every TF, pose and cloud message in recording order, then
+/// take what is [`ready`](Self::ready); at the end, [`finish`](Self::finish).
+pub struct CloudSync {
+    config: SyncConfig,
+    tf: TfBuffer,
+    pending: VecDeque<Pending>,
+    now_ns: u64,
+    pose_child: Option<String>,
+}
+
+impl CloudSync {
+    pub fn new(config: SyncConfig) -> Self {
+        Self {
+            config,
+            tf: TfBuffer::default(),
+            pending: VecDeque::new(),
+            now_ns: 0,
+            pose_child: None,
+        }
+    }
+
+    /// The TF buffer (for `inspect`'s tree).
+    pub fn tf(&self) -> &TfBuffer {
+        &self.tf
+    }
+
+    fn advance(&mut self, log_time_ns: u64) {
+        self.now_ns = self.now_ns.max(log_time_ns);
+    }
+
+    /// A `tf2_msgs/msg/TFMessage` from `/tf` (`is_static` false) or `/tf_static`. Returns
+    /// the transforms it could not take (the others went in).
+    pub fn tf_message(
+        &mut self,
+        log_time_ns: u64,
+        data: &[u8],
+        is_static: bool,
+    ) -> Vec<TfRejected> {
+        self.advance(log_time_ns);
+        let m: TfMessage = match msg::decode(data) {
+            Ok(m) => m,
+            Err(e) => return vec![TfRejected::Decode(e)],
+        };
+        let mut bad = Vec::new();
+        for t in &m.transforms {
+            if !is_static && self.pose_child.as_deref() == Some(t.child_frame_id) {
+                continue;
+            }
+            if let Err(e) = self.tf.insert(
+                t.header.frame_id,
+                t.child_frame_id,
+                t.header.stamp,
+                &t.transform,
+                is_static,
+            ) {
+                bad.push(TfRejected::Insert(e));
+            }
+        }
+        bad
+    }
+
+    /// A message of the pose topic, of type `type_name` (Odometry or PoseStamped).
+    pub fn pose_message(
+        &mut self,
+        log_time_ns: u64,
+        type_name: &str,
+        data: &[u8],
+    ) -> Result<(), TfRejected> {
+        self.advance(log_time_ns);
+        let (parent, child, stamp, pose) = if type_name == msg::types::ODOMETRY {
+            let o: Odometry = msg::decode(data).map_err(TfRejected::Decode)?;
+            (
+                o.header.frame_id.to_owned(),
+                o.child_frame_id.to_owned(),
+                o.header.stamp,
+                o.pose.pose,
+            )
+        } else {
+            let p: PoseStamped = msg::decode(data).map_err(TfRejected::Decode)?;
+            let child = match &self.config.poses {
+                PoseSource::Topic {
+                    pose_frame: Some(f),
+                    ..
+                } => f.clone(),
+                _ => return Err(TfRejected::NoPoseFrame),
+            };
+            (p.header.frame_id.to_owned(), child, p.header.stamp, p.pose)
+        };
+        self.pose_child.get_or_insert_with(|| child.clone());
+        self.tf
+            .insert(&parent, &child, stamp, &pose, false)
+            .map_err(TfRejected::Insert)
+    }
+
+    /// A cloud message: queued until its transform is there. A message that is not a
+    /// PointCloud2 is dropped at once.
+    pub fn cloud(
+        &mut self,
+        topic: &str,
+        index: u64,
+        log_time_ns: u64,
+        data: &[u8],
+    ) -> Result<(), Dropped> {
+        self.advance(log_time_ns);
+        let c: PointCloud2 = msg::decode(data).map_err(|e| Dropped {
+            topic: topic.into(),
+            index,
+            reason: DropReason::Decode(e),
+        })?;
+        self.pending.push_back(Pending {
+            topic: topic.into(),
+            index,
+            log_time_ns,
+            stamp: c.header.stamp,
+            frame_id: c.header.frame_id.to_owned(),
+            data: data.to_vec(),
+        });
+        Ok(())
+    }
+
+    /// Clouds whose wait is over, in order: each posed, or dropped with the reason.
+    pub fn ready(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
+        let mut out = Vec::new();
+        while let Some(p) = self.pending.front() {
+            let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
+            let waited = self.now_ns.saturating_sub(p.log_time_ns) as i64 > self.config.wait_ns;
+            if lookup.is_err() && !waited && self.pending.len() <= MAX_PENDING {
+                break;
+            }
+            if let Some(p) = self.pending.pop_front() {
+                out.push(resolve(p, lookup));
+            }
+        }
+        out
+    }
+
+    /// Every cloud still waiting, resolved with what the buffer has: the end of the input.
+    pub fn finish(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
+        let mut out = Vec::new();
+        while let Some(p) = self.pending.pop_front() {
+            let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
+            out.push(resolve(p, lookup));
+        }
+        out
+    }
+}
+
+fn resolve(p: Pending, lookup: Result<Isometry3<f64>, LookupError>) -> Result<PosedCloud, Dropped> {
+    let drop = |reason| Dropped {
+        topic: p.topic.clone(),
+        index: p.index,
+        reason,
+    };
+    let pose = lookup.map_err(|e| drop(DropReason::Transform(e)))?;
+    let c: PointCloud2 = msg::decode(&p.data).map_err(|e| drop(DropReason::Decode(e)))?;
+    let points = cloud::points(&c).map_err(|e| drop(DropReason::Cloud(e)))?;
+    Ok(PosedCloud {
+        topic: p.topic,
+        index: p.index,
+        stamp: p.stamp,
+        frame_id: p.frame_id,
+        pose,
+        points,
+    })
+}
