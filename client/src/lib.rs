@@ -337,6 +337,9 @@ impl FrameLoan<'_> {
     }
 }
 
+/// How often a waiting subscriber looks for a history sample (see `wait_for_update`).
+const HISTORY_POLL: Duration = Duration::from_millis(50);
+
 /// Receives snapshots of a map; holds the newest sample and lends views into it.
 pub struct SnapshotSubscriber {
     subscriber: Subscriber<ipc::Service, [u8], SnapshotHeader>,
@@ -383,8 +386,12 @@ impl SnapshotSubscriber {
         let deadline = std::time::Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
+            // The current snapshot reaches a new subscriber as history, which comes with no
+            // wake-up: look again at least this often so that it is seen without waiting
+            // for the next snapshot.
+            let slice = left.min(HISTORY_POLL).max(Duration::from_millis(1));
             self.listener
-                .timed_wait(|_| {}, left.max(Duration::from_millis(1)))
+                .timed_wait(|_| {}, slice)
                 .map_err(ClientError::Wait)?;
             if self.poll()? {
                 return Ok(true);

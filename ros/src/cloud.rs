@@ -239,9 +239,9 @@ mod tests {
     use super::*;
     use crate::msg::{Header, PointField, Time};
 
-    fn field(name: &'static str, offset: u32, datatype: u8) -> PointField<'static> {
+    fn field(name: &str, offset: u32, datatype: u8) -> PointField {
         PointField {
-            name,
+            name: name.into(),
             offset,
             datatype,
             count: 1,
@@ -249,7 +249,7 @@ mod tests {
     }
 
     fn cloud<'a>(
-        fields: Vec<PointField<'a>>,
+        fields: Vec<PointField>,
         step: u32,
         w: u32,
         h: u32,
@@ -258,7 +258,7 @@ mod tests {
         PointCloud2 {
             header: Header {
                 stamp: Time { sec: 0, nanosec: 0 },
-                frame_id: "s",
+                frame_id: "s".into(),
             },
             height: h,
             width: w,

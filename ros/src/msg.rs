@@ -1,6 +1,7 @@
 //! The ROS 2 messages voxmap reads, as serde structs in their CDR field order, and
 //! [`decode`]: a serialized message (the 4-byte encapsulation header, then CDR) to one.
 //!
+//! Strings are owned (the CDR reader hands them over as owned); `data` is borrowed.
 //! Field order and types follow the `.msg` definitions of `sensor_msgs`, `std_msgs`,
 //! `geometry_msgs`, `nav_msgs` and `tf2_msgs` (unchanged from Humble to Kilted).
 
@@ -30,17 +31,15 @@ impl Time {
 
 /// `std_msgs/msg/Header`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct Header<'a> {
+pub struct Header {
     pub stamp: Time,
-    #[serde(borrow)]
-    pub frame_id: &'a str,
+    pub frame_id: String,
 }
 
 /// `sensor_msgs/msg/PointField`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct PointField<'a> {
-    #[serde(borrow)]
-    pub name: &'a str,
+pub struct PointField {
+    pub name: String,
     pub offset: u32,
     pub datatype: u8,
     pub count: u32,
@@ -49,12 +48,10 @@ pub struct PointField<'a> {
 /// `sensor_msgs/msg/PointCloud2`, its `data` borrowed from the serialized message.
 #[derive(Debug, Clone, Deserialize)]
 pub struct PointCloud2<'a> {
-    #[serde(borrow)]
-    pub header: Header<'a>,
+    pub header: Header,
     pub height: u32,
     pub width: u32,
-    #[serde(borrow)]
-    pub fields: Vec<PointField<'a>>,
+    pub fields: Vec<PointField>,
     pub is_bigendian: bool,
     pub point_step: u32,
     pub row_step: u32,
@@ -89,26 +86,22 @@ pub struct Transform {
 
 /// `geometry_msgs/msg/TransformStamped`: the pose of `child_frame_id` in `header.frame_id`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct TransformStamped<'a> {
-    #[serde(borrow)]
-    pub header: Header<'a>,
-    #[serde(borrow)]
-    pub child_frame_id: &'a str,
+pub struct TransformStamped {
+    pub header: Header,
+    pub child_frame_id: String,
     pub transform: Transform,
 }
 
 /// `tf2_msgs/msg/TFMessage`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct TfMessage<'a> {
-    #[serde(borrow)]
-    pub transforms: Vec<TransformStamped<'a>>,
+pub struct TfMessage {
+    pub transforms: Vec<TransformStamped>,
 }
 
 /// `geometry_msgs/msg/PoseStamped`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct PoseStamped<'a> {
-    #[serde(borrow)]
-    pub header: Header<'a>,
+pub struct PoseStamped {
+    pub header: Header,
     pub pose: Transform,
 }
 
@@ -130,11 +123,9 @@ pub struct TwistWithCovariance {
 
 /// `nav_msgs/msg/Odometry`: the pose of `child_frame_id` in `header.frame_id`.
 #[derive(Debug, Clone, Deserialize)]
-pub struct Odometry<'a> {
-    #[serde(borrow)]
-    pub header: Header<'a>,
-    #[serde(borrow)]
-    pub child_frame_id: &'a str,
+pub struct Odometry {
+    pub header: Header,
+    pub child_frame_id: String,
     pub pose: PoseWithCovariance,
     pub twist: TwistWithCovariance,
 }

@@ -179,12 +179,12 @@ impl CloudSync {
         };
         let mut bad = Vec::new();
         for t in &m.transforms {
-            if !is_static && self.pose_child.as_deref() == Some(t.child_frame_id) {
+            if !is_static && self.pose_child.as_deref() == Some(t.child_frame_id.as_str()) {
                 continue;
             }
             if let Err(e) = self.tf.insert(
-                t.header.frame_id,
-                t.child_frame_id,
+                &t.header.frame_id,
+                &t.child_frame_id,
                 t.header.stamp,
                 &t.transform,
                 is_static,
@@ -220,7 +220,7 @@ impl CloudSync {
                 } => f.clone(),
                 _ => return Err(TfRejected::NoPoseFrame),
             };
-            (p.header.frame_id.to_owned(), child, p.header.stamp, p.pose)
+            (p.header.frame_id, child, p.header.stamp, p.pose)
         };
         self.pose_child.get_or_insert_with(|| child.clone());
         self.tf
@@ -248,7 +248,7 @@ impl CloudSync {
             index,
             log_time_ns,
             stamp: c.header.stamp,
-            frame_id: c.header.frame_id.to_owned(),
+            frame_id: c.header.frame_id,
             data: data.to_vec(),
         });
         Ok(())

@@ -119,7 +119,7 @@ impl std::fmt::Display for LookupError {
                 latest_ns,
             } => write!(
                 f,
-                "{} : the link {parent} -> {child} has samples from {:.9} to {:.9} s only, \
+                "{}: the link {parent} -> {child} has samples from {:.9} to {:.9} s only, \
                  lookup at {:.9} s",
                 self.kind(),
                 secs(*earliest_ns),
@@ -248,7 +248,10 @@ impl TfBuffer {
             q.insert(i, s);
         }
         let newest = q.back().map_or(s.stamp, |x| x.stamp);
-        while q.len() > 1 && q.front().is_some_and(|x| x.stamp < newest - self.cache_ns) {
+        while q.len() > 1
+            && q.front()
+                .is_some_and(|x| x.stamp < newest.saturating_sub(self.cache_ns))
+        {
             q.pop_front();
         }
         Ok(())

@@ -152,11 +152,14 @@ fn push_bounds(d: &mut Vec<(&'static str, String)>, leaves: &[LeafOccupancy], re
 
 #[derive(Args, Debug)]
 pub struct InspectArgs {
-    /// Map file, snapshot file or OctoMap .bt file.
+    /// Map file, snapshot file, OctoMap .bt file, or ROS 2 bag (directory, .mcap, .db3).
     pub file: PathBuf,
 }
 
 pub fn inspect(a: InspectArgs) -> Result<()> {
+    if voxmap_ros::bag::is_bag(&a.file) {
+        return crate::bags::inspect(&a.file);
+    }
     let l = Loaded::read(&a.file)?;
     println!("{}", a.file.display());
     for (k, v) in &l.details {

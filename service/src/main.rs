@@ -1,5 +1,6 @@
 //! `voxmap`: the mapping service and its tools.
 
+mod bags;
 mod bench;
 mod config;
 mod demo;

@@ -1,6 +1,7 @@
-//! `voxmap replay`: feed recorded scans (PCD, KITTI `.bin`, PLY) to a running service or
-//! straight into the core offline, writing a map file.
+//! `voxmap replay`: feed recorded scans (PCD, KITTI `.bin`, PLY, or the clouds of a ROS 2
+//! bag) to a running service or straight into the core offline, writing a map file.
 
+use crate::bags::{BagArgs, BagPlan};
 use crate::config::MappingArgs;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
@@ -18,7 +19,8 @@ use voxmap_ipc::FrameHeader;
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
     /// PCD files (pose from VIEWPOINT), KITTI .bin or PLY files (pose from --poses), or
-    /// directories of them, read in name order.
+    /// directories of them, read in name order; or one ROS 2 bag (a rosbag2 directory, a
+    /// .mcap or a .db3 file), its clouds posed from TF.
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,
     /// Pose file for .bin and .ply scans: KITTI (12 numbers per line) or TUM
@@ -44,9 +46,11 @@ pub struct ReplayArgs {
     /// To a service: ask it to save its map here after the last frame.
     #[arg(long)]
     pub save: Option<PathBuf>,
-    /// What to do with a file that cannot be read.
+    /// What to do with a file or cloud that cannot be read (or posed), or a damaged bag.
     #[arg(long, value_enum, default_value_t = OnError::Abort)]
     pub on_error: OnError,
+    #[command(flatten)]
+    pub bag: BagArgs,
     /// Offline mapping settings (a service uses its own).
     #[command(flatten)]
     pub mapping: MappingArgs,
@@ -60,11 +64,28 @@ pub enum OnError {
 
 /// One recorded scan.
 pub struct Scan {
-    pub path: PathBuf,
+    /// The file, or the bag topic and index.
+    pub name: String,
     pub points: Vec<[f32; 3]>,
+    /// Points the reader left out for a non-finite coordinate.
+    pub non_finite: u64,
     pub pose: Isometry3<f64>,
-    /// Seconds, when known (TUM poses or a file named by its time stamp).
+    /// Seconds, when known (TUM poses, a file named by its time stamp, a cloud's stamp).
     pub stamp: Option<f64>,
+}
+
+/// What the reader thread hands the replay loop, in input order.
+pub enum Read {
+    Scan(Scan),
+    /// A scan that cannot be used, with a short reason to count it by.
+    Skip {
+        kind: String,
+        error: anyhow::Error,
+    },
+    /// A damaged bag file: what was before the damage has been sent.
+    Damaged(anyhow::Error),
+    /// A transform or pose message that could not go into the TF buffer.
+    TfRejected(String),
 }
 
 const EXTENSIONS: [&str; 3] = ["pcd", "bin", "ply"];
@@ -108,7 +129,8 @@ pub fn read_scan(path: &Path, index: usize, poses: Option<&[StampedPose]>) -> Re
     if ext == "pcd" {
         let c = pcd::read(path)?;
         return Ok(Scan {
-            path: path.into(),
+            name: path.display().to_string(),
+            non_finite: 0,
             points: c.points,
             pose: c.pose,
             stamp: stem_stamp(path),
@@ -157,7 +179,8 @@ pub fn read_scan(path: &Path, index: usize, poses: Option<&[StampedPose]>) -> Re
         })?,
     };
     Ok(Scan {
-        path: path.into(),
+        name: path.display().to_string(),
+        non_finite: 0,
         points,
         pose: p.pose,
         stamp: p.stamp.or(stamp),
@@ -182,8 +205,29 @@ struct Online {
     control: MapControl,
 }
 
+/// Where scans come from.
+enum Source {
+    Files(Vec<PathBuf>),
+    Bag(Box<BagPlan>),
+}
+
 pub fn run(a: ReplayArgs) -> Result<()> {
-    let files = list_inputs(&a.inputs)?;
+    let source = match a.inputs.as_slice() {
+        [one] if voxmap_ros::bag::is_bag(one) => Source::Bag(Box::new(BagPlan::new(one, &a.bag)?)),
+        many => {
+            if let Some(b) = many.iter().find(|p| voxmap_ros::bag::is_bag(p)) {
+                bail!(
+                    "{}: a ROS 2 bag is replayed on its own, not with other inputs",
+                    b.display()
+                );
+            }
+            Source::Files(list_inputs(many)?)
+        }
+    };
+    let total = match &source {
+        Source::Files(f) => Some(f.len() as u64),
+        Source::Bag(b) => b.cloud_count,
+    };
     let poses = match &a.poses {
         Some(p) => {
             let text =
@@ -229,41 +273,63 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }))
     };
 
-    // Read ahead on a second thread so file reading overlaps integration.
-    let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, Result<Scan>)>(2);
+    // Read ahead on a second thread so reading overlaps integration.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<Read>(2);
     let reader = {
-        let files = files.clone();
         let poses = poses.clone();
-        std::thread::spawn(move || {
-            for (i, f) in files.iter().enumerate() {
-                if tx.send((i, read_scan(f, i, poses.as_deref()))).is_err() {
-                    break;
+        std::thread::spawn(move || match source {
+            Source::Files(files) => {
+                for (i, f) in files.iter().enumerate() {
+                    let r = match read_scan(f, i, poses.as_deref()) {
+                        Ok(s) => Read::Scan(s),
+                        Err(e) => Read::Skip {
+                            kind: "unreadable file".into(),
+                            error: e.context(format!("scan {} of {}", i + 1, files.len())),
+                        },
+                    };
+                    if tx.send(r).is_err() {
+                        break;
+                    }
                 }
             }
+            Source::Bag(plan) => plan.read(&mut |r| tx.send(r).is_ok()),
         })
     };
 
-    let bar = ProgressBar::with_draw_target(Some(files.len() as u64), ProgressDrawTarget::stderr());
+    let bar = ProgressBar::with_draw_target(total, ProgressDrawTarget::stderr());
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let plain = !std::io::stderr().is_terminal();
     let started = Instant::now();
-    let (mut frames, mut points, mut skipped) = (0u64, 0u64, 0u64);
+    let (mut frames, mut points, mut non_finite) = (0u64, 0u64, 0u64);
+    let mut skipped = Skipped::default();
     let mut integrate_s = 0.0;
     let mut last_line = Instant::now();
     let mut first_stamp: Option<(f64, Instant)> = None;
-    for (i, scan) in rx {
-        let scan = match scan {
-            Ok(s) => s,
-            Err(e) if a.on_error == OnError::Skip => {
-                bar.suspend(|| eprintln!("voxmap replay: skipping: {e:#}"));
-                skipped += 1;
+    for item in rx {
+        let scan = match item {
+            Read::Scan(s) => s,
+            Read::Skip { kind, error } if a.on_error == OnError::Skip => {
+                bar.suspend(|| eprintln!("voxmap replay: skipping: {error:#}"));
+                skipped.add(kind);
                 bar.inc(1);
                 continue;
             }
-            Err(e) => return Err(e.context(format!("scan {} of {}", i + 1, files.len()))),
+            Read::Damaged(e) if a.on_error == OnError::Skip => {
+                bar.suspend(|| eprintln!("voxmap replay: {e:#}; going on with what follows"));
+                skipped.add("damaged bag file".into());
+                continue;
+            }
+            Read::Skip { error, .. } | Read::Damaged(error) => return Err(error),
+            Read::TfRejected(why) => {
+                if skipped.transforms == 0 {
+                    bar.suspend(|| eprintln!("voxmap replay: transform ignored: {why}"));
+                }
+                skipped.transforms += 1;
+                continue;
+            }
         };
         // Pace.
         match rate {
@@ -271,7 +337,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 let t = scan.stamp.ok_or_else(|| {
                     anyhow!(
                         "{}: no time stamp for --rate recorded (use fast or a rate in Hz)",
-                        scan.path.display()
+                        scan.name
                     )
                 })?;
                 let (t0, w0) = *first_stamp.get_or_insert((t, Instant::now()));
@@ -283,7 +349,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                         anyhow!(
                             "{}: stamp {t} s is more than a day after the first ({t0} s); \
                              are the names nanoseconds? use --rate fast or a rate in Hz",
-                            scan.path.display()
+                            scan.name
                         )
                     })?;
                 let due = w0 + gap;
@@ -309,12 +375,10 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 integrate_s += t.elapsed().as_secs_f64();
                 if let Err(e) = r {
                     if a.on_error == OnError::Abort {
-                        bail!("{}: {e}", scan.path.display());
+                        bail!("{}: {e}", scan.name);
                     }
-                    bar.suspend(|| {
-                        eprintln!("voxmap replay: skipping {}: {e}", scan.path.display())
-                    });
-                    skipped += 1;
+                    bar.suspend(|| eprintln!("voxmap replay: skipping {}: {e}", scan.name));
+                    skipped.add("rejected by the integrator".into());
                     bar.inc(1);
                     continue;
                 }
@@ -326,18 +390,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                     control,
                 } = &mut **online;
                 if let Err(e) = FrameHeader::with_pose(&scan.pose).validate(0) {
-                    bail!("{}: {e}", scan.path.display());
+                    bail!("{}: {e}", scan.name);
                 }
                 let stamp_ns = crate::os::now_ns();
                 let seq = publisher.publish(&scan.pose, stamp_ns, &scan.points)?;
                 if rate.is_none() {
-                    wait_integrated(snapshots, control, seq)
-                        .with_context(|| format!("{}", scan.path.display()))?;
+                    wait_integrated(snapshots, control, seq).with_context(|| scan.name.clone())?;
                 }
             }
         }
         frames += 1;
         points += scan.points.len() as u64;
+        non_finite += scan.non_finite;
         bar.inc(1);
         let secs = started.elapsed().as_secs_f64().max(1e-9);
         let msg = format!(
@@ -346,7 +410,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             points as f64 / secs / 1e6
         );
         if plain && last_line.elapsed() >= Duration::from_secs(2) {
-            eprintln!("voxmap replay: {frames}/{} frames, {msg}", files.len());
+            let of = total.map_or(String::new(), |t| format!("/{t}"));
+            eprintln!("voxmap replay: {frames}{of} frames, {msg}");
             last_line = Instant::now();
         }
         bar.set_message(msg);
@@ -357,10 +422,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         .map_err(|_| anyhow!("reader thread panicked"))?;
     let secs = started.elapsed().as_secs_f64();
     println!(
-        "replayed {frames} frames ({points} points) in {secs:.2} s: {:.1} frames/s, {:.2} Mpoints/s{}",
+        "replayed {frames} frames ({points} points) in {secs:.2} s: {:.1} frames/s, {:.2} Mpoints/s{}{}",
         frames as f64 / secs.max(1e-9),
         points as f64 / secs.max(1e-9) / 1e6,
-        if skipped > 0 { format!("; {skipped} skipped") } else { String::new() }
+        if non_finite > 0 { format!("; {non_finite} non-finite points skipped") } else { String::new() },
+        skipped.summary()
     );
     match sink {
         Sink::Offline(off) => {
@@ -392,6 +458,40 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Scans and transforms left out, by reason.
+#[derive(Default)]
+struct Skipped {
+    by_kind: Vec<(String, u64)>,
+    transforms: u64,
+}
+
+impl Skipped {
+    fn add(&mut self, kind: String) {
+        match self.by_kind.iter_mut().find(|(k, _)| *k == kind) {
+            Some((_, n)) => *n += 1,
+            None => self.by_kind.push((kind, 1)),
+        }
+    }
+
+    /// `; 3 skipped (2 no transform (...), 1 data size disagrees); 4 transforms ignored`.
+    fn summary(&self) -> String {
+        let mut s = String::new();
+        let n: u64 = self.by_kind.iter().map(|(_, n)| n).sum();
+        if n > 0 {
+            let parts: Vec<String> = self
+                .by_kind
+                .iter()
+                .map(|(k, n)| format!("{n} {k}"))
+                .collect();
+            s += &format!("; {n} skipped ({})", parts.join(", "));
+        }
+        if self.transforms > 0 {
+            s += &format!("; {} transforms ignored", self.transforms);
+        }
+        s
+    }
 }
 
 /// Wait for the service's first snapshot. The service subscribes to frames before it

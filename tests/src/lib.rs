@@ -117,3 +117,147 @@ pub fn room_scan(h: [f64; 3], sensor: [f64; 3], n: usize) -> Vec<[f32; 3]> {
         })
         .collect()
 }
+
+/// The shared real data folder of the TUM RGB-D frames (`../shared` beside the repo).
+pub fn tum_dir() -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/real/tum_fr2_pioneer_slam2");
+    assert!(
+        d.is_dir(),
+        "{} missing: ../shared must sit beside the repo",
+        d.display()
+    );
+    d
+}
+
+/// One TUM depth frame, back-projected.
+pub struct TumFrame {
+    /// The time stamp as the file name spells it (seconds, six decimals).
+    pub stamp: String,
+    /// `tx ty tz qx qy qz qw` of the camera's optical frame in the world, as TUM gives it.
+    pub pose: String,
+    /// Points in the optical frame (x right, y down, z forward).
+    pub points: Vec<[f32; 3]>,
+}
+
+/// The ten TUM freiburg2_pioneer_slam2 depth frames, every `step`-th pixel in each
+/// direction, with their poses from the association file.
+pub fn tum_frames(step: usize) -> Vec<TumFrame> {
+    let data = tum_dir();
+    let assoc = std::fs::read_to_string(data.join("my_association.txt")).expect("association file");
+    let mut poses = std::collections::HashMap::new();
+    for l in assoc.lines().filter(|l| !l.starts_with('#')) {
+        let w: Vec<&str> = l.split_whitespace().collect();
+        if w.len() == 9 {
+            let t = w[1].trim_start_matches("depth/").trim_end_matches(".png");
+            poses.insert(t.to_string(), w[2..9].join(" "));
+        }
+    }
+    let mut names: Vec<String> = std::fs::read_dir(data.join("depth"))
+        .expect("depth/")
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+        .iter()
+        .map(|n| {
+            let dec = png::Decoder::new(std::io::BufReader::new(
+                std::fs::File::open(data.join("depth").join(n)).unwrap(),
+            ));
+            let mut r = dec.read_info().unwrap();
+            let mut buf = vec![0; r.output_buffer_size().unwrap()];
+            let info = r.next_frame(&mut buf).unwrap();
+            assert_eq!(
+                (info.width, info.height, info.bit_depth),
+                (640, 480, png::BitDepth::Sixteen)
+            );
+            // TUM's back-projection: 5000 units per metre, fx = fy = 525, cx 319.5, cy 239.5.
+            let mut points = Vec::new();
+            for v in (0..480).step_by(step) {
+                for u in (0..640).step_by(step) {
+                    let d =
+                        u16::from_be_bytes([buf[2 * (v * 640 + u)], buf[2 * (v * 640 + u) + 1]]);
+                    if d == 0 {
+                        continue;
+                    }
+                    let z = d as f64 / 5000.0;
+                    points.push([
+                        ((u as f64 - 319.5) * z / 525.0) as f32,
+                        ((v as f64 - 239.5) * z / 525.0) as f32,
+                        z as f32,
+                    ]);
+                }
+            }
+            let stamp = n.trim_end_matches(".png").to_string();
+            TumFrame {
+                pose: poses
+                    .get(&stamp)
+                    .unwrap_or_else(|| panic!("no pose for {stamp}"))
+                    .clone(),
+                stamp,
+                points,
+            }
+        })
+        .collect()
+}
+
+/// A Python with the `rosbags` package: `$VOXMAP_PYTHON`, else `python3` if it has it.
+/// `None` (with a notice) when there is none, unless VOXMAP_REQUIRE_ROSBAGS is set, as CI
+/// does, which makes that a failure.
+pub fn python_with_rosbags() -> Option<PathBuf> {
+    let py =
+        std::env::var_os("VOXMAP_PYTHON").map_or_else(|| PathBuf::from("python3"), PathBuf::from);
+    let has = Command::new(&py)
+        .args(["-c", "import rosbags, mcap, numpy"])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if has {
+        return Some(py);
+    }
+    assert!(
+        std::env::var_os("VOXMAP_REQUIRE_ROSBAGS").is_none(),
+        "{} has no rosbags, mcap or numpy (pip install rosbags mcap numpy)",
+        py.display()
+    );
+    eprintln!("NOTICE: no Python with rosbags, mcap and numpy; skipping the ROS 2 bag tests");
+    None
+}
+
+/// A fresh directory under the system's temp dir, unique to this test and process.
+pub fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(unique_prefix(name));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Run the `voxmap` binary.
+pub fn voxmap(args: &[&str]) -> std::process::Output {
+    Command::new(voxmap_bin())
+        .args(args)
+        .output()
+        .expect("run voxmap")
+}
+
+/// Run the `voxmap` binary, which must succeed; its standard output.
+pub fn ok(args: &[&str]) -> String {
+    let out = voxmap(args);
+    assert!(
+        out.status.success(),
+        "voxmap {args:?} failed: {}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Every known voxel of a map with its stored value, sorted.
+pub fn voxels(map: &voxmap_core::OccupancyMap) -> Vec<([i32; 3], i8)> {
+    let mut v: Vec<_> = map
+        .grid()
+        .active_voxels()
+        .map(|(c, x)| (c.to_array(), x))
+        .collect();
+    v.sort();
+    v
+}

@@ -3,36 +3,10 @@
 //! and PLY, inspect, render, and the demo.
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::Path;
+use std::process::Command;
 use voxmap_core::io::{mapfile, octomap, pcd, ply};
-use voxmap_core::OccupancyMap;
-use voxmap_tests::{room_scan, unique_prefix, voxmap_bin, Service};
-
-fn tmpdir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(unique_prefix(name));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn voxmap(args: &[&str]) -> Output {
-    let out = Command::new(voxmap_bin())
-        .args(args)
-        .output()
-        .expect("run voxmap");
-    out
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = voxmap(args);
-    assert!(
-        out.status.success(),
-        "voxmap {args:?} failed: {}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use voxmap_tests::{ok, room_scan, tmpdir, unique_prefix, voxels, voxmap, voxmap_bin, Service};
 
 const ROOM: [f64; 3] = [3.0, 2.0, 1.5];
 
@@ -68,17 +42,6 @@ fn write_pcd_frames(dir: &Path) {
         let cloud = pcd::PointCloud { points, pose };
         pcd::write(&dir.join(format!("frame_{i:03}.pcd")), &cloud).unwrap();
     }
-}
-
-/// Every known voxel with its stored value, sorted.
-fn voxels(map: &OccupancyMap) -> Vec<([i32; 3], i8)> {
-    let mut v: Vec<_> = map
-        .grid()
-        .active_voxels()
-        .map(|(c, x)| (c.to_array(), x))
-        .collect();
-    v.sort();
-    v
 }
 
 const MAPPING: [&str; 6] = ["--resolution", "0.1", "--max-range", "10", "--threads", "2"];
@@ -599,77 +562,36 @@ fn demo_runs_end_to_end_and_leaves_its_outputs() {
 /// the first nine mapped far more often than they do under a wrong pose.
 #[test]
 fn real_tum_depth_frames_line_up_through_replay() {
-    let data =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/tum_fr2_pioneer_slam2");
-    assert!(
-        data.is_dir(),
-        "{} missing: ../shared must sit beside the repo",
-        data.display()
-    );
     let dir = tmpdir("tum");
     let (early, last) = (dir.join("early"), dir.join("last"));
     std::fs::create_dir_all(&early).unwrap();
     std::fs::create_dir_all(&last).unwrap();
-    let assoc = std::fs::read_to_string(data.join("my_association.txt")).unwrap();
-    let mut tum = String::new();
-    for l in assoc.lines().filter(|l| !l.starts_with('#')) {
-        let w: Vec<&str> = l.split_whitespace().collect();
-        let t = w[1].trim_start_matches("depth/").trim_end_matches(".png");
-        tum.push_str(&format!("{t} {}\n", w[2..9].join(" ")));
-    }
+    let frames = voxmap_tests::tum_frames(2);
+    assert_eq!(frames.len(), 10);
+    let tum: String = frames
+        .iter()
+        .map(|f| format!("{} {}\n", f.stamp, f.pose))
+        .collect();
     std::fs::write(dir.join("tum.txt"), &tum).unwrap();
     let poses = voxmap_core::io::scans::parse_poses(&tum).unwrap();
-    let mut names: Vec<String> = std::fs::read_dir(data.join("depth"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
-    assert_eq!(names.len(), 10);
     let mut last_points = Vec::new();
-    for (i, n) in names.iter().enumerate() {
-        let dec = png::Decoder::new(std::io::BufReader::new(
-            std::fs::File::open(data.join("depth").join(n)).unwrap(),
-        ));
-        let mut r = dec.read_info().unwrap();
-        let mut buf = vec![0; r.output_buffer_size().unwrap()];
-        let info = r.next_frame(&mut buf).unwrap();
-        assert_eq!(
-            (info.width, info.height, info.bit_depth),
-            (640, 480, png::BitDepth::Sixteen)
-        );
-        // TUM's back-projection: 5000 units per metre, fx = fy = 525, cx 319.5, cy 239.5;
-        // every second pixel.
-        let mut pts = Vec::new();
-        for v in (0..480).step_by(2) {
-            for u in (0..640).step_by(2) {
-                let d = u16::from_be_bytes([buf[2 * (v * 640 + u)], buf[2 * (v * 640 + u) + 1]]);
-                if d == 0 {
-                    continue;
-                }
-                let z = d as f64 / 5000.0;
-                pts.push([
-                    ((u as f64 - 319.5) * z / 525.0) as f32,
-                    ((v as f64 - 239.5) * z / 525.0) as f32,
-                    z as f32,
-                ]);
-            }
-        }
-        let stem = n.trim_end_matches(".png");
-        let colored: Vec<_> = pts.iter().map(|p| (*p, [0u8; 3])).collect();
+    for (i, f) in frames.iter().enumerate() {
+        let colored: Vec<_> = f.points.iter().map(|p| (*p, [0u8; 3])).collect();
         let to = if i < 9 { &early } else { &last };
         std::fs::write(
-            to.join(format!("{stem}.ply")),
+            to.join(format!("{}.ply", f.stamp)),
             ply::encode_colored(&colored),
         )
         .unwrap();
         if i == 9 {
-            let t: f64 = stem.parse().unwrap();
+            let t: f64 = f.stamp.parse().unwrap();
             let pose = poses
                 .iter()
                 .find(|p| (p.stamp.unwrap() - t).abs() < 1e-6)
                 .unwrap()
                 .pose;
-            last_points = pts
+            last_points = f
+                .points
                 .iter()
                 .map(|p| pose * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64))
                 .collect();

@@ -20,6 +20,9 @@ struct Channel {
     wanted: bool,
 }
 
+/// What [`stream`] calls with each wanted message: its channel, log time and bytes.
+type OnMessage<'a> = dyn FnMut(&Channel, u64, &[u8]) -> ControlFlow<()> + 'a;
+
 fn open(path: &Path) -> Result<(std::fs::File, u64), BagError> {
     let io = |source| BagError::Io {
         path: path.into(),
@@ -30,12 +33,12 @@ fn open(path: &Path) -> Result<(std::fs::File, u64), BagError> {
     Ok((f, len))
 }
 
-/// Stream every record of the file to `on_record`, with the schema names and channels
-/// seen so far. Stops at the first damage with the offset read up to.
+/// Stream every wanted message of the file to `on_message`. Stops at the first damage,
+/// with the offset read up to.
 fn stream(
     path: &Path,
     wanted: &dyn Fn(&str) -> bool,
-    on_message: &mut dyn FnMut(&Channel, u64, &[u8]) -> ControlFlow<()>,
+    on_message: &mut OnMessage<'_>,
 ) -> Result<(), BagError> {
     let (mut file, len) = open(path)?;
     let opts = LinearReaderOptions::default()
