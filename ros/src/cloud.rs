@@ -167,29 +167,33 @@ pub fn points(cloud: &PointCloud2<'_>) -> Result<CloudPoints, CloudError> {
             actual: cloud.data.len(),
         });
     }
-    let big = cloud.is_bigendian;
-    let all = |f64: bool| coords.iter().all(|c| c.f64 == f64);
     let mut out = CloudPoints {
         points: Vec::with_capacity((h * w) as usize),
         non_finite: 0,
     };
+    let [x, y, z] = coords.map(|c| c.offset);
     // One monomorphic loop per common layout; mixed float sizes take the general one.
-    match (all(false), all(true), big) {
-        (true, _, false) => read_rows(cloud, &mut out, |p| coords.map(|c| f32_le(p, c.offset))),
-        (true, _, true) => read_rows(cloud, &mut out, |p| coords.map(|c| f32_be(p, c.offset))),
-        (_, true, false) => read_rows(cloud, &mut out, |p| {
-            coords.map(|c| f64_le(p, c.offset) as f32)
+    match (coords.map(|c| c.f64), cloud.is_bigendian) {
+        ([false, false, false], false) => read_rows(cloud, &mut out, |p| {
+            [f32_le(p, x), f32_le(p, y), f32_le(p, z)]
         }),
-        (_, true, true) => read_rows(cloud, &mut out, |p| {
-            coords.map(|c| f64_be(p, c.offset) as f32)
+        ([false, false, false], true) => read_rows(cloud, &mut out, |p| {
+            [f32_be(p, x), f32_be(p, y), f32_be(p, z)]
         }),
-        _ => read_rows(cloud, &mut out, |p| {
-            coords.map(|c| match (c.f64, big) {
-                (false, false) => f32_le(p, c.offset),
-                (false, true) => f32_be(p, c.offset),
-                (true, false) => f64_le(p, c.offset) as f32,
-                (true, true) => f64_be(p, c.offset) as f32,
-            })
+        ([true, true, true], false) => read_rows(cloud, &mut out, |p| {
+            [f64_le(p, x), f64_le(p, y), f64_le(p, z)].map(|v| v as f32)
+        }),
+        ([true, true, true], true) => read_rows(cloud, &mut out, |p| {
+            [f64_be(p, x), f64_be(p, y), f64_be(p, z)].map(|v| v as f32)
+        }),
+        (wide, big) => read_rows(cloud, &mut out, |p| {
+            let read = |k: usize, o: usize| match (wide[k], big) {
+                (false, false) => f32_le(p, o),
+                (false, true) => f32_be(p, o),
+                (true, false) => f64_le(p, o) as f32,
+                (true, true) => f64_be(p, o) as f32,
+            };
+            [read(0, x), read(1, y), read(2, z)]
         }),
     }
     Ok(out)
@@ -208,7 +212,7 @@ fn read_rows(cloud: &PointCloud2<'_>, out: &mut CloudPoints, read: impl Fn(&[u8]
     for row in cloud.data.chunks_exact(row_step) {
         for p in row[..row_len].chunks_exact(step) {
             let v = read(p);
-            if v.iter().all(|c| c.is_finite()) {
+            if v[0].is_finite() && v[1].is_finite() && v[2].is_finite() {
                 out.points.push(v);
             } else {
                 out.non_finite += 1;

@@ -140,6 +140,8 @@ pub struct CloudSync {
     config: SyncConfig,
     tf: TfBuffer,
     pending: VecDeque<Pending>,
+    /// Resolved, not yet taken by `ready`; all older than anything pending.
+    done: Vec<Result<PosedCloud, Dropped>>,
     now_ns: u64,
     pose_child: Option<String>,
 }
@@ -150,6 +152,7 @@ impl CloudSync {
             config,
             tf: TfBuffer::default(),
             pending: VecDeque::new(),
+            done: Vec::new(),
             now_ns: 0,
             pose_child: None,
         }
@@ -228,8 +231,9 @@ impl CloudSync {
             .map_err(TfRejected::Insert)
     }
 
-    /// A cloud message: queued until its transform is there. A message that is not a
-    /// PointCloud2 is dropped at once.
+    /// A cloud message: posed at once if its transform is there and no older cloud
+    /// waits, else queued (a copy) until it is. A message that is not a PointCloud2 is
+    /// dropped at once.
     pub fn cloud(
         &mut self,
         topic: &str,
@@ -243,6 +247,26 @@ impl CloudSync {
             index,
             reason: DropReason::Decode(e),
         })?;
+        if self.pending.is_empty() {
+            let map = &self.config.map_frame;
+            if let Ok(pose) = self.tf.lookup(map, &c.header.frame_id, c.header.stamp) {
+                let drop = |e| Dropped {
+                    topic: topic.into(),
+                    index,
+                    reason: DropReason::Cloud(e),
+                };
+                let posed = cloud::points(&c).map_err(drop).map(|points| PosedCloud {
+                    topic: topic.into(),
+                    index,
+                    stamp: c.header.stamp,
+                    frame_id: c.header.frame_id.clone(),
+                    pose,
+                    points,
+                });
+                self.done.push(posed);
+                return Ok(());
+            }
+        }
         self.pending.push_back(Pending {
             topic: topic.into(),
             index,
@@ -256,7 +280,7 @@ impl CloudSync {
 
     /// Clouds whose wait is over, in order: each posed, or dropped with the reason.
     pub fn ready(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
-        let mut out = Vec::new();
+        let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.front() {
             let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
             let waited = self.now_ns.saturating_sub(p.log_time_ns) as i64 > self.config.wait_ns;
@@ -272,7 +296,7 @@ impl CloudSync {
 
     /// Every cloud still waiting, resolved with what the buffer has: the end of the input.
     pub fn finish(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
-        let mut out = Vec::new();
+        let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.pop_front() {
             let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
             out.push(resolve(p, lookup));

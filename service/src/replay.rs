@@ -31,6 +31,10 @@ pub struct ReplayArgs {
     /// Integrate here instead of sending to a service; needs --out.
     #[arg(long, requires = "out")]
     pub offline: bool,
+    /// Read (and pose) every scan and print the summary, mapping nothing: checks a
+    /// recording, and times its reading on its own.
+    #[arg(long, conflicts_with_all = ["offline", "save"])]
+    pub dry_run: bool,
     /// Offline: write the map file here.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -191,6 +195,7 @@ pub fn read_scan(path: &Path, index: usize, poses: Option<&[StampedPose]>) -> Re
 enum Sink {
     Offline(Box<Offline>),
     Service(Box<Online>),
+    DryRun,
 }
 
 struct Offline {
@@ -254,7 +259,9 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 })?,
         ),
     };
-    let mut sink = if a.offline {
+    let mut sink = if a.dry_run {
+        Sink::DryRun
+    } else if a.offline {
         let cfg = a.mapping.resolve()?;
         Sink::Offline(Box::new(Offline {
             map: cfg.new_map()?,
@@ -362,6 +369,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             None => {}
         }
         match &mut sink {
+            Sink::DryRun => {}
             Sink::Offline(off) => {
                 let Offline { map, integ, .. } = &mut **off;
                 let t = Instant::now();
@@ -429,6 +437,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         skipped.summary()
     );
     match sink {
+        Sink::DryRun => {}
         Sink::Offline(off) => {
             let Offline { map, out, .. } = *off;
             let c = map.counts();

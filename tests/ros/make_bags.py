@@ -362,8 +362,9 @@ def make_bad(out):
 
 def make_bench(n, points, out):
     """N clouds of a 64-beam spinning lidar (POINTS points each) in a 30 m room, Ouster
-    layout, the sensor driving along x; as an MCAP bag (zstd, as `ros2 bag record
-    --storage-preset-profile zstd_fast`) and as binary PCD files with VIEWPOINT."""
+    layout, the sensor driving along x, /tf at 100 Hz; as an MCAP bag (zstd chunks, as `ros2 bag
+    record --storage-preset-profile zstd_fast`), a sqlite3 bag, and binary PCD files with
+    VIEWPOINT."""
     out = Path(out)
     (out / 'pcd').mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(7)
@@ -386,15 +387,21 @@ def make_bench(n, points, out):
         r = np.nanmin(np.where(np.maximum(t1, t2) > 0, np.maximum(t1, t2), np.inf), axis=1)
         r = r * (1 + 0.002 * rng.standard_normal(len(r)))
         xyz = (d * r[:, None]).astype(np.float32)
-        for when in (ns - s // 20, ns + s // 20):
-            msgs.append(('/tf', TFM, when, tf_message([transform_stamped(
-                when, 'map', 'base_link', ((0.05 * k, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))]), True))
-        msgs.append(('/os/points', PC2, ns + 1, layout(5, xyz, ns, 'os_sensor'), True))
+        # The driver hands the cloud over 20 ms after its stamp.
+        msgs.append(('/os/points', PC2, ns + 20_000_000, layout(5, xyz, ns, 'os_sensor'), True))
         head = ('# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n'
                 f'WIDTH {len(xyz)}\nHEIGHT 1\nVIEWPOINT {x!r} 0 1.2 1 0 0 0\nPOINTS {len(xyz)}\nDATA binary\n')
         (out / 'pcd' / f'{k:04d}.pcd').write_bytes(head.encode() + xyz.astype('<f4').tobytes())
+    # Odometry on /tf at 100 Hz, recorded as stamped, from 0.5 s before the first cloud to
+    # 0.5 s after the last: base_link drives along x at 0.5 m/s.
+    for j in range(10 * n + 100):
+        ns = 2 * s - s // 2 + j * s // 100
+        x = 0.05 * ((j - 50) / 10)
+        msgs.append(('/tf', TFM, ns, tf_message([transform_stamped(
+            ns, 'map', 'base_link', ((x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))]), True))
     msgs.sort(key=lambda m: m[2])
     write_rosbag_zstd(out / 'bag', msgs)
+    write_rosbag(out / 'bag_sqlite', msgs, StoragePlugin.SQLITE3)
 
 
 if __name__ == '__main__':
