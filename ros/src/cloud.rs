@@ -375,3 +375,92 @@ mod tests {
         );
     }
 }
+
+/// Serialized clouds, as a ROS 2 publisher would write them (CDR, little endian), and
+/// damaged ones: decoding and reading never panic, whatever the bytes.
+#[cfg(test)]
+mod cdr_tests {
+    use super::*;
+    use crate::msg;
+    use proptest::prelude::*;
+
+    /// A CDR writer just big enough for a PointCloud2 (alignment from the body's start).
+    struct Cdr(Vec<u8>);
+    impl Cdr {
+        fn align(&mut self, n: usize) {
+            while (self.0.len() - 4) % n != 0 {
+                self.0.push(0);
+            }
+        }
+        fn u32(&mut self, v: u32) {
+            self.align(4);
+            self.0.extend(v.to_le_bytes());
+        }
+        fn u8(&mut self, v: u8) {
+            self.0.push(v);
+        }
+        fn string(&mut self, s: &str) {
+            self.u32(s.len() as u32 + 1);
+            self.0.extend(s.as_bytes());
+            self.0.push(0);
+        }
+    }
+
+    fn serialized(points: &[[f32; 3]]) -> Vec<u8> {
+        let mut c = Cdr(vec![0, 1, 0, 0]);
+        c.u32(7); // stamp.sec
+        c.u32(9); // stamp.nanosec
+        c.string("lidar");
+        c.u32(1); // height
+        c.u32(points.len() as u32);
+        c.u32(4); // fields
+        for (name, off, dt) in [("x", 0, 7u8), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)] {
+            c.string(name);
+            c.u32(off);
+            c.u8(dt);
+            c.u32(1);
+        }
+        c.u8(0); // is_bigendian
+        c.u32(16);
+        c.u32(16 * points.len() as u32);
+        c.u32(16 * points.len() as u32);
+        for p in points {
+            for v in [p[0], p[1], p[2], 0.5] {
+                c.0.extend(v.to_le_bytes());
+            }
+        }
+        c.u8(1); // is_dense
+        c.0
+    }
+
+    #[test]
+    fn a_serialized_cloud_decodes_to_its_points() {
+        let pts = [[1.0, 2.0, 3.0], [-4.0, 5.5, 0.25]];
+        let bytes = serialized(&pts);
+        let c: msg::PointCloud2 = msg::decode(&bytes).unwrap();
+        assert_eq!((c.header.stamp.ns(), c.header.frame_id.as_str()), (7_000_000_009, "lidar"));
+        assert_eq!(points(&c).unwrap().points, pts.to_vec());
+    }
+
+    proptest! {
+        #[test]
+        fn damaged_clouds_never_panic(
+            n in 0usize..40,
+            flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..8),
+            cut in any::<usize>(),
+        ) {
+            let pts: Vec<[f32; 3]> = (0..n).map(|i| [i as f32, 1.0, 2.0]).collect();
+            let mut bytes = serialized(&pts);
+            for (at, v) in flips {
+                let k = at % bytes.len();
+                bytes[k] = v;
+            }
+            bytes.truncate(cut % (bytes.len() + 1));
+            if let Ok(c) = msg::decode::<msg::PointCloud2>(&bytes) {
+                if let Ok(r) = points(&c) {
+                    prop_assert!(r.points.len() as u64 + r.non_finite <= u64::from(c.width) * u64::from(c.height));
+                }
+            }
+        }
+    }
+}
