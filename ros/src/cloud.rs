@@ -414,7 +414,12 @@ mod cdr_tests {
         c.u32(1); // height
         c.u32(points.len() as u32);
         c.u32(4); // fields
-        for (name, off, dt) in [("x", 0, 7u8), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)] {
+        for (name, off, dt) in [
+            ("x", 0, 7u8),
+            ("y", 4, 7),
+            ("z", 8, 7),
+            ("intensity", 12, 7),
+        ] {
             c.string(name);
             c.u32(off);
             c.u8(dt);
@@ -438,7 +443,10 @@ mod cdr_tests {
         let pts = [[1.0, 2.0, 3.0], [-4.0, 5.5, 0.25]];
         let bytes = serialized(&pts);
         let c: msg::PointCloud2 = msg::decode(&bytes).unwrap();
-        assert_eq!((c.header.stamp.ns(), c.header.frame_id.as_str()), (7_000_000_009, "lidar"));
+        assert_eq!(
+            (c.header.stamp.ns(), c.header.frame_id.as_str()),
+            (7_000_000_009, "lidar")
+        );
         assert_eq!(points(&c).unwrap().points, pts.to_vec());
     }
 

@@ -336,3 +336,80 @@ fn topics_of(files: &[BagFile]) -> Result<Topics, BagError> {
     }
     Ok((all, span))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("voxmap_ros_{name}_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn metadata(extra: &str, files: &str) -> String {
+        format!(
+            "rosbag2_bagfile_information:\n  version: 9\n  storage_identifier: mcap\n  \
+             relative_file_paths:\n{files}  topics_with_message_count: []\n{extra}"
+        )
+    }
+
+    #[test]
+    fn bags_voxmap_cannot_read_say_why() {
+        let d = dir("meta");
+        assert!(matches!(Bag::open(&d), Err(BagError::NotABag { .. })));
+        std::fs::write(d.join("x_0.mcap"), b"").unwrap();
+        let m = |extra: &str, files: &str| {
+            std::fs::write(d.join("metadata.yaml"), metadata(extra, files)).unwrap();
+            Bag::open(&d).unwrap_err().to_string()
+        };
+        let e = m(
+            "  compression_mode: FILE\n  compression_format: zstd\n",
+            "    - x_0.mcap\n",
+        );
+        assert!(e.contains("file compression by zstd"), "{e}");
+        let e = m("", "    - ../../etc/passwd\n");
+        assert!(e.contains("leaves the bag directory"), "{e}");
+        let e = m("", "    - missing.mcap\n");
+        assert!(e.contains("missing.mcap: cannot read"), "{e}");
+        std::fs::write(d.join("metadata.yaml"), "rosbag2_bagfile_information: 3\n").unwrap();
+        assert!(matches!(Bag::open(&d), Err(BagError::Metadata { .. })));
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn garbage_storage_files_are_errors_not_panics() {
+        let d = dir("garbage");
+        let db3 = d.join("x.db3");
+        std::fs::write(&db3, vec![0x5a; 5000]).unwrap();
+        assert!(matches!(Bag::open(&db3), Err(BagError::Sqlite { .. })));
+        let mcap = d.join("x.mcap");
+        std::fs::write(&mcap, vec![0x5a; 5000]).unwrap();
+        // No summary and no readable record: no topics; reading names the damage.
+        let bag = Bag::open(&mcap).unwrap();
+        assert!(bag.topics.is_empty());
+        let e = bag
+            .read_file(0, &|_| true, &mut |_| ControlFlow::Continue(()))
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("x.mcap: MCAP damaged at byte"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn split_files_are_read_in_rosbag2_order() {
+        let d = dir("split");
+        for n in ["b_10.mcap", "b_2.mcap", "b_0.mcap", "b_1.db3"] {
+            std::fs::write(d.join(n), b"").unwrap();
+        }
+        let names: Vec<_> = storage_files(&d)
+            .iter()
+            .map(|f| f.path.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names, ["b_0.mcap", "b_1.db3", "b_2.mcap", "b_10.mcap"]);
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+}
