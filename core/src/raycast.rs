@@ -57,7 +57,7 @@ pub struct Dda {
 
 /// Per-axis setup: (step, first crossing, delta, last crossing, crossings).
 #[inline(always)]
-fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
+pub(crate) fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
     let s = o.floor();
     let t = e.floor();
     let n = (t as i64 - s as i64).unsigned_abs() as u32;

@@ -21,6 +21,8 @@ use crate::kernel::Kernel;
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
+mod avx2;
+#[cfg(target_arch = "x86_64")]
 mod avx512;
 pub(super) mod dense;
 mod sparse;
@@ -125,6 +127,12 @@ fn run_dense(
                 // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
                 Kernel::Avx512 => unsafe {
                     avx512::walk_dense(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
+                },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                // (`Kernel::supported`), which is all `walk_dense` needs.
+                Kernel::Avx2 => unsafe {
+                    avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, test_first)
                 },
                 _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges),
             }
