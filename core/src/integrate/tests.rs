@@ -5,7 +5,7 @@ use super::marks::FrameMarks;
 use super::prepare::{RayMaker, Sides, SKIPPED};
 #[cfg(target_arch = "x86_64")]
 use super::update::avx512::Avx512;
-use super::update::{observe_scalar, Observe};
+use super::update::observe_scalar;
 use super::*;
 use crate::coord::VoxelCoord;
 use crate::kernel::Kernel;
@@ -261,41 +261,51 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn observing_a_word_at_once_equals_bit_by_bit() {
-    if !kernel_or_notice(Kernel::Avx512, "observing_a_word_at_once_equals_bit_by_bit") {
-        return;
-    }
-    let default = SensorModel::default().quantize().unwrap();
-    let wide = QuantizedModel {
-        hit: 127,
-        miss: -128,
-        min: -128,
-        max: 127,
-        ..default
-    };
-    let narrow = QuantizedModel {
-        hit: 90,
-        miss: -70,
-        min: -50,
-        max: 60,
-        ..default
-    };
-    let mut rng = Rng(7);
-    let word =
-        |rng: &mut Rng| (rng.f() * 2f64.powi(32)) as u64 | ((rng.f() * 2f64.powi(32)) as u64) << 32;
-    for q in [default, wide, narrow] {
-        for _ in 0..2000 {
-            let (free, hit) = (word(&mut rng), word(&mut rng) & word(&mut rng));
-            let any = free | hit;
-            let old: [i8; 64] = std::array::from_fn(|_| rng.i(-128, 127) as i8);
-            let (mut a, mut b) = (old, old);
-            let marks = Avx512::observe::<false>(&mut a, any, hit, &q);
-            assert_eq!(marks, observe_scalar::<false>(&mut b, any, hit, &q));
-            assert_eq!(a, b);
-            let (mut a, mut b) = ([0i8; 64], [0i8; 64]);
-            let marks = Avx512::observe::<true>(&mut a, any, hit, &q);
-            assert_eq!(marks, observe_scalar::<true>(&mut b, any, hit, &q));
-            assert_eq!(a, b);
+    use super::update::{avx2::Avx2, Observe};
+    fn check<O: Observe>() {
+        let default = SensorModel::default().quantize().unwrap();
+        let wide = QuantizedModel {
+            hit: 127,
+            miss: -128,
+            min: -128,
+            max: 127,
+            ..default
+        };
+        let narrow = QuantizedModel {
+            hit: 90,
+            miss: -70,
+            min: -50,
+            max: 60,
+            ..default
+        };
+        let mut rng = Rng(7);
+        let word = |rng: &mut Rng| {
+            (rng.f() * 2f64.powi(32)) as u64 | ((rng.f() * 2f64.powi(32)) as u64) << 32
+        };
+        for q in [default, wide, narrow] {
+            for k in 0..2000 {
+                let (free, hit) = (word(&mut rng), word(&mut rng) & word(&mut rng));
+                // Some words with a half (or all) unobserved.
+                let any = (free | hit) & [!0, !0 << 32, !0 >> 32, 0][k % 4];
+                let hit = hit & any;
+                let old: [i8; 64] = std::array::from_fn(|_| rng.i(-128, 127) as i8);
+                let (mut a, mut b) = (old, old);
+                let marks = O::observe::<false>(&mut a, any, hit, &q);
+                assert_eq!(marks, observe_scalar::<false>(&mut b, any, hit, &q));
+                assert_eq!(a, b);
+                let (mut a, mut b) = ([0i8; 64], [0i8; 64]);
+                let marks = O::observe::<true>(&mut a, any, hit, &q);
+                assert_eq!(marks, observe_scalar::<true>(&mut b, any, hit, &q));
+                assert_eq!(a, b);
+            }
         }
+    }
+    let test = "observing_a_word_at_once_equals_bit_by_bit";
+    if kernel_or_notice(Kernel::Avx2, test) {
+        check::<Avx2>();
+    }
+    if kernel_or_notice(Kernel::Avx512, test) {
+        check::<Avx512>();
     }
 }
 

@@ -162,6 +162,20 @@ unsafe fn encode_piece_avx512(
     encode_piece(piece, keeps, Some(token))
 }
 
+/// [`encode_piece`] compiled for AVX2 with BMI1/2, LZCNT and POPCNT (x86-64-v3): the mask
+/// work's shifts, counts and bit scans.
+///
+/// # Safety
+/// The CPU must have every feature enabled here (`Kernel::Avx2.supported()` checks them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
+unsafe fn encode_piece_avx2(
+    piece: &mut [PlannedLeaf<'_>],
+    keeps: &[Mask512],
+) -> (Vec<u8>, Sums, usize) {
+    encode_piece(piece, keeps, None)
+}
+
 /// The first `len` bytes of `bytes`, leaving it the rest.
 fn take<'b>(bytes: &mut &'b mut [u8], len: usize) -> &'b mut [u8] {
     let (head, tail) = std::mem::take(bytes).split_at_mut(len);
@@ -358,6 +372,9 @@ impl<'a> Plan<'a> {
         // piece until the pieces' offsets are known. Leaves with nothing known (possible
         // only in the whole scope) get no record and are dropped after.
         let avx512 = record::Avx512Encode::detect();
+        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
+        let avx2 = crate::kernel::Kernel::process() != crate::kernel::Kernel::Scalar
+            && crate::kernel::Kernel::Avx2.supported();
         let pieces: Vec<(Vec<u8>, Sums, usize)> = leaves
             .par_chunks_mut(PIECE)
             .map(|piece| match avx512 {
@@ -365,6 +382,10 @@ impl<'a> Plan<'a> {
                 // SAFETY: `Avx512Encode::detect` checked every feature `encode_piece_avx512`
                 // enables.
                 Some(t) => unsafe { encode_piece_avx512(piece, &keeps, t) },
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `Kernel::Avx2.supported()` checked every feature
+                // `encode_piece_avx2` enables.
+                None if avx2 => unsafe { encode_piece_avx2(piece, &keeps) },
                 _ => encode_piece(piece, &keeps, None),
             })
             .collect();

@@ -11,6 +11,8 @@ use crate::kernel::Kernel;
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
+mod avx2;
+#[cfg(target_arch = "x86_64")]
 mod avx512;
 
 /// Rays per parallel task of the walk, and per chunk of the layout by sides.
@@ -332,13 +334,16 @@ impl RayMaker {
         Ray::new(e, 0, hit)
     }
 
-    /// `out[i] = self.make(&pts[i])`, eight at a time with the AVX-512 kernel.
+    /// `out[i] = self.make(&pts[i])`, eight at a time with the AVX-512 kernel, four with AVX2.
     pub(in crate::integrate) fn make_all(&self, out: &mut [Ray], pts: &[[f32; 3]]) {
         let done = match self.kernel {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
             // (`Kernel::supported`); `make_rays` needs F and DQ.
             Kernel::Avx512 => unsafe { avx512::make_rays(self, out, pts) },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
+            Kernel::Avx2 => unsafe { avx2::make_rays(self, out, pts) },
             _ => 0,
         };
         for (r, p) in out.iter_mut().zip(pts).skip(done) {

@@ -1,5 +1,6 @@
 //! Phase 4, update: one log-odds observation per touched voxel from its final marks, hit
-//! beating free, leaf by leaf in parallel ([`apply`]); 64 voxels at once with AVX-512BW.
+//! beating free, leaf by leaf in parallel ([`apply`]); 64 voxels at once with AVX-512BW, 32
+//! with AVX2.
 
 use super::marks::Slot;
 use crate::grid::Leaf;
@@ -8,6 +9,8 @@ use crate::mask::BitIter;
 use crate::model::QuantizedModel;
 use std::sync::atomic::Ordering::Relaxed;
 
+#[cfg(target_arch = "x86_64")]
+pub(super) mod avx2;
 #[cfg(target_arch = "x86_64")]
 pub(super) mod avx512;
 
@@ -29,6 +32,9 @@ pub(super) fn apply(
         // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
         // (`Kernel::supported`), the features `avx512::apply` enables.
         Kernel::Avx512 => unsafe { avx512::apply(leaf, slot, q, fresh) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
+        Kernel::Avx2 => unsafe { avx2::apply(leaf, slot, q, fresh) },
         _ => apply_with::<Scalar>(leaf, slot, q, fresh),
     }
 }
