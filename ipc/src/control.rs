@@ -220,7 +220,7 @@ pub struct StatsWire {
     /// last 1024 frames with a time stamp.
     pub intake_us_p50: f64,
     pub intake_us_p99: f64,
-    /// The integrator's vector kernels (`scalar`, `avx512`), ASCII, zero-padded.
+    /// The integrator's vector kernels (`scalar`, `avx2`, `avx512`), ASCII, zero-padded.
     pub kernel: [u8; 16],
 }
 

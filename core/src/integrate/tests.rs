@@ -4,11 +4,11 @@
 use super::marks::FrameMarks;
 use super::prepare::{RayMaker, Sides, SKIPPED};
 #[cfg(target_arch = "x86_64")]
-use super::update::avx512::Avx512;
-use super::update::observe_scalar;
+use super::update::{avx512::Avx512, observe_scalar};
 use super::*;
 use crate::coord::VoxelCoord;
 use crate::kernel::Kernel;
+#[cfg(target_arch = "x86_64")]
 use crate::model::QuantizedModel;
 use crate::model::{SensorModel, VoxelState};
 use crate::raycast::for_each_voxel;

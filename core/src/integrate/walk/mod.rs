@@ -109,6 +109,8 @@ fn run_dense(
             start..start + n_front as usize
         }
     };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (steps, walk);
     #[cfg(target_arch = "x86_64")]
     let (refill_at, test_first) = (
         avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
