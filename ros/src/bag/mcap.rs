@@ -4,9 +4,8 @@
 use super::{BagError, Message, TopicInfo};
 use mcap::records::{op, Record};
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-use mcap::sans_io::summary_reader::{SummaryReadEvent, SummaryReader};
 use std::collections::HashMap;
-use std::io::{Read, Seek};
+use std::io::{Read, Seek, SeekFrom};
 use std::ops::ControlFlow;
 use std::path::Path;
 
@@ -54,7 +53,23 @@ fn stream(
         len,
         source,
     };
-    while let Some(event) = reader.next_event() {
+    loop {
+        // mcap 0.26 subtracts a record's length from an uncompressed chunk's without a
+        // check (sans_io/linear_reader.rs:745): a build with overflow checks panics there
+        // on a record longer than its chunk (found by fuzzing, regression test in `bag`).
+        // A panic inside the reader is damage of the file, not a crash of voxmap.
+        let r = &mut reader;
+        let event = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
+            let r = r;
+            r.next_event()
+        }))
+        .map_err(|_| BagError::McapUnchecked {
+            path: path.into(),
+            offset: fed,
+            len,
+            why: "the reader failed on it",
+        })?;
+        let Some(event) = event else { break };
         match event.map_err(|e| damaged(fed, e))? {
             LinearReadEvent::ReadRequest(n) => {
                 let buf = reader.insert(n);
@@ -68,6 +83,14 @@ fn stream(
             LinearReadEvent::Record { opcode, data } => {
                 if !matches!(opcode, op::SCHEMA | op::CHANNEL | op::MESSAGE) {
                     continue;
+                }
+                if !lengths_fit(opcode, data) {
+                    return Err(BagError::McapUnchecked {
+                        path: path.into(),
+                        offset: fed,
+                        len,
+                        why: "a field is longer than its record",
+                    });
                 }
                 match mcap::parse_record(opcode, data).map_err(|e| damaged(fed, e))? {
                     Record::Schema { header, .. } => {
@@ -105,6 +128,45 @@ fn stream(
     Ok(())
 }
 
+/// Whether every length-prefixed field of a Schema or Channel record fits in the record.
+/// mcap 0.26 allocates a string's declared length before it reads it (binrw's
+/// `reserve_exact`): a 5 KB file could ask for 4 GB (found by fuzzing). Messages are not
+/// checked here: their data is a borrowed slice.
+fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
+    // Skip `n` fixed bytes, then each u32-prefixed field in turn.
+    fn fields(data: &[u8], fixed: usize, prefixed: usize) -> Option<&[u8]> {
+        let mut rest = data.get(fixed..)?;
+        for _ in 0..prefixed {
+            let (len, tail) = rest.split_first_chunk::<4>()?;
+            rest = tail.get(u32::from_le_bytes(*len) as usize..)?;
+        }
+        Some(rest)
+    }
+    match opcode {
+        // id, then name, encoding and data.
+        op::SCHEMA => fields(data, 2, 3).is_some(),
+        // id and schema id, then topic, message encoding and the metadata map, whose
+        // entries (key and value strings) must fit in the map's byte length.
+        op::CHANNEL => {
+            let Some(map) = fields(data, 4, 2).and_then(|r| {
+                let (len, tail) = r.split_first_chunk::<4>()?;
+                tail.get(..u32::from_le_bytes(*len) as usize)
+            }) else {
+                return false;
+            };
+            let mut rest = map;
+            while !rest.is_empty() {
+                match fields(rest, 0, 2) {
+                    Some(r) => rest = r,
+                    None => return false,
+                }
+            }
+            true
+        }
+        _ => true,
+    }
+}
+
 pub(super) fn read(
     path: &Path,
     wanted: &dyn Fn(&str) -> bool,
@@ -123,31 +185,8 @@ pub(super) fn read(
 /// The file's topics and time span: from its summary section, else by reading it through
 /// (a damaged file yields the topics before the damage).
 pub(super) fn topics(path: &Path) -> Result<super::Topics, BagError> {
-    if let Some(s) = summary(path)? {
-        let mut topics: Vec<TopicInfo> = s
-            .channels
-            .values()
-            .map(|c| TopicInfo {
-                name: c.topic.clone(),
-                type_name: c
-                    .schema
-                    .as_ref()
-                    .map(|s| s.name.clone())
-                    .unwrap_or_default(),
-                encoding: c.message_encoding.clone(),
-                count: s
-                    .stats
-                    .as_ref()
-                    .map(|st| st.channel_message_counts.get(&c.id).copied().unwrap_or(0)),
-            })
-            .collect();
-        topics.sort_by(|a, b| a.name.cmp(&b.name));
-        let span = s
-            .stats
-            .as_ref()
-            .filter(|st| st.message_count > 0)
-            .map(|st| (st.message_start_time, st.message_end_time));
-        return Ok((topics, span));
+    if let Some(t) = summary(path)? {
+        return Ok(t);
     }
     let mut by_name: Vec<TopicInfo> = Vec::new();
     let mut span: Option<(u64, u64)> = None;
@@ -166,24 +205,99 @@ pub(super) fn topics(path: &Path) -> Result<super::Topics, BagError> {
     });
     match scan {
         // Topics up to the damage; reading the messages will report it.
-        Ok(()) | Err(BagError::Mcap { .. }) => Ok((by_name, span)),
+        Ok(()) | Err(BagError::Mcap { .. } | BagError::McapUnchecked { .. }) => Ok((by_name, span)),
         Err(e) => Err(e),
     }
 }
 
-/// The summary section, or `None` if the file has none or it cannot be read.
-fn summary(path: &Path) -> Result<Option<mcap::Summary>, BagError> {
-    let (mut file, _) = open(path)?;
-    let mut r = SummaryReader::new();
-    while let Some(event) = r.next_event() {
+/// Largest summary section read: 256 MiB (chunk and message indexes of a very long bag).
+const SUMMARY_LIMIT: u64 = 1 << 28;
+
+/// Topics (with message counts) and time span from the summary section, or `None` if the
+/// file has none or it cannot be read. The section's records go through the same length
+/// guard as the data section's ([`lengths_fit`]); mcap's own `SummaryReader` parses them
+/// unguarded (a 5 KB file asked it for 3 GB, found by fuzzing).
+fn summary(path: &Path) -> Result<Option<super::Topics>, BagError> {
+    let (mut file, len) = open(path)?;
+    // The footer record (opcode, length 20, summary start, summary offset start, CRC)
+    // and the end magic.
+    const TAIL: u64 = 1 + 8 + 20 + 8;
+    if len < 8 + TAIL {
+        return Ok(None);
+    }
+    let mut tail = [0u8; TAIL as usize];
+    let read_tail = file
+        .seek(SeekFrom::End(-(TAIL as i64)))
+        .and_then(|_| file.read_exact(&mut tail));
+    if read_tail.is_err() || tail[0] != op::FOOTER || tail[29..] != mcap::MAGIC[..] {
+        return Ok(None);
+    }
+    let Ok(Record::Footer(footer)) = mcap::parse_record(op::FOOTER, &tail[9..29]) else {
+        return Ok(None);
+    };
+    let start = footer.summary_start;
+    if start == 0 || start < 8 || start > len - TAIL || len - start > SUMMARY_LIMIT {
+        return Ok(None);
+    }
+    let mut section = Vec::new();
+    let read = file
+        .seek(SeekFrom::Start(start))
+        .and_then(|_| (&mut file).take(len - start).read_to_end(&mut section));
+    if read.is_err() {
+        return Ok(None);
+    }
+    let opts = LinearReaderOptions::default()
+        .with_skip_start_magic(true)
+        .with_record_length_limit(RECORD_LIMIT);
+    let mut reader = LinearReader::new_with_options(opts);
+    let mut fed = 0;
+    let mut schemas: HashMap<u16, String> = HashMap::new();
+    let mut channels: Vec<(u16, String, String, u16)> = Vec::new();
+    let mut stats = None;
+    while let Some(event) = reader.next_event() {
         let Ok(event) = event else { return Ok(None) };
-        let step = match event {
-            SummaryReadEvent::ReadRequest(n) => file.read(r.insert(n)).map(|k| r.notify_read(k)),
-            SummaryReadEvent::SeekRequest(to) => file.seek(to).map(|p| r.notify_seeked(p)),
-        };
-        if step.is_err() {
-            return Ok(None);
+        match event {
+            LinearReadEvent::ReadRequest(n) => {
+                let k = n.min(section.len() - fed);
+                reader.insert(k).copy_from_slice(&section[fed..fed + k]);
+                fed += k;
+                reader.notify_read(k);
+            }
+            LinearReadEvent::Record { opcode, data } => {
+                if !matches!(opcode, op::SCHEMA | op::CHANNEL | op::STATISTICS) {
+                    continue;
+                }
+                if !lengths_fit(opcode, data) {
+                    return Ok(None);
+                }
+                match mcap::parse_record(opcode, data) {
+                    Ok(Record::Schema { header, .. }) => {
+                        schemas.insert(header.id, header.name);
+                    }
+                    Ok(Record::Channel(c)) => {
+                        channels.push((c.id, c.topic, c.message_encoding, c.schema_id))
+                    }
+                    Ok(Record::Statistics(st)) => stats = Some(st),
+                    Ok(_) => {}
+                    Err(_) => return Ok(None),
+                }
+            }
         }
     }
-    Ok(r.finish())
+    let mut topics: Vec<TopicInfo> = channels
+        .into_iter()
+        .map(|(id, name, encoding, schema)| TopicInfo {
+            name,
+            type_name: schemas.get(&schema).cloned().unwrap_or_default(),
+            encoding,
+            count: stats.as_ref().map(|st: &mcap::records::Statistics| {
+                st.channel_message_counts.get(&id).copied().unwrap_or(0)
+            }),
+        })
+        .collect();
+    topics.sort_by(|a, b| a.name.cmp(&b.name));
+    let span = stats
+        .filter(|st| st.message_count > 0)
+        .map(|st| (st.message_start_time, st.message_end_time));
+    Ok(Some((topics, span)))
 }

@@ -71,6 +71,14 @@ pub enum BagError {
         len: u64,
         source: ::mcap::McapError,
     },
+    /// Damage the MCAP reader does not check for itself: a field longer than its record
+    /// (refused before the reader sees it), or a panic inside the reader (caught).
+    McapUnchecked {
+        path: PathBuf,
+        offset: u64,
+        len: u64,
+        why: &'static str,
+    },
     /// SQLite refused the file or a query on it.
     Sqlite {
         path: PathBuf,
@@ -92,6 +100,16 @@ impl std::fmt::Display for BagError {
             } => write!(
                 f,
                 "{}: MCAP damaged at byte {offset} of {len} (truncated or corrupt)",
+                path.display()
+            ),
+            Self::McapUnchecked {
+                path,
+                offset,
+                len,
+                why,
+            } => write!(
+                f,
+                "{}: MCAP damaged at byte {offset} of {len} ({why})",
                 path.display()
             ),
             Self::Sqlite { path, .. } => write!(f, "{}: SQLite bag unreadable", path.display()),
@@ -397,6 +415,30 @@ mod tests {
             "{e}"
         );
         std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    /// Found by fuzzing (`ros/fuzz`, target `bag_file`): an uncompressed chunk whose record
+    /// is longer than the chunk. The mcap reader's unchecked subtraction panics there
+    /// under overflow checks; either way reading it is an error, not a crash.
+    #[test]
+    fn a_record_longer_than_its_chunk_is_damage() {
+        let p =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/mcap_chunk_length_overflow.mcap");
+        let r = Bag::open(&p)
+            .and_then(|b| b.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(())));
+        let e = r.unwrap_err().to_string();
+        assert!(e.contains("MCAP damaged at byte"), "{e}");
+    }
+
+    /// Found by fuzzing: a Channel record whose topic string claims 4 GB. Refused before
+    /// the mcap crate would reserve that much.
+    #[test]
+    fn a_string_longer_than_its_record_is_damage() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/mcap_string_length_4gb.mcap");
+        let r = Bag::open(&p)
+            .and_then(|b| b.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(())));
+        let e = r.unwrap_err().to_string();
+        assert!(e.contains("MCAP damaged at byte"), "{e}");
     }
 
     #[test]
