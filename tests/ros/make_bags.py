@@ -355,6 +355,9 @@ def make_bad(out):
         w.add_message(channel_id=cid, log_time=1, publish_time=1, sequence=0,
                       data=b'\x00\x01\x00\x00\xff\xff\xff\xff')
         w.finish()
+    # Two PointCloud2 topics: replay must be told which.
+    two = [('/front/points', PC2, 1, good(1), True), ('/rear/points', PC2, 2, good(2), True)]
+    write_mcap_lz4(out / 'two_topics.mcap', two)
 
 
 # ---- the benchmark bag ----

@@ -223,6 +223,32 @@ fn bad_clouds_and_transforms_are_skipped_and_counted_by_reason() {
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     assert!(out.contains("1 skipped (1 not a PointCloud2)"), "{out}");
 
+    // Topic choice: with two cloud topics and no --topic, the error lists both.
+    let two = dir.join("two_topics.mcap");
+    let r = voxmap(&[
+        "replay",
+        "--offline",
+        "--out",
+        map.to_str().unwrap(),
+        two.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        err.contains("2 PointCloud2 topics; choose with --topic: /front/points, /rear/points"),
+        "{err}"
+    );
+    let out = ok(&[
+        "replay",
+        "--offline",
+        "--out",
+        map.to_str().unwrap(),
+        "--topic",
+        "/rear/points",
+        "--map-frame",
+        "lidar",
+        two.to_str().unwrap(),
+    ]);
+    assert!(out.contains("replayed 1 frames"), "{out}");
     // Topic choice: a topic that is not there is named with the ones that are.
     let r = voxmap(&[
         "replay",
