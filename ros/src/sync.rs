@@ -250,20 +250,7 @@ impl CloudSync {
         if self.pending.is_empty() {
             let map = &self.config.map_frame;
             if let Ok(pose) = self.tf.lookup(map, &c.header.frame_id, c.header.stamp) {
-                let drop = |e| Dropped {
-                    topic: topic.into(),
-                    index,
-                    reason: DropReason::Cloud(e),
-                };
-                let posed = cloud::points(&c).map_err(drop).map(|points| PosedCloud {
-                    topic: topic.into(),
-                    index,
-                    stamp: c.header.stamp,
-                    frame_id: c.header.frame_id.clone(),
-                    pose,
-                    points,
-                });
-                self.done.push(posed);
+                self.done.push(posed(topic.into(), index, c, pose));
                 return Ok(());
             }
         }
@@ -313,13 +300,29 @@ fn resolve(p: Pending, lookup: Result<Isometry3<f64>, LookupError>) -> Result<Po
     };
     let pose = lookup.map_err(|e| drop(DropReason::Transform(e)))?;
     let c: PointCloud2 = msg::decode(&p.data).map_err(|e| drop(DropReason::Decode(e)))?;
-    let points = cloud::points(&c).map_err(|e| drop(DropReason::Cloud(e)))?;
-    Ok(PosedCloud {
-        topic: p.topic,
-        index: p.index,
-        stamp: p.stamp,
-        frame_id: p.frame_id,
-        pose,
-        points,
-    })
+    posed(p.topic, p.index, c, pose)
+}
+
+/// Cloud `index` of `topic`, decoded as `c`, read into points at `pose`.
+fn posed(
+    topic: String,
+    index: u64,
+    c: PointCloud2<'_>,
+    pose: Isometry3<f64>,
+) -> Result<PosedCloud, Dropped> {
+    match cloud::points(&c) {
+        Ok(points) => Ok(PosedCloud {
+            topic,
+            index,
+            stamp: c.header.stamp,
+            frame_id: c.header.frame_id,
+            pose,
+            points,
+        }),
+        Err(e) => Err(Dropped {
+            topic,
+            index,
+            reason: DropReason::Cloud(e),
+        }),
+    }
 }

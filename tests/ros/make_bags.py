@@ -183,19 +183,11 @@ def layout(k, xyz, ns, frame):
 # ---- writers: a list of (topic, type, log_time_ns, message, little_endian) ----
 
 
-def write_rosbag(path, messages, storage):
-    with Writer(path, version=9, storage_plugin=storage) as w:
-        conns = {}
-        for topic, typ, _, _, _ in messages:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, typ, typestore=TS)
-        for topic, typ, t, msg, le in messages:
-            w.write(conns[topic], t, bytes(TS.serialize_cdr(msg, typ, little_endian=le)))
-
-
-def write_rosbag_zstd(path, messages):
-    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+def write_rosbag(path, messages, storage, zstd=False):
+    """rosbag2 by `rosbags`; `zstd`: MCAP with zstd chunks (rosbags' storage compression)."""
+    w = Writer(path, version=9, storage_plugin=storage)
+    if zstd:
+        w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     with w:
         conns = {}
         for topic, typ, _, _, _ in messages:
@@ -283,7 +275,7 @@ def make_tum(frames_dir, out):
     out.mkdir(parents=True, exist_ok=True)
     msgs = tum_messages(frames_dir)
     write_rosbag(out / 'sqlite', msgs, StoragePlugin.SQLITE3)
-    write_rosbag_zstd(out / 'mcap_zstd', msgs)
+    write_rosbag(out / 'mcap_zstd', msgs, StoragePlugin.MCAP, zstd=True)
     write_mcap_lz4(out / 'lz4.mcap', msgs)
 
 
@@ -403,7 +395,7 @@ def make_bench(n, points, out):
         msgs.append(('/tf', TFM, ns, tf_message([transform_stamped(
             ns, 'map', 'base_link', ((x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))]), True))
     msgs.sort(key=lambda m: m[2])
-    write_rosbag_zstd(out / 'bag', msgs)
+    write_rosbag(out / 'bag', msgs, StoragePlugin.MCAP, zstd=True)
     write_rosbag(out / 'bag_sqlite', msgs, StoragePlugin.SQLITE3)
 
 

@@ -23,6 +23,27 @@ fn make_bags(py: &Path, args: &[&str]) {
     );
 }
 
+/// The TUM frames (every `step`-th pixel) in `dir/frames`: KITTI `.bin` scans named by
+/// stamp (float32 x y z intensity) and `poses.txt` in TUM's format, for `make_bags.py tum`
+/// and for replay with the poses given directly.
+fn write_tum_frames(dir: &Path, step: usize) -> PathBuf {
+    let frames_dir = dir.join("frames");
+    std::fs::create_dir_all(&frames_dir).unwrap();
+    let mut poses = String::new();
+    for f in tum_frames(step) {
+        let bin: Vec<u8> = f
+            .points
+            .iter()
+            .flat_map(|p| [p[0], p[1], p[2], 0.0])
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        std::fs::write(frames_dir.join(format!("{}.bin", f.stamp)), bin).unwrap();
+        poses.push_str(&format!("{} {}\n", f.stamp, f.pose));
+    }
+    std::fs::write(frames_dir.join("poses.txt"), &poses).unwrap();
+    frames_dir
+}
+
 const MAPPING: [&str; 6] = ["--resolution", "0.05", "--max-range", "8", "--threads", "2"];
 
 fn replay_offline(input: &Path, out: &Path, extra: &[&str]) -> String {
@@ -54,21 +75,7 @@ fn bags_in_every_storage_make_the_map_of_the_frames_posed_directly() {
         return;
     };
     let dir = tmpdir("bags_tum");
-    let frames_dir = dir.join("frames");
-    std::fs::create_dir_all(&frames_dir).unwrap();
-    let frames = tum_frames(2);
-    let mut poses = String::new();
-    for f in &frames {
-        let mut bin = Vec::with_capacity(f.points.len() * 16);
-        for p in &f.points {
-            for c in [p[0], p[1], p[2], 0.0] {
-                bin.extend(c.to_le_bytes());
-            }
-        }
-        std::fs::write(frames_dir.join(format!("{}.bin", f.stamp)), bin).unwrap();
-        poses.push_str(&format!("{} {}\n", f.stamp, f.pose));
-    }
-    std::fs::write(frames_dir.join("poses.txt"), &poses).unwrap();
+    let frames_dir = write_tum_frames(&dir, 2);
     let bags = dir.join("bags");
     make_bags(
         &py,
@@ -275,20 +282,7 @@ fn a_bag_truncated_mid_chunk_keeps_the_clouds_before_the_damage() {
         return;
     };
     let dir = tmpdir("bags_cut");
-    let frames_dir = dir.join("frames");
-    std::fs::create_dir_all(&frames_dir).unwrap();
-    let mut poses = String::new();
-    for f in tum_frames(4) {
-        let bin: Vec<u8> = f
-            .points
-            .iter()
-            .flat_map(|p| [p[0], p[1], p[2], 0.0])
-            .flat_map(f32::to_le_bytes)
-            .collect();
-        std::fs::write(frames_dir.join(format!("{}.bin", f.stamp)), bin).unwrap();
-        poses.push_str(&format!("{} {}\n", f.stamp, f.pose));
-    }
-    std::fs::write(frames_dir.join("poses.txt"), &poses).unwrap();
+    let frames_dir = write_tum_frames(&dir, 4);
     make_bags(
         &py,
         &[

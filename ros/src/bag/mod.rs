@@ -417,16 +417,22 @@ mod tests {
         std::fs::remove_dir_all(&d).unwrap();
     }
 
+    /// Open `ros/testdata/<name>` and read all of its first file.
+    fn read_testdata(name: &str) -> Result<(), BagError> {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("testdata")
+            .join(name);
+        Bag::open(&p)?.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(()))
+    }
+
     /// Found by fuzzing (`ros/fuzz`, target `bag_file`): an uncompressed chunk whose record
     /// is longer than the chunk. The mcap reader's unchecked subtraction panics there
     /// under overflow checks; either way reading it is an error, not a crash.
     #[test]
     fn a_record_longer_than_its_chunk_is_damage() {
-        let p =
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/mcap_chunk_length_overflow.mcap");
-        let r = Bag::open(&p)
-            .and_then(|b| b.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(())));
-        let e = r.unwrap_err().to_string();
+        let e = read_testdata("mcap_chunk_length_overflow.mcap")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("MCAP damaged at byte"), "{e}");
     }
 
@@ -434,10 +440,9 @@ mod tests {
     /// the mcap crate would reserve that much.
     #[test]
     fn a_string_longer_than_its_record_is_damage() {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/mcap_string_length_4gb.mcap");
-        let r = Bag::open(&p)
-            .and_then(|b| b.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(())));
-        let e = r.unwrap_err().to_string();
+        let e = read_testdata("mcap_string_length_4gb.mcap")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("MCAP damaged at byte"), "{e}");
     }
 
