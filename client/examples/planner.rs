@@ -34,7 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &WorldPoint::new(-0.3, -0.3, -0.3),
             &WorldPoint::new(0.3, 0.3, 0.3),
             false,
-        );
+        )?;
         println!(
             "snapshot {}: {known} known, {occupied} occupied; origin {:?}; line of sight to goal {}; robot box free: {box_free}; trajectory samples in occupied voxels: {colliding}",
             view.sequence(),

@@ -178,11 +178,30 @@ pub struct ExportArgs {
     /// Write occupied voxel centres, coloured by height, as PLY here.
     #[arg(long)]
     pub ply: Option<PathBuf>,
+    /// Write a whole-map snapshot file here (what the C, C++ and Python views open; from
+    /// a map file it keeps the log-odds, for probabilities).
+    #[arg(long)]
+    pub snapshot: Option<PathBuf>,
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
-    if a.bt.is_none() && a.ply.is_none() {
-        bail!("nothing to do: pass --bt OUT.bt and/or --ply OUT.ply");
+    if a.bt.is_none() && a.ply.is_none() && a.snapshot.is_none() {
+        bail!("nothing to do: pass --bt OUT.bt, --ply OUT.ply and/or --snapshot OUT");
+    }
+    if let Some(out) = &a.snapshot {
+        let bytes = mapfile::read_as_snapshot(&a.input)?;
+        mapfile::save_snapshot(&bytes, out)?;
+        let v = SnapshotView::open(&bytes)?;
+        let (known, occupied) = v.counts();
+        println!(
+            "wrote {}: snapshot of {} leaves, {known} known and {occupied} occupied voxels at {} m",
+            out.display(),
+            v.leaf_count(),
+            v.resolution()
+        );
+        if a.bt.is_none() && a.ply.is_none() {
+            return Ok(());
+        }
     }
     let l = Loaded::read(&a.input)?;
     if let Some(out) = &a.bt {

@@ -36,7 +36,7 @@ enum Cmd {
     Serve(serve::ServeArgs),
     /// Feed recorded scans to a running service, or offline into a map file.
     Replay(replay::ReplayArgs),
-    /// Export a map or snapshot file to OctoMap .bt and/or PLY.
+    /// Export a map or snapshot file to OctoMap .bt, PLY and/or a snapshot file.
     Export(files::ExportArgs),
     /// Draw a map, snapshot or .bt file as a PNG (top-down or a slice).
     Render(render::RenderArgs),

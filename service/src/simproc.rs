@@ -131,7 +131,9 @@ pub fn planner(a: SimArgs) -> Result<()> {
             boxes += 1;
             let lo = WorldPoint::new(p.x - 0.25, p.y - 0.25, 0.2);
             let hi = WorldPoint::new(p.x + 0.25, p.y + 0.25, 1.4);
-            if view.is_box_free(&lo, &hi, false) && view.state_at(&p) == VoxelState::Free {
+            if view.is_box_free(&lo, &hi, false) == Ok(true)
+                && view.state_at(&p) == VoxelState::Free
+            {
                 free_boxes += 1;
             }
             n += 2;

@@ -124,11 +124,14 @@ fn closed_room_scan_becomes_a_snapshot_read_in_place() {
         .first_hit(&c, &WorldPoint::new(H[0] + 0.3, 0.0, 0.0), false)
         .unwrap()
         .is_some());
-    assert!(view.is_box_free(
-        &WorldPoint::new(-0.5, -0.5, -0.3),
-        &WorldPoint::new(0.5, 0.5, 0.3),
-        false
-    ));
+    assert_eq!(
+        view.is_box_free(
+            &WorldPoint::new(-0.5, -0.5, -0.3),
+            &WorldPoint::new(0.5, 0.5, 0.3),
+            false
+        ),
+        Ok(true)
+    );
     let known = view.counts().0;
 
     // A late-joining planner gets the current snapshot at once.

@@ -326,6 +326,23 @@ fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
         bt2.to_str().unwrap(),
     ]);
     assert_eq!(std::fs::read(&bt2).unwrap(), std::fs::read(&bt).unwrap());
+
+    // The map as a snapshot file: every voxel's state and probability as in the map.
+    let exported = dir.join("e.snap");
+    ok(&[
+        "export",
+        map_path.to_str().unwrap(),
+        "--snapshot",
+        exported.to_str().unwrap(),
+    ]);
+    let bytes = mapfile::read_snapshot(&exported).unwrap();
+    let view = voxmap_core::snapshot::SnapshotView::open(&bytes).unwrap();
+    assert_eq!(view.counts(), (c.occupied + c.free, c.occupied));
+    for (v, _) in map.grid().active_voxels().step_by(13) {
+        assert_eq!(view.state(v), map.state(v));
+        let (p, q) = (view.probability(v).unwrap(), map.probability(v).unwrap());
+        assert!((p - q).abs() < 0.01, "{v:?}: {p} against {q}");
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -242,7 +242,11 @@ pub fn save_map(map: &OccupancyMap, path: &Path) -> Result<(), MapFileError> {
 /// Load a map file into a new map. Nothing is returned unless the whole file verified.
 pub fn load_map(path: &Path) -> Result<OccupancyMap, MapFileError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
-    decode_map(&bytes).map_err(|e| match e {
+    decode_map(&bytes).map_err(decode_err(path))
+}
+
+fn decode_err(path: &Path) -> impl FnOnce(Decode) -> MapFileError + '_ {
+    move |e| match e {
         Decode::Version(version) => MapFileError::UnsupportedVersion {
             path: path.into(),
             version,
@@ -251,7 +255,7 @@ pub fn load_map(path: &Path) -> Result<OccupancyMap, MapFileError> {
             path: path.into(),
             problem,
         },
-    })
+    }
 }
 
 /// Why map bytes did not decode.
@@ -371,6 +375,27 @@ pub fn read_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
         source,
     })?;
     Ok(bytes)
+}
+
+/// A map file or a snapshot file as verified snapshot bytes, told apart by their magic: a
+/// snapshot is read as [`read_snapshot`] does; a map is decoded and encoded as a whole-map
+/// snapshot with its log-odds values (so probabilities can be read), sequence 0.
+pub fn read_as_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    if !bytes.starts_with(&MAP_MAGIC) {
+        SnapshotView::open_checked(&bytes).map_err(|source| MapFileError::Snapshot {
+            path: path.into(),
+            source,
+        })?;
+        return Ok(bytes);
+    }
+    let map = decode_map(&bytes).map_err(decode_err(path))?;
+    drop(bytes);
+    let meta = crate::snapshot::Meta {
+        with_values: true,
+        ..Default::default()
+    };
+    Ok(crate::snapshot::Plan::new(&map, crate::snapshot::Scope::Whole, meta).to_vec())
 }
 
 #[cfg(test)]

@@ -14,7 +14,7 @@ pub mod view;
 pub mod writer;
 
 pub use layout::{EncodeError, Header, SnapshotError, FORMAT_VERSION, MAGIC};
-pub use view::{InvalidSegment, SnapshotView};
+pub use view::{InvalidBox, InvalidSegment, SnapshotView};
 #[cfg(feature = "map")]
 pub use writer::{Meta, Plan, Scope};
 

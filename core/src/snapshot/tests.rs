@@ -165,26 +165,56 @@ fn view_agrees_with_the_map_on_every_query() {
                 for x in lo.x..=hi.x {
                     for y in lo.y..=hi.y {
                         for z in lo.z..=hi.z {
-                            let v = VoxelCoord::new(x, y, z);
-                            let cc = tf.voxel_center(v);
-                            if (0..3).all(|k| min[k] <= cc[k] && cc[k] <= max[k]) {
-                                match map.state(v) {
-                                    VoxelState::Occupied => free = false,
-                                    VoxelState::Unknown if !unknown_is_free => free = false,
-                                    _ => {}
-                                }
+                            // Every voxel the box overlaps, as OctoMap's bounding boxes.
+                            match map.state(VoxelCoord::new(x, y, z)) {
+                                VoxelState::Occupied => free = false,
+                                VoxelState::Unknown if !unknown_is_free => free = false,
+                                _ => {}
                             }
                         }
                     }
                 }
                 assert_eq!(
                     view.is_box_free(&min, &max, unknown_is_free),
-                    free,
+                    Ok(free),
                     "{min:?} {max:?} {unknown_is_free}"
                 );
             }
         }
     }
+}
+
+/// A voxel that reaches into the box by part of its width blocks it, though its centre is
+/// outside (the OctoMap convention); bad boxes are errors, not answers.
+#[test]
+fn is_box_free_counts_every_voxel_the_box_overlaps() {
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    map.set_value(VoxelCoord::new(5, 0, 0), 100); // covers x in [0.5, 0.6)
+    let bytes = encode(&map, Scope::Whole, false);
+    let view = SnapshotView::open(&bytes).unwrap();
+    let free = |lo: [f64; 3], hi: [f64; 3]| {
+        view.is_box_free(&WorldPoint::from(lo), &WorldPoint::from(hi), true)
+    };
+    // Reaching 0.02 m into the voxel, 0.03 m short of its centre.
+    assert_eq!(free([0.0, 0.0, 0.0], [0.52, 0.05, 0.05]), Ok(false));
+    assert_eq!(free([0.58, 0.0, 0.0], [0.9, 0.05, 0.05]), Ok(false));
+    // Stopping short of it; a box inside it, holding no voxel centre.
+    assert_eq!(free([0.0, 0.0, 0.0], [0.49, 0.05, 0.05]), Ok(true));
+    assert_eq!(free([0.51, 0.01, 0.01], [0.54, 0.04, 0.04]), Ok(false));
+    // A degenerate box (a point) is the voxel holding it.
+    assert_eq!(free([0.55, 0.05, 0.05], [0.55, 0.05, 0.05]), Ok(false));
+    assert_eq!(
+        free([0.6, 0.0, 0.0], [0.5, 0.1, 0.1]),
+        Err(InvalidBox::Inverted)
+    );
+    assert_eq!(
+        free([f64::NAN, 0.0, 0.0], [0.5, 0.1, 0.1]),
+        Err(InvalidBox::OutsideIndexSpace)
+    );
+    assert_eq!(
+        free([0.0, 0.0, 0.0], [1e12, 0.1, 0.1]),
+        Err(InvalidBox::OutsideIndexSpace)
+    );
 }
 
 /// Boxes with more leaves than the snapshot stores, unknown as free: answered by scanning
@@ -205,12 +235,18 @@ fn is_box_free_scans_stored_leaves_for_large_boxes() {
             WorldPoint::new(50.0, 50.0, z + 0.05 + rng.f() * 0.45),
         );
         assert!(view.leaf_count() < 125 * 125);
+        let (lo, hi) = (tf.voxel_of(&min).unwrap(), tf.voxel_of(&max).unwrap());
         let want = map.grid().active_voxels().all(|(v, _)| {
-            let c = tf.voxel_center(v);
             map.state(v) != VoxelState::Occupied
-                || !(0..3).all(|k| min[k] <= c[k] && c[k] <= max[k])
+                || !(lo.x..=hi.x).contains(&v.x)
+                || !(lo.y..=hi.y).contains(&v.y)
+                || !(lo.z..=hi.z).contains(&v.z)
         });
-        assert_eq!(view.is_box_free(&min, &max, true), want, "{min:?} {max:?}");
+        assert_eq!(
+            view.is_box_free(&min, &max, true),
+            Ok(want),
+            "{min:?} {max:?}"
+        );
         if want {
             free += 1;
         } else {
@@ -310,23 +346,22 @@ fn empty_map_and_exact_buffer_sizes() {
         (0, (0, 0), None)
     );
     assert_eq!(view.state(VoxelCoord::default()), VoxelState::Unknown);
-    assert!(view.is_box_free(
-        &WorldPoint::new(0.0, 0.0, 0.0),
-        &WorldPoint::new(1.0, 1.0, 1.0),
-        true
-    ));
-    assert!(!view.is_box_free(
-        &WorldPoint::new(0.0, 0.0, 0.0),
-        &WorldPoint::new(1.0, 1.0, 1.0),
-        false
-    ));
+    let (o, one) = (
+        WorldPoint::new(0.0, 0.0, 0.0),
+        WorldPoint::new(1.0, 1.0, 1.0),
+    );
+    assert_eq!(view.is_box_free(&o, &one, true), Ok(true));
+    assert_eq!(view.is_box_free(&o, &one, false), Ok(false));
     // A box of 2^66 leaves: counted without overflow, answered from the stored leaves.
     let far = 0.1 * f64::from(1 << 29);
-    assert!(view.is_box_free(
-        &WorldPoint::new(-far, -far, -far),
-        &WorldPoint::new(far, far, far),
-        true
-    ));
+    assert_eq!(
+        view.is_box_free(
+            &WorldPoint::new(-far, -far, -far),
+            &WorldPoint::new(far, far, far),
+            true
+        ),
+        Ok(true)
+    );
     let mut small = vec![0u8; plan.encoded_len() - 1];
     assert!(matches!(
         plan.write(&mut small),

@@ -36,6 +36,28 @@ impl std::fmt::Display for InvalidSegment {
 
 impl std::error::Error for InvalidSegment {}
 
+/// A box [`SnapshotView::is_box_free`] cannot answer for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InvalidBox {
+    /// A corner is not finite or lies outside the voxel index space.
+    OutsideIndexSpace,
+    /// `min` is above `max` on some axis.
+    Inverted,
+}
+
+impl std::fmt::Display for InvalidBox {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::OutsideIndexSpace => {
+                write!(f, "box corner is not finite or outside the index space")
+            }
+            Self::Inverted => write!(f, "box min is above its max on some axis"),
+        }
+    }
+}
+
+impl std::error::Error for InvalidBox {}
+
 #[cfg(not(target_endian = "little"))]
 compile_error!(
     "snapshots are little-endian and read in place; big-endian targets are not supported"
@@ -685,15 +707,27 @@ impl<'a> SnapshotView<'a> {
         }
     }
 
-    /// Whether no voxel with its centre in the box [min, max] (world metres) is occupied,
-    /// nor unknown unless `unknown_is_free`.
-    pub fn is_box_free(&self, min: &WorldPoint, max: &WorldPoint, unknown_is_free: bool) -> bool {
-        let Some((lo, hi)) = self.tf.voxels_centred_in(min, max) else {
-            return false;
-        };
-        if lo.x > hi.x || lo.y > hi.y || lo.z > hi.z {
-            return true; // no voxel centre inside
+    /// Whether no voxel the box [min, max] (world metres) overlaps is occupied, nor unknown
+    /// unless `unknown_is_free`: OctoMap's bounding-box convention, every voxel from the one
+    /// holding `min` to the one holding `max`, so a voxel reaching into the box by any part
+    /// counts (a point on a face belongs to the voxel above it, as everywhere).
+    pub fn is_box_free(
+        &self,
+        min: &WorldPoint,
+        max: &WorldPoint,
+        unknown_is_free: bool,
+    ) -> Result<bool, InvalidBox> {
+        if (0..3).any(|k| min[k] > max[k]) {
+            return Err(InvalidBox::Inverted);
         }
+        let (Some(lo), Some(hi)) = (self.tf.voxel_of(min), self.tf.voxel_of(max)) else {
+            return Err(InvalidBox::OutsideIndexSpace);
+        };
+        Ok(self.voxels_free(lo, hi, unknown_is_free))
+    }
+
+    /// Whether no voxel in `lo..=hi` is occupied, nor unknown unless `unknown_is_free`.
+    fn voxels_free(&self, lo: VoxelCoord, hi: VoxelCoord, unknown_is_free: bool) -> bool {
         let (llo, lhi) = (leaf_origin(lo), leaf_origin(hi));
         // Up to 2^28 leaves per axis: the product can pass u64.
         let leaves_in_box = ((lhi.x - llo.x) as u64 / 8 + 1)
