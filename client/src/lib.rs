@@ -250,8 +250,27 @@ pub struct FramePublisher {
 
 /// A loaned frame in shared memory: fill [`FrameLoan::points_mut`], then send.
 pub struct FrameLoan<'p> {
-    sample: SampleMut<ipc::Service, [[f32; 3]], FrameHeader>,
+    frame: PendingFrame,
     owner: &'p mut FramePublisher,
+}
+
+/// A loaned frame that does not borrow its publisher, for callers that keep it across
+/// calls (the C and Python bindings): fill it, then [`FramePublisher::send_pending`] on the
+/// publisher that loaned it. Dropping it returns the memory unsent.
+pub struct PendingFrame {
+    sample: SampleMut<ipc::Service, [[f32; 3]], FrameHeader>,
+}
+
+impl PendingFrame {
+    /// The points as written so far.
+    pub fn points(&self) -> &[[f32; 3]] {
+        self.sample.payload()
+    }
+
+    /// The points, in the sensor frame, in shared memory.
+    pub fn points_mut(&mut self) -> &mut [[f32; 3]] {
+        self.sample.payload_mut()
+    }
 }
 
 impl FramePublisher {
@@ -280,14 +299,43 @@ impl FramePublisher {
 
     /// Loan shared memory for `n` points (zeroed).
     pub fn loan(&mut self, n: usize) -> Result<FrameLoan<'_>, ClientError> {
+        let frame = self.loan_pending(n)?;
+        Ok(FrameLoan { frame, owner: self })
+    }
+
+    /// [`Self::loan`] without the borrow: send it with [`Self::send_pending`].
+    pub fn loan_pending(&mut self, n: usize) -> Result<PendingFrame, ClientError> {
         let sample = self
             .publisher
             .loan_slice(n)
             .map_err(|source| ClientError::Loan { points: n, source })?;
-        Ok(FrameLoan {
-            sample,
-            owner: self,
-        })
+        Ok(PendingFrame { sample })
+    }
+
+    /// Stamp a pending frame's header and send it; returns the frame's sequence number.
+    pub fn send_pending(
+        &mut self,
+        mut frame: PendingFrame,
+        pose: &Isometry3<f64>,
+        timestamp_ns: u64,
+    ) -> Result<u64, ClientError> {
+        let n = frame.sample.payload().len() as u64;
+        *frame.sample.user_header_mut() = FrameHeader {
+            sequence: self.sequence,
+            timestamp_ns,
+            point_count: n,
+            ..FrameHeader::with_pose(pose)
+        };
+        self.send_raw(frame)
+    }
+
+    /// Send with the header as the caller wrote it (for tests of bad input).
+    fn send_raw(&mut self, frame: PendingFrame) -> Result<u64, ClientError> {
+        let seq = frame.sample.user_header().sequence;
+        frame.sample.send().map_err(ClientError::Send)?;
+        self.sequence += 1;
+        self.notifier.notify().map_err(ClientError::Notify)?;
+        Ok(seq)
     }
 
     /// Copy `points` into a loan and send it (for callers that already hold a buffer).
@@ -306,45 +354,77 @@ impl FramePublisher {
 impl FrameLoan<'_> {
     /// The points, in the sensor frame, in shared memory.
     pub fn points_mut(&mut self) -> &mut [[f32; 3]] {
-        self.sample.payload_mut()
+        self.frame.points_mut()
     }
 
     /// Stamp the header and send; returns the frame's sequence number.
-    pub fn send(mut self, pose: &Isometry3<f64>, timestamp_ns: u64) -> Result<u64, ClientError> {
-        let seq = self.owner.sequence;
-        let n = self.sample.payload().len() as u64;
-        *self.sample.user_header_mut() = FrameHeader {
-            sequence: seq,
-            timestamp_ns,
-            point_count: n,
-            ..FrameHeader::with_pose(pose)
-        };
-        self.send_raw()
+    pub fn send(self, pose: &Isometry3<f64>, timestamp_ns: u64) -> Result<u64, ClientError> {
+        self.owner.send_pending(self.frame, pose, timestamp_ns)
     }
 
     /// Send with the header as already written by [`Self::header_mut`] (for tests of bad input).
     pub fn send_raw(self) -> Result<u64, ClientError> {
-        let seq = self.sample.user_header().sequence;
-        self.sample.send().map_err(ClientError::Send)?;
-        self.owner.sequence += 1;
-        self.owner.notifier.notify().map_err(ClientError::Notify)?;
-        Ok(seq)
+        self.owner.send_raw(self.frame)
     }
 
     /// The header, to be written by hand before [`Self::send_raw`].
     pub fn header_mut(&mut self) -> &mut FrameHeader {
-        self.sample.user_header_mut()
+        self.frame.sample.user_header_mut()
     }
 }
 
 /// How often a waiting subscriber looks for a history sample (see `wait_for_update`).
 const HISTORY_POLL: Duration = Duration::from_millis(50);
 
+type SnapshotSample = Sample<ipc::Service, [u8], SnapshotHeader>;
+
+/// A received snapshot sample, validated once, that can outlive the subscriber's next
+/// receive: what [`SnapshotSubscriber::latest_held`] gives a caller that keeps a view across
+/// calls (the C and Python bindings). It holds the shared-memory sample: a subscriber may
+/// hold at most [`voxmap_ipc::ports::qos::SNAPSHOT_BORROWED`] samples at once, its newest
+/// included, so release old ones. Not `Send`: iceoryx2's `ipc` samples stay on the thread
+/// of their subscriber.
+#[derive(Clone)]
+pub struct HeldSnapshot {
+    // Field order: the view, which points into the sample, is dropped first.
+    view: SnapshotView<'static>,
+    sample: std::rc::Rc<SnapshotSample>,
+}
+
+impl HeldSnapshot {
+    fn new(sample: std::rc::Rc<SnapshotSample>) -> Result<Self, SnapshotError> {
+        let payload = sample.payload();
+        let len = (sample.user_header().len as usize).min(payload.len());
+        // SAFETY: the bytes are the sample's payload in shared memory, which stays mapped at
+        // the same address while the sample lives (an iceoryx2 `Sample` keeps its segment
+        // mapped and is never written by the publisher while loaned to us). `Rc` keeps the
+        // sample alive as long as this struct; the `'static` view is handed out only as a
+        // `SnapshotView<'_>` borrowed from `self`, and is dropped before the sample.
+        let bytes: &'static [u8] = unsafe { std::slice::from_raw_parts(payload.as_ptr(), len) };
+        let view = SnapshotView::open(bytes)?;
+        Ok(Self { view, sample })
+    }
+
+    /// The snapshot, read in place.
+    pub fn view(&self) -> SnapshotView<'_> {
+        self.view
+    }
+
+    /// The wire header (sequence, length, when it was published).
+    pub fn wire_header(&self) -> SnapshotHeader {
+        *self.sample.user_header()
+    }
+}
+
 /// Receives snapshots of a map; holds the newest sample and lends views into it.
 pub struct SnapshotSubscriber {
     subscriber: Subscriber<ipc::Service, [u8], SnapshotHeader>,
     listener: Listener<ipc::Service>,
-    current: Option<Sample<ipc::Service, [u8], SnapshotHeader>>,
+    /// The newest sample, and what validating it gave (once per sample, not per call).
+    current: Option<(
+        std::rc::Rc<SnapshotSample>,
+        Result<HeldSnapshot, SnapshotError>,
+    )>,
     _node: Node<ipc::Service>,
 }
 
@@ -370,12 +450,28 @@ impl SnapshotSubscriber {
 
     /// Take any newer snapshot; true if one arrived.
     fn poll(&mut self) -> Result<bool, ClientError> {
-        let mut got = false;
-        while let Some(s) = self.subscriber.receive().map_err(ClientError::Receive)? {
-            self.current = Some(s); // drops (returns) the older sample
-            got = true;
+        let mut newest = None;
+        loop {
+            match self.subscriber.receive() {
+                Ok(Some(s)) => {
+                    // Drops (returns) the older sample, unless a held snapshot keeps it.
+                    self.current = None;
+                    newest = Some(s);
+                }
+                Ok(None) => break,
+                // Held snapshots use up the borrows: take the newer one got so far and
+                // the rest on a later call, once they are released.
+                Err(ReceiveError::ExceedsMaxBorrows) if newest.is_some() => break,
+                Err(e) => return Err(ClientError::Receive(e)),
+            }
         }
-        Ok(got)
+        let Some(s) = newest else {
+            return Ok(false);
+        };
+        let s = std::rc::Rc::new(s);
+        let held = HeldSnapshot::new(s.clone());
+        self.current = Some((s, held));
+        Ok(true)
     }
 
     /// Wait up to `timeout` for a snapshot newer than the one held; true if one arrived.
@@ -405,22 +501,30 @@ impl SnapshotSubscriber {
     /// The newest snapshot, read in place in shared memory.
     pub fn latest(&mut self) -> Result<Option<SnapshotView<'_>>, ClientError> {
         self.poll()?;
-        let Some(s) = &self.current else {
-            return Ok(None);
-        };
-        let len = (s.user_header().len as usize).min(s.payload().len());
-        SnapshotView::open(&s.payload()[..len])
-            .map(Some)
-            .map_err(ClientError::Snapshot)
+        match &self.current {
+            None => Ok(None),
+            Some((_, Ok(held))) => Ok(Some(held.view())),
+            Some((_, Err(e))) => Err(ClientError::Snapshot(*e)),
+        }
+    }
+
+    /// [`Self::latest`] as a handle that stays valid after later receives.
+    pub fn latest_held(&mut self) -> Result<Option<HeldSnapshot>, ClientError> {
+        self.poll()?;
+        match &self.current {
+            None => Ok(None),
+            Some((_, Ok(held))) => Ok(Some(held.clone())),
+            Some((_, Err(e))) => Err(ClientError::Snapshot(*e)),
+        }
     }
 
     /// The wire header of the held sample (sequence, length, when it was published).
     pub fn wire_header(&self) -> Option<SnapshotHeader> {
-        self.current.as_ref().map(|s| *s.user_header())
+        self.current.as_ref().map(|(s, _)| *s.user_header())
     }
 
     /// The whole shared-memory payload of the held sample (to check it is not a copy).
     pub fn sample_bytes(&self) -> Option<&[u8]> {
-        self.current.as_ref().map(|s| s.payload())
+        self.current.as_ref().map(|(s, _)| s.payload())
     }
 }

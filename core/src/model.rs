@@ -8,12 +8,14 @@
 use crate::coord::ConfigError;
 use serde::{Deserialize, Serialize};
 
-/// What the map knows about a voxel.
+/// What the map knows about a voxel. The discriminants are the C and Python APIs' codes
+/// (`VOXMAP_UNKNOWN` 0, `VOXMAP_FREE` 1, `VOXMAP_OCCUPIED` 2): `state as u8` is the code.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
 pub enum VoxelState {
-    Unknown,
-    Free,
-    Occupied,
+    Unknown = 0,
+    Free = 1,
+    Occupied = 2,
 }
 
 /// Probabilities of the inverse sensor model.

@@ -489,14 +489,15 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// Every stored leaf as (origin, entry), in leaf order.
-    fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + '_ {
+    fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + 'a {
+        let v = *self;
         self.blocks.iter().flat_map(move |b| {
             let origin = VoxelCoord::from_array(block_origin_of(b));
             let first = u64::from(block_first(b));
             (0..8)
                 .flat_map(move |w| BitIter(block_word(b, w)).map(move |bit| w * 64 + bit))
                 .enumerate()
-                .map(move |(k, j)| (leaf_of_block(origin, j), self.entry(first + k as u64)))
+                .map(move |(k, j)| (leaf_of_block(origin, j), v.entry(first + k as u64)))
         })
     }
 
@@ -534,14 +535,26 @@ impl<'a> SnapshotView<'a> {
     /// their waits overlap. Snapshots small enough to sit in cache are read one voxel at a
     /// time, which is faster there.
     pub fn states(&self, voxels: &[VoxelCoord], out: &mut Vec<VoxelState>) {
+        out.reserve(voxels.len());
         let staged = self.bytes.len() > STATES_IN_CACHE;
         self.states_of(voxels.iter().map(|v| Some(*v)), staged, out);
     }
 
     /// [`Self::states`] at world points, as [`Self::state_at`] on each.
     pub fn states_at(&self, points: &[WorldPoint], out: &mut Vec<VoxelState>) {
+        out.reserve(points.len());
+        self.states_at_each(points.iter().copied(), out);
+    }
+
+    /// [`Self::states_at`] over any points into any sink (a binding's output buffer, points
+    /// read from a caller's array), without collecting either.
+    pub fn states_at_each(
+        &self,
+        points: impl ExactSizeIterator<Item = WorldPoint>,
+        out: &mut impl Extend<VoxelState>,
+    ) {
         let staged = self.bytes.len() > STATES_IN_CACHE;
-        self.states_of(points.iter().map(|p| self.tf.voxel_of(p)), staged, out);
+        self.states_of(points.map(|p| self.tf.voxel_of(&p)), staged, out);
     }
 
     /// `None`: outside the index space, unknown. Not `staged`: one [`Self::state`] each.
@@ -549,9 +562,8 @@ impl<'a> SnapshotView<'a> {
         &self,
         voxels: impl ExactSizeIterator<Item = Option<VoxelCoord>>,
         staged: bool,
-        out: &mut Vec<VoxelState>,
+        out: &mut impl Extend<VoxelState>,
     ) {
-        out.reserve(voxels.len());
         if !staged {
             out.extend(voxels.map(|v| v.map_or(VoxelState::Unknown, |v| self.state(v))));
             return;
@@ -572,7 +584,7 @@ impl<'a> SnapshotView<'a> {
     /// one another and prefetched before the next stage needs them. The table and blocks
     /// are small and mostly in cache; the leaf entries and mask records are where the
     /// misses are.
-    fn states_group(&self, voxels: &[Option<VoxelCoord>], out: &mut Vec<VoxelState>) {
+    fn states_group(&self, voxels: &[Option<VoxelCoord>], out: &mut impl Extend<VoxelState>) {
         let h = &self.header;
         let mut slot = [None; STATES_GROUP];
         for (s, v) in slot.iter_mut().zip(voxels) {
@@ -771,11 +783,12 @@ impl<'a> SnapshotView<'a> {
 
     /// Every leaf's occupancy masks, in leaf order. Occupied bits outside the known mask
     /// (possible only in corrupt bytes) are dropped.
-    pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::tree::LeafOccupancy> + '_ {
+    pub fn leaf_occupancy(&self) -> impl Iterator<Item = crate::tree::LeafOccupancy> + 'a {
+        let v = *self;
         self.stored_leaves().map(move |(origin, e)| {
-            let (k, o) = self.masks_of(&e);
-            let known = k.decode(self.masks);
-            let mut occupied = o.decode(self.masks);
+            let (k, o) = v.masks_of(&e);
+            let known = k.decode(v.masks);
+            let mut occupied = o.decode(v.masks);
             occupied
                 .words
                 .iter_mut()
@@ -790,12 +803,13 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// Occupied voxels, in leaf order.
-    pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
+    pub fn occupied_voxels(&self) -> impl Iterator<Item = VoxelCoord> + 'a {
+        let v = *self;
         self.stored_leaves()
             .filter(|(_, e)| e.kinds().1 != 0)
             .flat_map(move |(origin, e)| {
-                let (k, o) = self.masks_of(&e);
-                let (known, occupied) = (k.decode(self.masks), o.decode(self.masks));
+                let (k, o) = v.masks_of(&e);
+                let (known, occupied) = (k.decode(v.masks), o.decode(v.masks));
                 (0..8).flat_map(move |w| {
                     let bits = occupied.words[w] & known.words[w];
                     crate::mask::BitIter(bits).map(move |b| voxel_at(origin, w * 64 + b))
@@ -804,7 +818,8 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// World centres of the occupied voxels.
-    pub fn occupied_centers(&self) -> impl Iterator<Item = WorldPoint> + '_ {
-        self.occupied_voxels().map(|v| self.tf.voxel_center(v))
+    pub fn occupied_centers(&self) -> impl Iterator<Item = WorldPoint> + 'a {
+        let tf = self.tf;
+        self.occupied_voxels().map(move |v| tf.voxel_center(v))
     }
 }
