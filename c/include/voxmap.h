@@ -68,7 +68,10 @@ typedef struct voxmap_control voxmap_control;
 // subscriber's view: the subscriber's thread).
 typedef struct voxmap_occupied voxmap_occupied;
 
-// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`.
+// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`. Sent
+// frames live in the publisher's shared memory until the service takes them: a publisher
+// freed (or a process ending) right after a send can lose that frame, so a one-shot
+// driver waits for a snapshot whose sequence reaches its frame's.
 typedef struct voxmap_publisher voxmap_publisher;
 
 // A planner's connection to the snapshots of one map. Free with `voxmap_subscriber_free`.

@@ -8,7 +8,10 @@ use crate::error::{guard, mut_arg, status, str_arg, xyz_arg, Failure};
 use std::ffi::{c_char, c_int};
 use voxmap_client::{FrameHeader, FramePublisher, Isometry3, PendingFrame};
 
-/// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`.
+/// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`. Sent
+/// frames live in the publisher's shared memory until the service takes them: a publisher
+/// freed (or a process ending) right after a send can lose that frame, so a one-shot
+/// driver waits for a snapshot whose sequence reaches its frame's.
 pub struct voxmap_publisher {
     // Field order: a pending loan goes back before its publisher closes.
     loan: Option<PendingFrame>,

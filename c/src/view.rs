@@ -47,7 +47,7 @@ enum Backing {
     /// The caller's bytes, which the caller keeps alive.
     Borrowed,
     /// A shared-memory sample.
-    Held(HeldSnapshot),
+    Held(Box<HeldSnapshot>),
 }
 
 /// A validated snapshot read in place: opened from a map or snapshot file, from a caller's
@@ -76,7 +76,7 @@ impl voxmap_view {
         let view: SnapshotView<'static> = unsafe { extend(held.view()) };
         Box::into_raw(Box::new(Self {
             view,
-            backing: Backing::Held(held),
+            backing: Backing::Held(Box::new(held)),
         }))
     }
 }
