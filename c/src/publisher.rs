@@ -6,7 +6,7 @@
 
 use crate::error::{guard, mut_arg, status, str_arg, xyz_arg, Failure};
 use std::ffi::{c_char, c_int};
-use voxmap_client::{FrameHeader, FramePublisher, Isometry3, PendingFrame};
+use voxmap_client::{FramePublisher, Isometry3, PendingFrame};
 
 /// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`. Sent
 /// frames live in the publisher's shared memory until the service takes them: a publisher
@@ -81,7 +81,6 @@ pub unsafe extern "C" fn voxmap_publisher_loan(
 unsafe fn pose_arg(
     translation: *const f64,
     rotation_xyzw: *const f64,
-    n: usize,
 ) -> Result<Isometry3<f64>, Failure> {
     // SAFETY: the caller's promise.
     let t = unsafe { xyz_arg(translation, "translation") }?;
@@ -90,14 +89,7 @@ unsafe fn pose_arg(
     }
     // SAFETY: 4 readable doubles (the caller's promise).
     let q = unsafe { std::slice::from_raw_parts(rotation_xyzw, 4) };
-    let header = FrameHeader {
-        translation: t,
-        rotation_xyzw: [q[0], q[1], q[2], q[3]],
-        point_count: n as u64,
-        ..FrameHeader::default()
-    };
-    header
-        .validate(n)
+    voxmap_client::frame_pose(t, [q[0], q[1], q[2], q[3]])
         .map_err(|e| Failure::invalid(format!("bad pose: {e}")))
 }
 
@@ -123,9 +115,8 @@ pub unsafe extern "C" fn voxmap_publisher_send(
         let Some(frame) = p.loan.take() else {
             return Err(Failure::invalid("no frame is loaned"));
         };
-        let n = frame.points().len();
         // SAFETY: the caller's promises.
-        let pose = match unsafe { pose_arg(translation, rotation_xyzw, n) } {
+        let pose = match unsafe { pose_arg(translation, rotation_xyzw) } {
             Ok(pose) => pose,
             Err(f) => {
                 p.loan = Some(frame);
@@ -187,7 +178,7 @@ pub unsafe extern "C" fn voxmap_publisher_publish(
             ));
         }
         // SAFETY: the caller's promises.
-        let pose = unsafe { pose_arg(translation, rotation_xyzw, n) }?;
+        let pose = unsafe { pose_arg(translation, rotation_xyzw) }?;
         // SAFETY: `3 n` readable floats, 12 n fits isize.
         let src = unsafe { std::slice::from_raw_parts(xyz, 3 * n) };
         let mut frame = p

@@ -320,26 +320,10 @@ pub unsafe extern "C" fn voxmap_view_states_at(
             }
             // SAFETY: `xyz` holds `3 n` doubles (the caller's promise); 24 n fits isize.
             let xyz = unsafe { std::slice::from_raw_parts(xyz, 3 * n) };
-            states_into(v, xyz, out);
+            v.state_codes_at(xyz, out);
             Ok(())
         },
     )
-}
-
-/// States at the points `xyz` (x, y, z after one another) written into `out` as codes.
-pub fn states_into(v: &SnapshotView<'_>, xyz: &[f64], out: &mut [u8]) {
-    struct Codes<'o>(std::slice::IterMut<'o, u8>);
-    impl Extend<VoxelState> for Codes<'_> {
-        fn extend<I: IntoIterator<Item = VoxelState>>(&mut self, states: I) {
-            for (o, s) in self.0.by_ref().zip(states) {
-                *o = s as u8;
-            }
-        }
-    }
-    let points = xyz
-        .chunks_exact(3)
-        .map(|c| WorldPoint::new(c[0], c[1], c[2]));
-    v.states_at_each(points, &mut Codes(out.iter_mut()));
 }
 
 /// The occupancy probability of the voxel holding (x, y, z): 1 and `*p` written when the

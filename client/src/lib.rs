@@ -37,8 +37,8 @@ pub use nalgebra::Isometry3;
 pub use voxmap_core::snapshot::{InvalidBox, InvalidSegment, SnapshotError, SnapshotView};
 pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
 pub use voxmap_ipc::{
-    ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, MapScope, OpenError,
-    ServiceNames, SnapshotHeader, StatsWire,
+    ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, FrameRejected,
+    MapScope, OpenError, ServiceNames, SnapshotHeader, StatsWire,
 };
 
 /// Something went wrong talking to the service or reading a snapshot. The cause (iceoryx2's
@@ -229,6 +229,21 @@ impl MapControl {
     pub fn set_scope(&self, scope: MapScope) -> Result<(), ClientError> {
         self.checked(ControlRequest::with_scope(scope)).map(|_| ())
     }
+}
+
+/// A frame's pose from its wire fields (translation in metres, a unit quaternion x, y, z,
+/// w), checked as the service checks it, so a binding can refuse a bad pose before
+/// sending it.
+pub fn frame_pose(
+    translation: [f64; 3],
+    rotation_xyzw: [f64; 4],
+) -> Result<Isometry3<f64>, voxmap_ipc::FrameRejected> {
+    FrameHeader {
+        translation,
+        rotation_xyzw,
+        ..FrameHeader::default()
+    }
+    .validate(0)
 }
 
 /// Publishes point-cloud frames to a map.

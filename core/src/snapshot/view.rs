@@ -557,6 +557,25 @@ impl<'a> SnapshotView<'a> {
         self.states_of(points.map(|p| self.tf.voxel_of(&p)), staged, out);
     }
 
+    /// [`Self::states_at`] for the C and Python APIs: points as x, y, z after one another
+    /// (a C or NumPy array), each state written as its code (`state as u8`) into `out`.
+    /// Points beyond `out.len()` are not read; codes beyond the points are left alone.
+    pub fn state_codes_at(&self, xyz: &[f64], out: &mut [u8]) {
+        struct Codes<'o>(std::slice::IterMut<'o, u8>);
+        impl Extend<VoxelState> for Codes<'_> {
+            fn extend<I: IntoIterator<Item = VoxelState>>(&mut self, states: I) {
+                for (o, s) in self.0.by_ref().zip(states) {
+                    *o = s as u8;
+                }
+            }
+        }
+        let points = xyz
+            .chunks_exact(3)
+            .take(out.len())
+            .map(|c| WorldPoint::new(c[0], c[1], c[2]));
+        self.states_at_each(points, &mut Codes(out.iter_mut()));
+    }
+
     /// `None`: outside the index space, unknown. Not `staged`: one [`Self::state`] each.
     pub(super) fn states_of(
         &self,
