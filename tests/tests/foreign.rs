@@ -145,7 +145,9 @@ struct Fixture {
 
 fn fixture(name: &str) -> Fixture {
     let dir = tmpdir(name);
-    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    // 2.5 cm voxels: a snapshot over 512 KiB, where the batched queries take their staged
+    // path (below, they answer one point at a time).
+    let mut map = OccupancyMap::new(0.025, SensorModel::default()).unwrap();
     let mut integ = Integrator::new(IntegratorConfig {
         threads: 2,
         max_range: 8.0,
@@ -176,6 +178,7 @@ fn fixture(name: &str) -> Fixture {
     let map_path = dir.join("map.vxm");
     mapfile::save_map(&map, &map_path).unwrap();
     let snap = mapfile::read_as_snapshot(&map_path).unwrap();
+    assert!(snap.len() > 512 << 10, "a {} byte snapshot", snap.len());
     let snapshot = dir.join("map.snap");
     mapfile::save_snapshot(&snap, &snapshot).unwrap();
 

@@ -106,6 +106,16 @@ fn view_agrees_with_the_map_on_every_query() {
         let known = public.iter().filter(|&&s| s != VoxelState::Unknown).count();
         assert!(known > 1000, "{known} known");
         assert_eq!(public, staged);
+        // As codes into a byte buffer, staged (in groups, the last one short) and not.
+        let codes: Vec<u8> = public.iter().map(|&s| s as u8).collect();
+        let mut flat = vec![0u8; points.len()];
+        let sink = &mut super::view::StateCodes(flat.iter_mut());
+        view.states_of(points.iter().map(|p| tf.voxel_of(p)), true, sink);
+        assert_eq!(flat, codes);
+        let xyz: Vec<f64> = points.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+        let mut flat = vec![9u8; points.len() + 1];
+        view.state_codes_at(&xyz, &mut flat);
+        assert_eq!((&flat[..points.len()], flat[points.len()]), (&codes[..], 9));
         for (p, s) in points.iter().zip(&public) {
             assert_eq!(*s, view.state_at(p), "{p:?}");
         }

@@ -118,6 +118,19 @@ fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
     u64::from_le_bytes(b[at..at + 8].try_into().unwrap_or([0; 8]))
 }
 
+/// A sink writing states as their codes (`state as u8`) into a byte buffer, in order.
+pub(super) struct StateCodes<'o>(pub(super) std::slice::IterMut<'o, u8>);
+
+impl Extend<VoxelState> for StateCodes<'_> {
+    fn extend<I: IntoIterator<Item = VoxelState>>(&mut self, states: I) {
+        // States first: `zip` takes from its first iterator before it learns the second is
+        // done, and an output slot taken that way would be skipped.
+        for (s, o) in states.into_iter().zip(self.0.by_ref()) {
+            *o = s as u8;
+        }
+    }
+}
+
 /// A leaf found in the table: its index (for the values section) and mask record.
 #[derive(Clone, Copy, Debug)]
 struct LeafRef {
@@ -561,19 +574,11 @@ impl<'a> SnapshotView<'a> {
     /// (a C or NumPy array), each state written as its code (`state as u8`) into `out`.
     /// Points beyond `out.len()` are not read; codes beyond the points are left alone.
     pub fn state_codes_at(&self, xyz: &[f64], out: &mut [u8]) {
-        struct Codes<'o>(std::slice::IterMut<'o, u8>);
-        impl Extend<VoxelState> for Codes<'_> {
-            fn extend<I: IntoIterator<Item = VoxelState>>(&mut self, states: I) {
-                for (o, s) in self.0.by_ref().zip(states) {
-                    *o = s as u8;
-                }
-            }
-        }
         let points = xyz
             .chunks_exact(3)
             .take(out.len())
             .map(|c| WorldPoint::new(c[0], c[1], c[2]));
-        self.states_at_each(points, &mut Codes(out.iter_mut()));
+        self.states_at_each(points, &mut StateCodes(out.iter_mut()));
     }
 
     /// `None`: outside the index space, unknown. Not `staged`: one [`Self::state`] each.

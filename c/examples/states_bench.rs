@@ -1,0 +1,49 @@
+//! The Rust side of `bench/bindings_vs_rust.sh`: ns per point of `SnapshotView::states_at`
+//! on a snapshot file, over the points of a file (f64 x, y, z after one another), in
+//! batches, median of the repetitions. `bench/states_bench.cpp` and `states_bench.py` time
+//! the C and Python calls on the same files.
+//!
+//!   cargo run --release -p voxmap-c --example states_bench -- SNAPSHOT POINTS BATCH REPS
+
+use std::time::Instant;
+use voxmap_core::io::mapfile;
+use voxmap_core::snapshot::SnapshotView;
+use voxmap_core::WorldPoint;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [snap, points, batch, reps] = args.as_slice() else {
+        return Err("usage: states_bench SNAPSHOT POINTS BATCH REPS".into());
+    };
+    let (batch, reps): (usize, usize) = (batch.parse()?, reps.parse()?);
+    let bytes = mapfile::read_snapshot(snap.as_ref())?;
+    let view = SnapshotView::open(&bytes)?;
+    let raw = std::fs::read(points)?;
+    let xyz: Vec<f64> = raw
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().unwrap_or([0; 8])))
+        .collect();
+    let pts: Vec<WorldPoint> = xyz
+        .chunks_exact(3)
+        .map(|c| WorldPoint::new(c[0], c[1], c[2]))
+        .collect();
+    let mut out = Vec::with_capacity(batch);
+    let mut occupied = 0usize;
+    let mut per_point = Vec::with_capacity(reps);
+    for _ in 0..reps {
+        let t = Instant::now();
+        for chunk in pts.chunks(batch) {
+            out.clear();
+            view.states_at(chunk, &mut out);
+            occupied += out.iter().filter(|s| **s as u8 == 2).count();
+        }
+        per_point.push(t.elapsed().as_secs_f64() * 1e9 / pts.len() as f64);
+    }
+    per_point.sort_by(f64::total_cmp);
+    println!(
+        "rust states_at: {:.1} ns/point (median of {reps}, batch {batch}, {} points; {occupied} occupied answers)",
+        per_point[reps / 2],
+        pts.len()
+    );
+    Ok(())
+}
