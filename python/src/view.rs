@@ -42,9 +42,10 @@ unsafe fn forever(bytes: &[u8]) -> &'static [u8] {
 
 impl View {
     pub(crate) fn held(held: HeldSnapshot) -> Self {
-        // SAFETY: the view's bytes are the held sample's shared memory, kept mapped by
-        // `_backing` as long as this object; the view is dropped first.
-        let view = SnapshotView::clone(&held.view());
+        let view = held.view();
+        // SAFETY: the same type but for the lifetime. The view's bytes are the held
+        // sample's shared memory, kept mapped by `_backing` as long as this object, and the
+        // view is dropped first.
         let view: SnapshotView<'static> =
             unsafe { std::mem::transmute::<SnapshotView<'_>, SnapshotView<'static>>(view) };
         Self {
@@ -77,6 +78,9 @@ pub(crate) fn points<'py, T: numpy::Element>(
     }
     Ok(arr)
 }
+
+/// A (min, max) pair of 3-vectors.
+type Corners<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
 
 fn array3<'py>(py: Python<'py>, p: WorldPoint) -> Bound<'py, PyArray1<f64>> {
     vec![p.x, p.y, p.z].into_pyarray(py)
@@ -123,10 +127,7 @@ impl View {
 
     /// (min, max) corners in metres of the box holding every known voxel, or None.
     #[getter]
-    fn bounds<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> Option<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    fn bounds<'py>(&self, py: Python<'py>) -> Option<Corners<'py>> {
         let (lo, hi) = self.view.bounds()?;
         let r = self.view.resolution();
         let (lo, hi) = (lo.to_array(), hi.to_array());

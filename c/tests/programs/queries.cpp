@@ -84,6 +84,31 @@ int main(int argc, char** argv) {
       }
       put(out, code);
     }
+#ifdef VOXMAP_WITH_EIGEN
+    // The Eigen overloads answer as the array ones.
+    for (std::size_t i = 0; i + 1 < np && i < 200; i += 2) {
+      Eigen::Vector3d a(points[3 * i], points[3 * i + 1], points[3 * i + 2]);
+      Eigen::Vector3d b(points[3 * i + 3], points[3 * i + 4], points[3 * i + 5]);
+      if (view.state_at(a) != view.state_at(a.x(), a.y(), a.z())) throw std::runtime_error("Eigen state_at");
+      if (!a.allFinite() || !b.allFinite()) continue;
+      auto h1 = view.first_hit(a, b);
+      auto h2 = view.first_hit(voxmap::Vec3{a.x(), a.y(), a.z()}, voxmap::Vec3{b.x(), b.y(), b.z()});
+      if (h1.has_value() != h2.has_value() || (h1 && ((*h1)(0) != (*h2)[0] || (*h1)(2) != (*h2)[2])))
+        throw std::runtime_error("Eigen first_hit");
+      Eigen::Vector3d lo = a.cwiseMin(b), hi = a.cwiseMax(b);
+      if (view.is_box_free(lo, hi, true) != view.is_box_free({lo.x(), lo.y(), lo.z()}, {hi.x(), hi.y(), hi.z()}, true))
+        throw std::runtime_error("Eigen is_box_free");
+    }
+    {
+      Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> m(np, 3);
+      for (std::size_t i = 0; i < np; ++i) m.row(static_cast<Eigen::Index>(i)) << points[3 * i], points[3 * i + 1], points[3 * i + 2];
+      if (view.states_at(m) != batched) throw std::runtime_error("Eigen states_at");
+      std::vector<Eigen::Vector3d> vs;
+      for (std::size_t i = 0; i < np; ++i) vs.emplace_back(points[3 * i], points[3 * i + 1], points[3 * i + 2]);
+      if (view.states_at(vs) != batched) throw std::runtime_error("Eigen vector states_at");
+    }
+    std::printf("eigen overloads checked\n");
+#endif
     std::uint64_t n = 0;
     voxmap::Vec3 sum{};
     view.for_each_occupied([&](const voxmap::Vec3& c) {
@@ -98,6 +123,9 @@ int main(int argc, char** argv) {
     return o ? 0 : 1;
   } catch (const voxmap::Error& e) {
     std::cerr << "voxmap error " << e.code() << ": " << e.what() << "\n";
+    return 1;
+  } catch (const std::exception& e) {
+    std::cerr << e.what() << "\n";
     return 1;
   }
 }
