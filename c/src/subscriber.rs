@@ -60,8 +60,8 @@ pub unsafe extern "C" fn voxmap_subscriber_wait(
 /// The newest snapshot received, as a view over the shared-memory sample itself (no copy):
 /// 1 and `*out` set to a new view, which stays valid (whatever arrives later) until
 /// `voxmap_view_free`; 0 and `*out` null when no snapshot has arrived yet; or an error
-/// code (a snapshot that does not validate). A subscriber can hold two samples at once,
-/// its newest included: free a view before asking for the one after next.
+/// code (a snapshot that does not validate). Views of two different older snapshots held
+/// at once use up the subscriber's samples: newer ones wait (an error) until one is freed.
 ///
 /// # Safety
 /// `sub` is null or a live subscriber; `out` is null or writable.

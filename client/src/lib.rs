@@ -396,8 +396,9 @@ type SnapshotSample = Sample<ipc::Service, [u8], SnapshotHeader>;
 /// A received snapshot sample, validated once, that can outlive the subscriber's next
 /// receive: what [`SnapshotSubscriber::latest_held`] gives a caller that keeps a view across
 /// calls (the C and Python bindings). It holds the shared-memory sample: a subscriber may
-/// hold at most [`voxmap_ipc::ports::qos::SNAPSHOT_BORROWED`] samples at once, its newest
-/// included, so release old ones. Not `Send`: iceoryx2's `ipc` samples stay on the thread
+/// hold at most [`voxmap_ipc::ports::qos::SNAPSHOT_BORROWED`] samples at once, so held
+/// snapshots of two different older samples make receives fail
+/// (`ReceiveError::ExceedsMaxBorrows`) until one is dropped; one is fine. Not `Send`: iceoryx2's `ipc` samples stay on the thread
 /// of their subscriber.
 #[derive(Clone)]
 pub struct HeldSnapshot {
@@ -474,9 +475,13 @@ impl SnapshotSubscriber {
                     newest = Some(s);
                 }
                 Ok(None) => break,
-                // Held snapshots use up the borrows: take the newer one got so far and
-                // the rest on a later call, once they are released.
+                // Held snapshots use up the borrows (iceoryx2 says so only when a sample
+                // is waiting): take the newer one got so far and the rest on a later call;
+                // or make room by letting go of our newest, if no held snapshot shares it.
                 Err(ReceiveError::ExceedsMaxBorrows) if newest.is_some() => break,
+                Err(ReceiveError::ExceedsMaxBorrows) if self.holds_newest_alone() => {
+                    self.current = None;
+                }
                 Err(e) => return Err(ClientError::Receive(e)),
             }
         }
@@ -487,6 +492,14 @@ impl SnapshotSubscriber {
         let held = HeldSnapshot::new(s.clone());
         self.current = Some((s, held));
         Ok(true)
+    }
+
+    /// Whether the newest sample is referenced only by `current` (its `Rc` and the
+    /// validated `HeldSnapshot` beside it), not by a snapshot handed out.
+    fn holds_newest_alone(&self) -> bool {
+        self.current
+            .as_ref()
+            .is_some_and(|(s, _)| std::rc::Rc::strong_count(s) <= 2)
     }
 
     /// Wait up to `timeout` for a snapshot newer than the one held; true if one arrived.

@@ -63,8 +63,8 @@ impl Subscriber {
     }
 
     /// The newest snapshot as a View over the shared-memory sample (no copy), or None when
-    /// none has arrived. A subscriber holds at most two samples at once, its newest
-    /// included: let go of old views.
+    /// none has arrived. Keep at most one older view besides it: views of two older
+    /// snapshots use up the subscriber's samples and newer ones wait (an error).
     fn latest(&mut self) -> PyResult<Option<View>> {
         let held = self.sub.latest_held().map_err(|e| voxmap_error(&e))?;
         Ok(held.map(View::held))

@@ -500,3 +500,44 @@ fn config_file_and_queue_intake_integrate_a_burst_in_order() {
     drop(svc);
     std::fs::remove_file(&cfg).unwrap();
 }
+
+/// A held snapshot (what the C and Python views keep) stays valid and unchanged while the
+/// service publishes newer ones; a subscriber holding one old snapshot besides its newest
+/// still receives; the shared memory is not copied.
+#[test]
+fn held_snapshots_stay_unchanged_while_newer_ones_arrive() {
+    let prefix = unique_prefix("held");
+    let mut s = start_and_scan(&prefix, &[]);
+    let old = s.sub.latest_held().unwrap().unwrap();
+    let (old_seq, old_copy) = (old.view().sequence(), old.view().as_bytes().to_vec());
+    let sample = s.sub.sample_bytes().unwrap().as_ptr_range();
+    assert!(
+        sample.contains(&old.view().as_bytes().as_ptr()),
+        "held view is a copy"
+    );
+    let mut newest = old_seq;
+    for k in 0..4u64 {
+        let pose = Isometry3::translation(SENSOR[0] + 0.1 * k as f64, SENSOR[1], SENSOR[2]);
+        let seq = s
+            .pubr
+            .publish(&pose, 0, &room_scan(H, SENSOR, 5_000))
+            .unwrap();
+        assert!(
+            wait_for_seq(&mut s.sub, seq, 1),
+            "no snapshot of frame {seq}"
+        );
+        // The newest, held too (as a planner keeping its view while it plans), then let go.
+        let held = s.sub.latest_held().unwrap().unwrap();
+        assert!(held.view().sequence() > newest);
+        newest = held.view().sequence();
+        assert_eq!(old.view().sequence(), old_seq);
+        assert_eq!(
+            old.view().as_bytes(),
+            &old_copy[..],
+            "a held snapshot changed"
+        );
+    }
+    drop(old);
+    assert_eq!(s.sub.latest().unwrap().unwrap().sequence(), newest);
+    drop(s.svc);
+}
