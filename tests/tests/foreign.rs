@@ -386,6 +386,8 @@ fn frames_from_cpp_and_python_come_back_to_cpp_and_python() {
     let dir = tmpdir("live");
     let build = dir.join("examples");
     cmake_build("examples/cpp", &prefix, &build);
+    let programs = dir.join("programs");
+    cmake_build("c/tests/programs", &prefix, &programs);
     let name = unique_prefix("live");
     let svc = Service::start(&name, &["--resolution", "0.1"]);
     let mut sub = {
@@ -438,6 +440,13 @@ fn frames_from_cpp_and_python_come_back_to_cpp_and_python() {
     );
     assert!(line("segment 4:").ends_with("clear"), "{out}");
     assert!(line("waypoint 0:").ends_with("free"), "{out}");
+    // C: the publisher's refusals and the control requests (save, clear, load).
+    let out = run_ok(Command::new(programs.join("c_checks")).args([
+        "live",
+        name.as_str(),
+        dir.to_str().unwrap(),
+    ]));
+    assert!(out.contains("ok live"), "{out}");
     drop(svc);
     std::fs::remove_dir_all(&dir).unwrap();
 }

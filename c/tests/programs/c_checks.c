@@ -1,6 +1,8 @@
 /* c_checks SNAPSHOT MUTATIONS: the C API on null and bad arguments, then MUTATIONS views
  * opened from mutated copies of the snapshot file's bytes, each queried in every way. Any
- * crash fails the test; so does a wrong error code. Prints "ok N opened" at the end. */
+ * crash fails the test; so does a wrong error code. Prints "ok N opened" at the end.
+ * c_checks live PREFIX DIR: the publisher's and the control's calls against a running
+ * service with a map (save into DIR, clear, load, refusals). Prints "ok live". */
 #include <voxmap.h>
 
 #include <math.h>
@@ -117,7 +119,56 @@ static void exercise(const voxmap_view* v) {
   voxmap_occupied_free(it);
 }
 
+static uint64_t leaves(voxmap_control* c) {
+  voxmap_stats s;
+  memset(&s, 0, sizeof s);
+  CHECK(voxmap_control_stats(c, &s) == 0);
+  CHECK(strlen(s.kernel) > 0);
+  return s.map_leaves;
+}
+
+static int live(const char* prefix, const char* dir) {
+  voxmap_control* c = voxmap_control_connect(prefix, "default");
+  voxmap_publisher* p = voxmap_publisher_connect(prefix, "default");
+  CHECK(c != NULL && p != NULL);
+  if (!c || !p) return 1;
+  const double t[3] = {0, 0, 0}, q[4] = {0, 0, 0, 1}, zero_q[4] = {0, 0, 0, 0};
+  /* One loan at a time; a bad pose keeps the loan; discard returns it. */
+  float* pts = voxmap_publisher_loan(p, 10);
+  CHECK(pts != NULL);
+  CHECK(voxmap_publisher_loan(p, 10) == NULL && strstr(voxmap_last_error(), "already loaned") != NULL);
+  CHECK(voxmap_publisher_send(p, t, zero_q, 0, NULL) == VOXMAP_ERR_INVALID);
+  CHECK(voxmap_publisher_discard(p) == 0);
+  CHECK(voxmap_publisher_send(p, t, q, 0, NULL) == VOXMAP_ERR_INVALID); /* nothing loaned */
+  float xyz[3] = {1.5f, 0.0f, 0.0f};
+  CHECK(voxmap_publisher_publish(p, xyz, 1, t, zero_q, 0, NULL) == VOXMAP_ERR_INVALID);
+  /* Control: save, clear, load back; refusals are REJECTED with the service's reason. */
+  uint64_t before = leaves(c);
+  CHECK(before > 0);
+  char path[4096];
+  snprintf(path, sizeof path, "%s/c_saved.vxm", dir);
+  CHECK(voxmap_control_save(c, path) == 0);
+  CHECK(voxmap_control_clear(c) == 0);
+  CHECK(leaves(c) == 0);
+  CHECK(voxmap_control_load(c, path) == 0);
+  CHECK(leaves(c) == before);
+  CHECK(voxmap_control_load(c, "/nonexistent/map.vxm") == VOXMAP_ERR_REJECTED);
+  CHECK(strlen(voxmap_last_error()) > 0);
+  CHECK(leaves(c) == before);
+  voxmap_view* v = voxmap_view_open_file(path);
+  CHECK(v != NULL);
+  uint64_t known = 0;
+  CHECK(voxmap_view_counts(v, &known, NULL) == 0 && known > 0);
+  voxmap_view_free(v);
+  voxmap_publisher_free(p);
+  voxmap_control_free(c);
+  if (failures) return 1;
+  printf("ok live\n");
+  return 0;
+}
+
 int main(int argc, char** argv) {
+  if (argc == 4 && strcmp(argv[1], "live") == 0) return live(argv[2], argv[3]);
   if (argc != 3) {
     fprintf(stderr, "usage: c_checks SNAPSHOT MUTATIONS\n");
     return 2;
