@@ -1,14 +1,160 @@
 //! The paper's trade-off modes ([`RayMode`] other than `Exact`): fewer rays for a coarser
 //! map. Each keeps the first ray of a kind in scan order, so its result does not depend on
 //! the thread count.
+//!
+//! Subsample and unique-end keep the first ray per cell (a sub-cell or the end voxel, and
+//! whether the ray hits). Over a frame whose cells fit [`DENSE_CELL_BITS`], each thread
+//! marks the cells of its own run of rays in a bit set over the frame's box, then drops
+//! the rays whose cell an earlier run saw ([`firsts_dense`]); larger frames take a hash set
+//! in scan order.
 
-use super::prepare::{direction_key, set_direction_keys, Ray};
+use super::prepare::{direction_key, set_direction_keys, Extent, Ray};
 use super::RayMode;
 use hashbrown::HashSet;
 use rayon::prelude::*;
 
-/// Drop (or merge) the rays that `mode` trades for speed.
-pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
+/// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
+/// bits, 4 MiB per thread (and bit indices below 2^31).
+pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
+
+/// Drop (or merge) the rays that `mode` trades for speed; `extent` bounds the rays' ends.
+pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode, extent: &Extent) {
+    let dense = match mode {
+        RayMode::Subsample { factor } => CellBox::new(extent, factor),
+        RayMode::UniqueEnd => CellBox::new(extent, 1),
+        _ => None,
+    };
+    match dense {
+        Some(cells) => {
+            let keep = firsts_dense(rays, &cells);
+            compact(rays, &keep, mode == RayMode::UniqueEnd);
+        }
+        None => thin_hashed(rays, origin, mode),
+    }
+}
+
+/// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
+struct CellBox {
+    factor: f64,
+    lo: [i64; 3],
+    dims: [u64; 3],
+}
+
+impl CellBox {
+    /// `None` when the box has more than [`DENSE_CELL_BITS`] / 2 cells.
+    fn new(extent: &Extent, factor: u32) -> Option<Self> {
+        let f = i64::from(factor);
+        let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
+        let lo = lo.map(|c| i64::from(c) * f);
+        let dims = [0, 1, 2].map(|a| ((i64::from(hi[a]) + 1) * f - lo[a]) as u64);
+        let cells = dims[0]
+            .checked_mul(dims[1])
+            .and_then(|c| c.checked_mul(dims[2]))?;
+        (cells.checked_mul(2)? <= DENSE_CELL_BITS).then_some(CellBox {
+            factor: f64::from(factor),
+            lo,
+            dims,
+        })
+    }
+
+    fn bits(&self) -> usize {
+        (2 * self.dims[0] * self.dims[1] * self.dims[2]) as usize
+    }
+
+    /// The bit of a ray's cell and hit flag. Ends lie in the box, whose voxel bounds the
+    /// extent gives; a float end on the box's upper face is clamped into its last cell.
+    #[inline]
+    fn bit(&self, r: &Ray) -> usize {
+        let c = [0, 1, 2].map(|a| {
+            let k = (r.end[a] * self.factor).floor() as i64 - self.lo[a];
+            k.clamp(0, self.dims[a] as i64 - 1) as u64
+        });
+        let cell = (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0];
+        (2 * cell + u64::from(r.hit)) as usize
+    }
+}
+
+/// Whether each ray is the first of its cell in scan order. The rays are cut into one run
+/// per thread; each run keeps its own firsts, marking them in a bit set of its own, and
+/// the sets of the runs before it, OR-ed, then drop those an earlier run saw. The first
+/// pass notes each ray's bit, so the second reads 4 bytes a ray instead of the ray.
+fn firsts_dense(rays: &[Ray], cells: &CellBox) -> Vec<bool> {
+    const FIRST: u32 = 1 << 31;
+    let runs = rayon::current_num_threads().min(rays.len() / 4096).max(1);
+    let per = rays.len().div_ceil(runs).max(1);
+    let words = cells.bits().div_ceil(64);
+    let mut noted = vec![0u32; rays.len()];
+    let mut seen: Vec<Vec<u64>> = noted
+        .par_chunks_mut(per)
+        .zip(rays.par_chunks(per))
+        .map(|(noted, rays)| {
+            let mut set = vec![0u64; words];
+            for (n, r) in noted.iter_mut().zip(rays) {
+                let b = cells.bit(r);
+                let (w, m) = (b / 64, 1u64 << (b % 64));
+                *n = b as u32 | if set[w] & m == 0 { FIRST } else { 0 };
+                set[w] |= m;
+            }
+            set
+        })
+        .collect();
+    // seen[j] becomes the cells of runs 0..=j.
+    for j in 1..seen.len() {
+        let (before, rest) = seen.split_at_mut(j);
+        rest[0]
+            .par_iter_mut()
+            .zip(before[j - 1].par_iter())
+            .for_each(|(w, p)| *w |= p);
+    }
+    let mut keep = vec![false; rays.len()];
+    keep.par_chunks_mut(per)
+        .zip(noted.par_chunks(per))
+        .enumerate()
+        .for_each(|(j, (keep, noted))| {
+            for (k, &n) in keep.iter_mut().zip(noted) {
+                let b = (n & !FIRST) as usize;
+                let earlier = j > 0 && seen[j - 1][b / 64] & (1u64 << (b % 64)) != 0;
+                *k = n & FIRST != 0 && !earlier;
+            }
+        });
+    keep
+}
+
+/// Keep the rays marked in `keep`, in order; `to_centre`: move each kept end to the centre
+/// of its voxel (unique-end).
+fn compact(rays: &mut Vec<Ray>, keep: &[bool], to_centre: bool) {
+    const CHUNK: usize = 16 * 1024;
+    let counts: Vec<usize> = keep
+        .par_chunks(CHUNK)
+        .map(|k| k.iter().filter(|&&k| k).count())
+        .collect();
+    let total = counts.iter().sum();
+    let mut out = vec![Ray::new([0.0; 3], 0, false); total];
+    let mut slices = Vec::with_capacity(counts.len());
+    let mut rest = out.as_mut_slice();
+    for &n in &counts {
+        let (a, b) = rest.split_at_mut(n);
+        slices.push(a);
+        rest = b;
+    }
+    slices
+        .into_par_iter()
+        .zip(keep.par_chunks(CHUNK).zip(rays.par_chunks(CHUNK)))
+        .for_each(|(dst, (keep, src))| {
+            let kept = src.iter().zip(keep).filter(|(_, &k)| k).map(|(r, _)| r);
+            for (d, r) in dst.iter_mut().zip(kept) {
+                *d = *r;
+                if to_centre {
+                    d.end = r.end.map(|c| c.floor() + 0.5);
+                }
+            }
+        });
+    *rays = out;
+}
+
+/// The trade-off modes in one pass in scan order over a hash set (bundle, and frames too
+/// large for [`firsts_dense`]).
+pub(super) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
     match mode {
         RayMode::Exact => {}
         RayMode::Subsample { factor } => {
@@ -52,5 +198,56 @@ pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
             }
             *rays = out;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::integrate::prepare::bounds;
+    use crate::test_rng::Rng;
+
+    /// The bit-set path keeps exactly the rays, in the order and with the ends, that the
+    /// hash set in scan order keeps, on any number of threads; rays on the box's faces and
+    /// repeated cells included.
+    #[test]
+    fn dense_firsts_keep_what_the_scan_order_hash_keeps() {
+        let mut rng = Rng(11);
+        let origin = [3.5, -2.25, 0.5];
+        let mut rays: Vec<Ray> = (0..60_000)
+            .map(|i| {
+                // Ends on a coarse lattice (many repeats, some exactly on cell faces).
+                let end = [0, 1, 2].map(|a| origin[a] + (rng.f() * 20.0 - 10.0).round() / 2.0);
+                Ray::new(end, 0, i % 3 != 0)
+            })
+            .collect();
+        rays.push(Ray::new(origin, 0, true));
+        let extent = bounds(&rays, origin);
+        for mode in [
+            RayMode::UniqueEnd,
+            RayMode::Subsample { factor: 1 },
+            RayMode::Subsample { factor: 4 },
+        ] {
+            let mut want = rays.clone();
+            thin_hashed(&mut want, origin, mode);
+            assert!(
+                want.len() < rays.len() / 2 && want.len() > 1000,
+                "{mode:?}: {}",
+                want.len()
+            );
+            for threads in [1, 2, 3, 5] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let mut got = rays.clone();
+                pool.install(|| thin_out(&mut got, origin, mode, &extent));
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
+                assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
+            }
+        }
+        // A box too large for bit sets takes the hash path.
+        assert!(CellBox::new(&extent, 64).is_none());
+        assert!(CellBox::new(&extent, 1).is_some());
     }
 }

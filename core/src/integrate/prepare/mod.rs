@@ -141,7 +141,7 @@ pub(super) fn prepare_rays(
     if skipped > 0 {
         rays.retain(|r| r.key != SKIPPED);
     }
-    thin_out(rays, origin, mode);
+    thin_out(rays, origin, mode, &sums.extent());
     halves.lay_out_all(rays, sides);
     (skipped, bounds(rays, origin))
 }
