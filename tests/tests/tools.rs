@@ -488,9 +488,35 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
             assert_eq!(m[0][k], m[1][k], "{mode} {k}");
         }
     }
+    // The trade-off mode's agreement with the exact map: on its rows only, the same on
+    // any thread count; unique-end keeps every occupied voxel of one frame.
+    for r in &frames {
+        assert_eq!(r["vs_exact"].is_null(), r["mode"] == "exact", "{r}");
+    }
+    let g: Vec<_> = frames
+        .iter()
+        .filter(|r| r["mode"] == "unique_end")
+        .map(|r| &r["vs_exact"])
+        .collect();
+    assert_eq!(g[0], g[1]);
+    let share = |k: &str| {
+        g[0][k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{k} in {}", g[0]))
+    };
+    assert_eq!(share("occupied_recall"), 1.0, "{}", g[0]);
+    assert!(
+        (0.9..=1.0).contains(&share("occupied_precision")),
+        "{}",
+        g[0]
+    );
+    assert!(share("known_in_both") > 1000.0 && share("same_state") <= share("known_in_both"));
     // Every row names its kernel; the scalar kernel, forced, gives the same maps.
     let kernel = frames[0]["kernel"].as_str().expect("kernel").to_string();
-    assert!(["scalar", "avx512"].contains(&kernel.as_str()), "{kernel}");
+    assert!(
+        ["scalar", "avx2", "avx512"].contains(&kernel.as_str()),
+        "{kernel}"
+    );
     assert!(frames.iter().all(|r| r["kernel"] == kernel.as_str()));
     let scalar = Command::new(voxmap_bin())
         .args(["bench", "--workloads", dir.to_str().unwrap(), "--runs", "1"])

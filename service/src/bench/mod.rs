@@ -9,7 +9,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use voxmap_core::integrate::PhaseTimes;
 use voxmap_core::io::pcd;
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+use voxmap_core::{
+    Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel, VoxelState,
+};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -207,7 +209,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let cloud = pcd::read(&f)?;
         let max_range = range_of(&name).unwrap_or(30.0);
         let mut exact_counts = None;
+        // The exact map of this frame, and each mode's agreement with it (the same on any
+        // thread count: computed once per mode).
+        let mut exact_map: Option<OccupancyMap> = None;
         for m in &a.modes {
+            let mut agreement: Option<Agreement> = None;
             let mode = mode_of(m, &a)?;
             for &threads in &a.threads {
                 let cfg = IntegratorConfig {
@@ -248,7 +254,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     let sensor = [t.x, t.y, t.z];
                     snapshots.push((name.clone(), snapshot_bench(&integ, &map, med, sensor)));
                 }
-                drop(map);
+                if mode == RayMode::Exact {
+                    exact_map = Some(map);
+                } else if let (Some(e), None) = (&exact_map, &agreement) {
+                    agreement = Some(Agreement::of(&map, e));
+                    drop(map);
+                } else {
+                    drop(map);
+                }
                 let (min, max) = (times[0], times[times.len() - 1]);
                 let p = median_phases(&mut phases);
                 let ns_step = med * 1e6 * threads as f64 / r.voxel_steps.max(1) as f64;
@@ -275,6 +288,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         o["free_vs_exact"] =
                             serde_json::json!(counts.free as f64 / e.free.max(1) as f64);
                     }
+                    if let Some(g) = &agreement {
+                        o["vs_exact"] = g.json();
+                    }
                     println!("{o}");
                 } else {
                     println!(
@@ -283,6 +299,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         ms(p.prepare), ms(p.raycast), ms(p.merge), ms(p.update),
                         counts.occupied, counts.free, bpv, paper.map_or("-".into(), |v| format!("{v:.0}")),
                     );
+                    if let Some(g) = &agreement {
+                        println!("{:<22}    vs exact: {}", "", g.line());
+                    }
                 }
             }
         }
@@ -338,6 +357,74 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// How a trade-off mode's map agrees with the exact map of the same frame.
+struct Agreement {
+    /// Voxels known in both maps, and those of them in the same state.
+    both_known: u64,
+    same_state: u64,
+    /// Occupied in both; occupied in the mode's map; occupied in the exact map.
+    occupied_both: u64,
+    occupied_mode: u64,
+    occupied_exact: u64,
+    /// Known in one map only.
+    mode_only: u64,
+    exact_only: u64,
+}
+
+impl Agreement {
+    fn of(mode: &OccupancyMap, exact: &OccupancyMap) -> Self {
+        let mut g = Agreement {
+            both_known: 0,
+            same_state: 0,
+            occupied_both: 0,
+            occupied_mode: 0,
+            occupied_exact: exact.counts().occupied,
+            mode_only: 0,
+            exact_only: 0,
+        };
+        for (v, _) in mode.grid().active_voxels() {
+            let (m, e) = (mode.state(v), exact.state(v));
+            let occupied = m == VoxelState::Occupied;
+            g.occupied_mode += u64::from(occupied);
+            if e == VoxelState::Unknown {
+                g.mode_only += 1;
+                continue;
+            }
+            g.both_known += 1;
+            g.same_state += u64::from(m == e);
+            g.occupied_both += u64::from(occupied && e == VoxelState::Occupied);
+        }
+        let c = exact.counts();
+        g.exact_only = (c.occupied + c.free).saturating_sub(g.both_known);
+        g
+    }
+
+    fn ratio(a: u64, b: u64) -> f64 {
+        a as f64 / b.max(1) as f64
+    }
+
+    fn line(&self) -> String {
+        format!(
+            "known in both {} ({:.2}% same state); occupied precision {:.4} recall {:.4}; known in this mode only {}, in exact only {}",
+            self.both_known,
+            100.0 * Self::ratio(self.same_state, self.both_known),
+            Self::ratio(self.occupied_both, self.occupied_mode),
+            Self::ratio(self.occupied_both, self.occupied_exact),
+            self.mode_only,
+            self.exact_only
+        )
+    }
+
+    fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "known_in_both": self.both_known, "same_state": self.same_state,
+            "occupied_precision": Self::ratio(self.occupied_both, self.occupied_mode),
+            "occupied_recall": Self::ratio(self.occupied_both, self.occupied_exact),
+            "known_in_mode_only": self.mode_only, "known_in_exact_only": self.exact_only,
+        })
+    }
 }
 
 struct SnapshotBench {
