@@ -24,13 +24,60 @@ pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode, ext
         RayMode::UniqueEnd => CellBox::new(extent, 1),
         _ => None,
     };
-    match dense {
-        Some(cells) => {
-            let keep = firsts_dense(rays, &cells);
-            compact(rays, &keep, mode == RayMode::UniqueEnd);
+    let keep = match (mode, dense) {
+        (_, Some(cells)) => firsts_dense(rays, &cells),
+        (RayMode::Subsample { factor }, None) => firsts_hashed(rays, origin, factor),
+        (RayMode::UniqueEnd, None) => firsts_hashed(rays, origin, 1),
+        _ => return thin_hashed(rays, origin, mode),
+    };
+    compact(rays, &keep, mode == RayMode::UniqueEnd);
+}
+
+/// Rays per run of [`firsts_hashed`]'s first pass: fixed, so that the partitions see the
+/// rays in scan order whatever the thread count.
+const HASH_RUN: usize = 16 * 1024;
+/// Partitions of [`firsts_hashed`]'s cells (a power of two).
+const PARTITIONS: usize = 64;
+
+/// [`firsts_dense`] for boxes too large for bit sets: each cell goes to one of
+/// [`PARTITIONS`] by a hash of its key; each partition, on a thread of its own, takes its
+/// rays in scan order into a hash set of its own and keeps those it had not seen.
+fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
+    let f = f64::from(factor);
+    let base = origin.map(|c| (c * f).floor() as i64);
+    // Cells within max range (8192 voxels) times the factor (at most 64) of the origin's:
+    // 21 bits an axis, and the hit flag.
+    let key = |r: &Ray| {
+        let c = [0, 1, 2].map(|a| (((r.end[a] * f).floor() as i64 - base[a]) & 0x1f_ffff) as u64);
+        c[0] | c[1] << 21 | c[2] << 42 | u64::from(r.hit) << 63
+    };
+    let part = |k: u64| (k.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize;
+    let keys: Vec<u64> = rays.par_iter().map(key).collect();
+    // Per run, per partition: the run's ray indices, in order.
+    let runs: Vec<Vec<Vec<u32>>> = keys
+        .par_chunks(HASH_RUN)
+        .enumerate()
+        .map(|(j, ks)| {
+            let mut lists = vec![Vec::new(); PARTITIONS];
+            for (i, &k) in ks.iter().enumerate() {
+                lists[part(k)].push((j * HASH_RUN + i) as u32);
+            }
+            lists
+        })
+        .collect();
+    let keep: Vec<std::sync::atomic::AtomicBool> = (0..rays.len())
+        .map(|_| std::sync::atomic::AtomicBool::new(false))
+        .collect();
+    (0..PARTITIONS).into_par_iter().for_each(|p| {
+        let n = runs.iter().map(|r| r[p].len()).sum();
+        let mut seen = HashSet::with_capacity(n);
+        for i in runs.iter().flat_map(|r| &r[p]) {
+            if seen.insert(keys[*i as usize]) {
+                keep[*i as usize].store(true, std::sync::atomic::Ordering::Relaxed);
+            }
         }
-        None => thin_hashed(rays, origin, mode),
-    }
+    });
+    keep.into_iter().map(|k| k.into_inner()).collect()
 }
 
 /// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
@@ -152,8 +199,8 @@ fn compact(rays: &mut Vec<Ray>, keep: &[bool], to_centre: bool) {
     *rays = out;
 }
 
-/// The trade-off modes in one pass in scan order over a hash set (bundle, and frames too
-/// large for [`firsts_dense`]).
+/// The trade-off modes in one pass in scan order over a hash set: bundle, and the reference
+/// the faster paths are tested against.
 pub(super) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
     match mode {
         RayMode::Exact => {}
@@ -246,8 +293,34 @@ mod tests {
                 assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
             }
         }
-        // A box too large for bit sets takes the hash path.
+        // A box too large for bit sets takes the partitioned hash sets: the same rays.
         assert!(CellBox::new(&extent, 64).is_none());
         assert!(CellBox::new(&extent, 1).is_some());
+        let mut want = rays.clone();
+        thin_hashed(&mut want, origin, RayMode::Subsample { factor: 64 });
+        for (mode, factor) in [
+            (RayMode::Subsample { factor: 4 }, 4),
+            (RayMode::UniqueEnd, 1),
+        ] {
+            let mut w = rays.clone();
+            thin_hashed(&mut w, origin, mode);
+            for threads in [1, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let keep = pool.install(|| firsts_hashed(&rays, origin, factor));
+                let mut got = rays.clone();
+                compact(&mut got, &keep, mode == RayMode::UniqueEnd);
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
+                assert!(
+                    ends(&got) == ends(&w),
+                    "{mode:?} hashed on {threads} threads"
+                );
+            }
+        }
+        let mut got = rays.clone();
+        thin_out(&mut got, origin, RayMode::Subsample { factor: 64 }, &extent);
+        assert_eq!(got.len(), want.len());
     }
 }
