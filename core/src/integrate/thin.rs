@@ -8,10 +8,11 @@
 //! the rays whose cell an earlier run saw ([`firsts_dense`]); larger frames take a hash set
 //! in scan order.
 
-use super::prepare::{direction_key, set_direction_keys, Extent, Ray};
+use super::prepare::{direction_key, Extent, Ray};
 use super::RayMode;
-use hashbrown::HashSet;
+use hashbrown::{HashMap, HashSet};
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
 /// bits, 4 MiB per thread (and bit indices below 2^31).
@@ -28,9 +29,22 @@ pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode, ext
         (_, Some(cells)) => firsts_dense(rays, &cells),
         (RayMode::Subsample { factor }, None) => firsts_hashed(rays, origin, factor),
         (RayMode::UniqueEnd, None) => firsts_hashed(rays, origin, 1),
-        _ => return thin_hashed(rays, origin, mode),
+        (RayMode::Bundle { threshold }, _) => return bundle(rays, origin, threshold),
+        (RayMode::Exact, _) => return,
     };
-    compact(rays, &keep, mode == RayMode::UniqueEnd);
+    if mode == RayMode::UniqueEnd {
+        compact(rays, &keep, |_, r| to_centre(r));
+    } else {
+        compact(rays, &keep, |_, r| *r);
+    }
+}
+
+/// A unique-end ray: to the centre of its end voxel.
+fn to_centre(r: &Ray) -> Ray {
+    Ray {
+        end: r.end.map(|c| c.floor() + 0.5),
+        ..*r
+    }
 }
 
 /// Rays per run of [`firsts_hashed`]'s first pass: fixed, so that the partitions see the
@@ -39,10 +53,17 @@ const HASH_RUN: usize = 16 * 1024;
 /// Partitions of [`firsts_hashed`]'s cells (a power of two).
 const PARTITIONS: usize = 64;
 
-/// [`firsts_dense`] for boxes too large for bit sets: each cell goes to one of
-/// [`PARTITIONS`] by a hash of its key; each partition, on a thread of its own, takes its
-/// rays in scan order into a hash set of its own and keeps those it had not seen.
-fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
+/// Per fixed run of rays and per partition of the cell keys (the cell `factor` per voxel
+/// edge, relative to the origin's, with the hit flag), `item(index, key, ray)` of each ray
+/// in scan order: a partition's items, run after run, are in scan order whatever the
+/// thread count. The items carry what a partition needs, so that it reads them one after
+/// another instead of the rays all over memory.
+fn partitioned<T: Send>(
+    rays: &[Ray],
+    origin: [f64; 3],
+    factor: u32,
+    item: impl Fn(u32, u64, &Ray) -> T + Sync,
+) -> Vec<Vec<Vec<T>>> {
     let f = f64::from(factor);
     let base = origin.map(|c| (c * f).floor() as i64);
     // Cells within max range (8192 voxels) times the factor (at most 64) of the origin's:
@@ -52,32 +73,82 @@ fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
         c[0] | c[1] << 21 | c[2] << 42 | u64::from(r.hit) << 63
     };
     let part = |k: u64| (k.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize;
-    let keys: Vec<u64> = rays.par_iter().map(key).collect();
-    // Per run, per partition: the run's ray indices, in order.
-    let runs: Vec<Vec<Vec<u32>>> = keys
-        .par_chunks(HASH_RUN)
+    rays.par_chunks(HASH_RUN)
         .enumerate()
-        .map(|(j, ks)| {
-            let mut lists = vec![Vec::new(); PARTITIONS];
-            for (i, &k) in ks.iter().enumerate() {
-                lists[part(k)].push((j * HASH_RUN + i) as u32);
+        .map(|(j, rs)| {
+            let mut lists: Vec<Vec<T>> = (0..PARTITIONS).map(|_| Vec::new()).collect();
+            for (i, r) in rs.iter().enumerate() {
+                let k = key(r);
+                lists[part(k)].push(item((j * HASH_RUN + i) as u32, k, r));
             }
             lists
         })
-        .collect();
-    let keep: Vec<std::sync::atomic::AtomicBool> = (0..rays.len())
-        .map(|_| std::sync::atomic::AtomicBool::new(false))
-        .collect();
+        .collect()
+}
+
+/// Partition `p`'s items in scan order.
+fn in_partition<T>(runs: &[Vec<Vec<T>>], p: usize) -> impl Iterator<Item = &T> + '_ {
+    runs.iter().flat_map(move |r| r[p].iter())
+}
+
+/// [`firsts_dense`] for boxes too large for bit sets: each cell goes to one of
+/// [`PARTITIONS`] by a hash of its key; each partition, on a thread of its own, takes its
+/// rays in scan order into a hash set of its own and keeps those it had not seen.
+fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
+    let runs = partitioned(rays, origin, factor, |i, k, _| (k, i));
+    let keep: Vec<AtomicBool> = (0..rays.len()).map(|_| AtomicBool::new(false)).collect();
     (0..PARTITIONS).into_par_iter().for_each(|p| {
-        let n = runs.iter().map(|r| r[p].len()).sum();
-        let mut seen = HashSet::with_capacity(n);
-        for i in runs.iter().flat_map(|r| &r[p]) {
-            if seen.insert(keys[*i as usize]) {
-                keep[*i as usize].store(true, std::sync::atomic::Ordering::Relaxed);
+        let mut seen = HashSet::with_capacity(runs.iter().map(|r| r[p].len()).sum());
+        for &(k, i) in in_partition(&runs, p) {
+            if seen.insert(k) {
+                keep[i as usize].store(true, Ordering::Relaxed);
             }
         }
     });
-    keep.into_iter().map(|k| k.into_inner()).collect()
+    keep.into_iter().map(AtomicBool::into_inner).collect()
+}
+
+/// Bundle: the rays ending in one voxel (and alike in hitting) form a group; a group of
+/// more than `threshold` becomes one ray to the mean of their ends, in the place of its
+/// first ray; smaller groups keep their rays. Grouped by partition as [`firsts_hashed`]:
+/// a group's ends are summed in scan order, so the mean is the same on any thread count.
+fn bundle(rays: &mut Vec<Ray>, origin: [f64; 3], threshold: u32) {
+    let runs = partitioned(rays, origin, 1, |i, k, r| (k, i, r.end));
+    let keep: Vec<AtomicBool> = (0..rays.len()).map(|_| AtomicBool::new(true)).collect();
+    let means: HashMap<u32, [f64; 3]> = (0..PARTITIONS)
+        .into_par_iter()
+        .map(|p| {
+            // key -> (first ray, count, sum of ends)
+            let mut groups: HashMap<u64, (u32, u32, [f64; 3])> = HashMap::new();
+            for &(k, i, end) in in_partition(&runs, p) {
+                let g = groups.entry(k).or_insert((i, 0, [0.0; 3]));
+                g.1 += 1;
+                (0..3).for_each(|a| g.2[a] += end[a]);
+            }
+            for &(k, i, _) in in_partition(&runs, p) {
+                let (first, n, _) = groups[&k];
+                if n > threshold && i != first {
+                    keep[i as usize].store(false, Ordering::Relaxed);
+                }
+            }
+            groups
+                .into_values()
+                .filter(|&(_, n, _)| n > threshold)
+                .map(|(first, n, sum)| (first, sum.map(|c| c / f64::from(n))))
+                .collect::<Vec<_>>()
+        })
+        .flatten_iter()
+        .collect::<Vec<_>>()
+        .into_iter()
+        .collect();
+    let keep: Vec<bool> = keep.into_iter().map(AtomicBool::into_inner).collect();
+    compact(rays, &keep, |i, r| match means.get(&(i as u32)) {
+        Some(&end) => {
+            let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
+            Ray::new(end, direction_key(d), r.hit)
+        }
+        None => *r,
+    });
 }
 
 /// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
@@ -167,9 +238,8 @@ fn firsts_dense(rays: &[Ray], cells: &CellBox) -> Vec<bool> {
     keep
 }
 
-/// Keep the rays marked in `keep`, in order; `to_centre`: move each kept end to the centre
-/// of its voxel (unique-end).
-fn compact(rays: &mut Vec<Ray>, keep: &[bool], to_centre: bool) {
+/// Keep the rays marked in `keep`, in order, each as `map(index, ray)` makes it.
+fn compact(rays: &mut Vec<Ray>, keep: &[bool], map: impl Fn(usize, &Ray) -> Ray + Sync) {
     const CHUNK: usize = 16 * 1024;
     let counts: Vec<usize> = keep
         .par_chunks(CHUNK)
@@ -187,21 +257,21 @@ fn compact(rays: &mut Vec<Ray>, keep: &[bool], to_centre: bool) {
     slices
         .into_par_iter()
         .zip(keep.par_chunks(CHUNK).zip(rays.par_chunks(CHUNK)))
-        .for_each(|(dst, (keep, src))| {
-            let kept = src.iter().zip(keep).filter(|(_, &k)| k).map(|(r, _)| r);
-            for (d, r) in dst.iter_mut().zip(kept) {
-                *d = *r;
-                if to_centre {
-                    d.end = r.end.map(|c| c.floor() + 0.5);
-                }
+        .enumerate()
+        .for_each(|(j, (dst, (keep, src)))| {
+            let kept = src.iter().enumerate().zip(keep).filter(|(_, &k)| k);
+            for (d, ((i, r), _)) in dst.iter_mut().zip(kept) {
+                *d = map(j * CHUNK + i, r);
             }
         });
     *rays = out;
 }
 
-/// The trade-off modes in one pass in scan order over a hash set: bundle, and the reference
-/// the faster paths are tested against.
-pub(super) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
+/// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
+/// reference the faster paths are tested against.
+#[cfg(test)]
+fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
+    use super::prepare::set_direction_keys;
     match mode {
         RayMode::Exact => {}
         RayMode::Subsample { factor } => {
@@ -311,7 +381,11 @@ mod tests {
                     .unwrap();
                 let keep = pool.install(|| firsts_hashed(&rays, origin, factor));
                 let mut got = rays.clone();
-                compact(&mut got, &keep, mode == RayMode::UniqueEnd);
+                if mode == RayMode::UniqueEnd {
+                    compact(&mut got, &keep, |_, r| to_centre(r));
+                } else {
+                    compact(&mut got, &keep, |_, r| *r);
+                }
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&w),
@@ -322,5 +396,71 @@ mod tests {
         let mut got = rays.clone();
         thin_out(&mut got, origin, RayMode::Subsample { factor: 64 }, &extent);
         assert_eq!(got.len(), want.len());
+    }
+
+    /// Bundles: the same groups and means as the sort-based reference (which sums a group
+    /// in another order: equal to rounding), and exactly the same rays on any thread count.
+    #[test]
+    fn bundles_match_the_sorted_reference_on_any_thread_count() {
+        let mut rng = Rng(12);
+        let origin = [0.25, 0.5, -0.75];
+        let rays: Vec<Ray> = (0..50_000)
+            .map(|i| {
+                let end = [0, 1, 2].map(|a| origin[a] + rng.f() * 12.0 - 6.0);
+                Ray::new(end, 0, i % 5 != 0)
+            })
+            .collect();
+        let extent = bounds(&rays, origin);
+        let sorted = |v: &[Ray]| {
+            let mut e: Vec<_> = v
+                .iter()
+                .map(|r| (r.end.map(f64::floor), r.hit, r.end))
+                .collect();
+            e.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            e
+        };
+        for threshold in [1, 3, 1_000_000] {
+            let mode = RayMode::Bundle { threshold };
+            let mut want = rays.clone();
+            thin_hashed(&mut want, origin, mode);
+            let mut one = rays.clone();
+            let pool = |n| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .build()
+                    .unwrap()
+            };
+            pool(1).install(|| thin_out(&mut one, origin, mode, &extent));
+            let (w, g) = (sorted(&want), sorted(&one));
+            assert_eq!(w.len(), g.len(), "threshold {threshold}");
+            for (a, b) in w.iter().zip(&g) {
+                assert_eq!((a.0, a.1), (b.0, b.1));
+                assert!(
+                    (0..3).all(|k| (a.2[k] - b.2[k]).abs() < 1e-9),
+                    "{a:?} {b:?}"
+                );
+            }
+            if threshold == 1_000_000 {
+                // No group is bundled: every ray, in scan order.
+                let ends = |v: &[Ray]| v.iter().map(|r| r.end).collect::<Vec<_>>();
+                assert!(ends(&one) == ends(&rays));
+            } else {
+                assert!(
+                    one.len() < rays.len() * 9 / 10,
+                    "{} of {}",
+                    one.len(),
+                    rays.len()
+                );
+            }
+            for n in [2, 3, 5] {
+                let mut got = rays.clone();
+                pool(n).install(|| thin_out(&mut got, origin, mode, &extent));
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
+                assert!(
+                    ends(&got) == ends(&one),
+                    "threshold {threshold} on {n} threads"
+                );
+            }
+        }
     }
 }
