@@ -2,7 +2,7 @@
 //!
 //! Thread safety: a control connection belongs to the thread that connected it.
 
-use crate::error::{guard, mut_arg, ref_arg, status, str_arg, Failure};
+use crate::error::{connect_handle, free_handle, mut_arg, ref_arg, status, str_arg, Failure};
 use std::ffi::{c_char, c_int};
 use std::time::Duration;
 use voxmap_client::MapControl;
@@ -50,15 +50,12 @@ pub unsafe extern "C" fn voxmap_control_connect(
     prefix: *const c_char,
     map: *const c_char,
 ) -> *mut voxmap_control {
-    guard(
-        |_| std::ptr::null_mut(),
-        || {
-            // SAFETY: the caller's promises.
-            let (prefix, map) = unsafe { (str_arg(prefix, "prefix")?, str_arg(map, "map")?) };
-            let control = MapControl::connect(prefix, map).map_err(|e| Failure::client(&e))?;
-            Ok(Box::into_raw(Box::new(voxmap_control { control })))
-        },
-    )
+    // SAFETY: the caller's promises.
+    unsafe {
+        connect_handle(prefix, map, |prefix, map| {
+            MapControl::connect(prefix, map).map(|control| voxmap_control { control })
+        })
+    }
 }
 
 /// How long each request waits for its answer. 0, or an error code.
@@ -176,14 +173,6 @@ pub unsafe extern "C" fn voxmap_control_clear(control: *const voxmap_control) ->
 /// `control` is null or a connection from this library, not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn voxmap_control_free(control: *mut voxmap_control) {
-    guard(
-        |_| (),
-        || {
-            if !control.is_null() {
-                // SAFETY: made by `Box::into_raw` here, freed once (the caller's promise).
-                drop(unsafe { Box::from_raw(control) });
-            }
-            Ok(())
-        },
-    )
+    // SAFETY: the caller's promise: `control` is null or made by `into_handle`, unfreed.
+    unsafe { free_handle(control) }
 }

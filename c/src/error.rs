@@ -51,14 +51,7 @@ impl Failure {
 
     /// An error with its chain of causes, `a: b: c`.
     pub fn chain(code: c_int, e: &dyn std::error::Error) -> Self {
-        let mut m = e.to_string();
-        let mut s = e.source();
-        while let Some(c) = s {
-            m.push_str(": ");
-            m.push_str(&c.to_string());
-            s = c.source();
-        }
-        Self::new(code, m)
+        Self::new(code, voxmap_client::error_chain(e))
     }
 
     pub fn client(e: &voxmap_client::ClientError) -> Self {
@@ -152,6 +145,48 @@ pub(crate) unsafe fn xyz_arg(p: *const f64, what: &str) -> Result<[f64; 3], Fail
     }
     // SAFETY: non-null, and the caller promises 3 readable doubles.
     Ok(unsafe { [*p, *p.add(1), *p.add(2)] })
+}
+
+/// A new handle for C, freed by [`free_handle`].
+pub(crate) fn into_handle<T>(v: T) -> *mut T {
+    Box::into_raw(Box::new(v))
+}
+
+/// Free a handle made by [`into_handle`] (null is ignored), inside the guard.
+///
+/// # Safety
+/// `p` is null or a handle from [`into_handle`] of this type, not yet freed.
+pub(crate) unsafe fn free_handle<T>(p: *mut T) {
+    guard(
+        |_| (),
+        || {
+            if !p.is_null() {
+                // SAFETY: the caller's promise: made by `Box::into_raw`, freed once.
+                drop(unsafe { Box::from_raw(p) });
+            }
+            Ok(())
+        },
+    )
+}
+
+/// A handle connected to map `map` under `prefix` by `connect`; null on failure.
+///
+/// # Safety
+/// `prefix` and `map` are null or NUL-terminated strings.
+pub(crate) unsafe fn connect_handle<T>(
+    prefix: *const c_char,
+    map: *const c_char,
+    connect: impl FnOnce(&str, &str) -> Result<T, voxmap_client::ClientError>,
+) -> *mut T {
+    guard(
+        |_| std::ptr::null_mut(),
+        || {
+            // SAFETY: the caller's promises.
+            let (prefix, map) = unsafe { (str_arg(prefix, "prefix")?, str_arg(map, "map")?) };
+            let handle = connect(prefix, map).map_err(|e| Failure::client(&e))?;
+            Ok(into_handle(handle))
+        },
+    )
 }
 
 /// This thread's last failure, as a NUL-terminated UTF-8 message; `""` when no call on

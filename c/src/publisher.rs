@@ -4,9 +4,9 @@
 //! Thread safety: a publisher belongs to the thread that connected it; its loaned points may
 //! be written from any thread until they are sent or discarded.
 
-use crate::error::{guard, mut_arg, status, str_arg, xyz_arg, Failure};
+use crate::error::{connect_handle, free_handle, guard, mut_arg, status, xyz_arg, Failure};
 use std::ffi::{c_char, c_int};
-use voxmap_client::{FramePublisher, Isometry3, PendingFrame};
+use voxmap_client::{ClientError, FramePublisher, Isometry3, PendingFrame};
 
 /// A driver's connection to the frames of one map. Free with `voxmap_publisher_free`. Sent
 /// frames live in the publisher's shared memory until the service takes them: a publisher
@@ -27,19 +27,15 @@ pub unsafe extern "C" fn voxmap_publisher_connect(
     prefix: *const c_char,
     map: *const c_char,
 ) -> *mut voxmap_publisher {
-    guard(
-        |_| std::ptr::null_mut(),
-        || {
-            // SAFETY: the caller's promises.
-            let (prefix, map) = unsafe { (str_arg(prefix, "prefix")?, str_arg(map, "map")?) };
-            let publisher =
-                FramePublisher::connect(prefix, map).map_err(|e| Failure::client(&e))?;
-            Ok(Box::into_raw(Box::new(voxmap_publisher {
+    // SAFETY: the caller's promises.
+    unsafe {
+        connect_handle(prefix, map, |prefix, map| {
+            FramePublisher::connect(prefix, map).map(|publisher| voxmap_publisher {
                 loan: None,
                 publisher,
-            })))
-        },
-    )
+            })
+        })
+    }
 }
 
 /// Loan shared memory for `n` points: returns `3 n` zeroed floats (x, y, z of each point
@@ -123,16 +119,23 @@ pub unsafe extern "C" fn voxmap_publisher_send(
                 return Err(f);
             }
         };
-        let seq = p
-            .publisher
-            .send_pending(frame, &pose, stamp_ns)
-            .map_err(|e| Failure::client(&e))?;
-        // SAFETY: null or writable.
-        if let Some(s) = unsafe { sequence.as_mut() } {
-            *s = seq;
-        }
-        Ok(0)
+        let seq = p.publisher.send_pending(frame, &pose, stamp_ns);
+        // SAFETY: null or writable (the caller's promise).
+        unsafe { sent(seq, sequence) }
     })
+}
+
+/// A send's outcome for C: 0 and `*sequence` (if not null) written, or the error code.
+///
+/// # Safety
+/// `sequence` is null or writable.
+unsafe fn sent(seq: Result<u64, ClientError>, sequence: *mut u64) -> Result<c_int, Failure> {
+    let seq = seq.map_err(|e| Failure::client(&e))?;
+    // SAFETY: null or writable (the caller's promise).
+    if let Some(s) = unsafe { sequence.as_mut() } {
+        *s = seq;
+    }
+    Ok(0)
 }
 
 /// Return the loaned frame unsent (nothing loaned: nothing happens). 0, or an error code.
@@ -181,22 +184,9 @@ pub unsafe extern "C" fn voxmap_publisher_publish(
         let pose = unsafe { pose_arg(translation, rotation_xyzw) }?;
         // SAFETY: `3 n` readable floats, 12 n fits isize.
         let src = unsafe { std::slice::from_raw_parts(xyz, 3 * n) };
-        let mut frame = p
-            .publisher
-            .loan_pending(n)
-            .map_err(|e| Failure::client(&e))?;
-        for (d, s) in frame.points_mut().iter_mut().zip(src.chunks_exact(3)) {
-            *d = [s[0], s[1], s[2]];
-        }
-        let seq = p
-            .publisher
-            .send_pending(frame, &pose, stamp_ns)
-            .map_err(|e| Failure::client(&e))?;
-        // SAFETY: null or writable.
-        if let Some(s) = unsafe { sequence.as_mut() } {
-            *s = seq;
-        }
-        Ok(0)
+        let seq = p.publisher.publish(&pose, stamp_ns, src.as_chunks::<3>().0);
+        // SAFETY: null or writable (the caller's promise).
+        unsafe { sent(seq, sequence) }
     })
 }
 
@@ -206,14 +196,6 @@ pub unsafe extern "C" fn voxmap_publisher_publish(
 /// `publisher` is null or a publisher from this library, not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn voxmap_publisher_free(publisher: *mut voxmap_publisher) {
-    guard(
-        |_| (),
-        || {
-            if !publisher.is_null() {
-                // SAFETY: made by `Box::into_raw` here, freed once (the caller's promise).
-                drop(unsafe { Box::from_raw(publisher) });
-            }
-            Ok(())
-        },
-    )
+    // SAFETY: the caller's promise: `publisher` is null or made by `into_handle`, unfreed.
+    unsafe { free_handle(publisher) }
 }

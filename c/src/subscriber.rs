@@ -4,7 +4,7 @@
 //! Thread safety: a subscriber belongs to the thread that connected it (iceoryx2's `ipc`
 //! ports are not `Send`): every call on it, and the freeing of its views, on that thread.
 
-use crate::error::{guard, mut_arg, status, str_arg, Failure};
+use crate::error::{connect_handle, free_handle, mut_arg, status, Failure};
 use crate::view::voxmap_view;
 use std::ffi::{c_char, c_int};
 use std::time::Duration;
@@ -25,15 +25,12 @@ pub unsafe extern "C" fn voxmap_subscriber_connect(
     prefix: *const c_char,
     map: *const c_char,
 ) -> *mut voxmap_subscriber {
-    guard(
-        |_| std::ptr::null_mut(),
-        || {
-            // SAFETY: the caller's promises.
-            let (prefix, map) = unsafe { (str_arg(prefix, "prefix")?, str_arg(map, "map")?) };
-            let sub = SnapshotSubscriber::connect(prefix, map).map_err(|e| Failure::client(&e))?;
-            Ok(Box::into_raw(Box::new(voxmap_subscriber { sub })))
-        },
-    )
+    // SAFETY: the caller's promises.
+    unsafe {
+        connect_handle(prefix, map, |prefix, map| {
+            SnapshotSubscriber::connect(prefix, map).map(|sub| voxmap_subscriber { sub })
+        })
+    }
 }
 
 /// Wait up to `timeout_ms` for a snapshot newer than the last one received: 1 when one
@@ -90,14 +87,6 @@ pub unsafe extern "C" fn voxmap_subscriber_latest(
 /// `sub` is null or a subscriber from this library, not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn voxmap_subscriber_free(sub: *mut voxmap_subscriber) {
-    guard(
-        |_| (),
-        || {
-            if !sub.is_null() {
-                // SAFETY: made by `Box::into_raw` here, freed once (the caller's promise).
-                drop(unsafe { Box::from_raw(sub) });
-            }
-            Ok(())
-        },
-    )
+    // SAFETY: the caller's promise: `sub` is null or made by `into_handle`, unfreed.
+    unsafe { free_handle(sub) }
 }

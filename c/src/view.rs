@@ -8,7 +8,8 @@
 //! tied to it).
 
 use crate::error::{
-    guard, ref_arg, status, str_arg, xyz_arg, Failure, VOXMAP_ERR_FILE, VOXMAP_ERR_INVALID,
+    free_handle, guard, into_handle, ref_arg, status, str_arg, xyz_arg, Failure, VOXMAP_ERR_FILE,
+    VOXMAP_ERR_INVALID,
 };
 use std::ffi::{c_char, c_int};
 use std::sync::Arc;
@@ -66,7 +67,7 @@ impl voxmap_view {
     /// [`Backing::Borrowed`], until the caller frees the view).
     unsafe fn boxed(bytes: &'static [u8], backing: Backing) -> Result<*mut Self, Failure> {
         let view = SnapshotView::open(bytes).map_err(|e| Failure::chain(VOXMAP_ERR_FILE, &e))?;
-        Ok(Box::into_raw(Box::new(Self { view, backing })))
+        Ok(into_handle(Self { view, backing }))
     }
 
     /// A view over a subscriber's held sample.
@@ -74,10 +75,10 @@ impl voxmap_view {
         // SAFETY (of the lifetime): the view's bytes are the held sample's, which `backing`
         // keeps alive as long as this struct; the view is dropped first.
         let view: SnapshotView<'static> = unsafe { extend(held.view()) };
-        Box::into_raw(Box::new(Self {
+        into_handle(Self {
             view,
             backing: Backing::Held(Box::new(held)),
-        }))
+        })
     }
 }
 
@@ -148,16 +149,8 @@ pub unsafe extern "C" fn voxmap_view_open_bytes(bytes: *const u8, len: usize) ->
 /// `view` is null or a view from this library, not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn voxmap_view_free(view: *mut voxmap_view) {
-    guard(
-        |_| (),
-        || {
-            if !view.is_null() {
-                // SAFETY: the caller's promise: made by `Box::into_raw` here, freed once.
-                drop(unsafe { Box::from_raw(view) });
-            }
-            Ok(())
-        },
-    )
+    // SAFETY: the caller's promise: `view` is null or made by `into_handle`, unfreed.
+    unsafe { free_handle(view) }
 }
 
 /// The view's snapshot, or the failure for a null `view`.
@@ -454,10 +447,10 @@ pub unsafe extern "C" fn voxmap_view_occupied(view: *const voxmap_view) -> *mut 
             // The iterator reads the view's bytes, which the cloned backing keeps alive
             // (for borrowed bytes: the caller, until the view is freed).
             let centres = Box::new(v.view.occupied_centers());
-            Ok(Box::into_raw(Box::new(voxmap_occupied {
+            Ok(into_handle(voxmap_occupied {
                 centres,
                 _backing: v.backing.clone(),
-            })))
+            }))
         },
     )
 }
@@ -500,14 +493,6 @@ pub unsafe extern "C" fn voxmap_occupied_next(
 /// `it` is null or a cursor from this library, not yet freed.
 #[no_mangle]
 pub unsafe extern "C" fn voxmap_occupied_free(it: *mut voxmap_occupied) {
-    guard(
-        |_| (),
-        || {
-            if !it.is_null() {
-                // SAFETY: made by `Box::into_raw` here, freed once (the caller's promise).
-                drop(unsafe { Box::from_raw(it) });
-            }
-            Ok(())
-        },
-    )
+    // SAFETY: the caller's promise: `it` is null or made by `into_handle`, unfreed.
+    unsafe { free_handle(it) }
 }

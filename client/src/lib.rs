@@ -132,6 +132,19 @@ impl std::error::Error for ClientError {
     }
 }
 
+/// An error and its causes as one line, `a: b: c` (for bindings that hand C or Python a
+/// message rather than the error).
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut m = e.to_string();
+    let mut s = e.source();
+    while let Some(c) = s {
+        m.push_str(": ");
+        m.push_str(&c.to_string());
+        s = c.source();
+    }
+    m
+}
+
 impl From<OpenError> for ClientError {
     fn from(e: OpenError) -> Self {
         Self::Connect(e)
@@ -277,11 +290,6 @@ pub struct PendingFrame {
 }
 
 impl PendingFrame {
-    /// The points as written so far.
-    pub fn points(&self) -> &[[f32; 3]] {
-        self.sample.payload()
-    }
-
     /// The points, in the sensor frame, in shared memory.
     pub fn points_mut(&mut self) -> &mut [[f32; 3]] {
         self.sample.payload_mut()

@@ -104,15 +104,8 @@ impl Publisher {
             .map_err(|e| PyValueError::new_err(format!("bad pose: {e}")))?;
         let arr = self::points::<f32>(points, "float32")?;
         let src = arr.as_slice()?;
-        let mut frame = self
-            .publisher
-            .loan_pending(src.len() / 3)
-            .map_err(|e| voxmap_error(&e))?;
-        for (d, s) in frame.points_mut().iter_mut().zip(src.chunks_exact(3)) {
-            *d = [s[0], s[1], s[2]];
-        }
         self.publisher
-            .send_pending(frame, &pose, stamp_ns)
+            .publish(&pose, stamp_ns, src.as_chunks::<3>().0)
             .map_err(|e| voxmap_error(&e))
     }
 }

@@ -14,20 +14,8 @@ pyo3::create_exception!(
     "A voxmap call failed: a file that is not a valid map or snapshot, shared memory, or the service."
 );
 
-/// An error and its causes as one message, `a: b: c`.
-pub(crate) fn message(e: &dyn std::error::Error) -> String {
-    let mut m = e.to_string();
-    let mut s = e.source();
-    while let Some(c) = s {
-        m.push_str(": ");
-        m.push_str(&c.to_string());
-        s = c.source();
-    }
-    m
-}
-
 pub(crate) fn voxmap_error(e: &dyn std::error::Error) -> PyErr {
-    VoxmapError::new_err(message(e))
+    VoxmapError::new_err(voxmap_client::error_chain(e))
 }
 
 #[pymodule]
