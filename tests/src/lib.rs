@@ -205,10 +205,22 @@ pub fn tum_frames(step: usize) -> Vec<TumFrame> {
 /// `None` (with a notice) when there is none, unless VOXMAP_REQUIRE_ROSBAGS is set, as CI
 /// does, which makes that a failure.
 pub fn python_with_rosbags() -> Option<PathBuf> {
+    python_with(
+        "rosbags, mcap, numpy",
+        "VOXMAP_REQUIRE_ROSBAGS",
+        "pip install rosbags mcap numpy",
+        "the ROS 2 bag tests",
+    )
+}
+
+/// `$VOXMAP_PYTHON` (else `python3`) if it imports `modules`; `None` with a notice that
+/// `skipping` is skipped, unless the variable `require` is set (as CI does), which makes a
+/// missing module a failure that says to run `install`.
+pub fn python_with(modules: &str, require: &str, install: &str, skipping: &str) -> Option<PathBuf> {
     let py =
         std::env::var_os("VOXMAP_PYTHON").map_or_else(|| PathBuf::from("python3"), PathBuf::from);
     let has = Command::new(&py)
-        .args(["-c", "import rosbags, mcap, numpy"])
+        .args(["-c", &format!("import {modules}")])
         .stderr(Stdio::null())
         .status()
         .is_ok_and(|s| s.success());
@@ -216,11 +228,11 @@ pub fn python_with_rosbags() -> Option<PathBuf> {
         return Some(py);
     }
     assert!(
-        std::env::var_os("VOXMAP_REQUIRE_ROSBAGS").is_none(),
-        "{} has no rosbags, mcap or numpy (pip install rosbags mcap numpy)",
+        std::env::var_os(require).is_none(),
+        "{} cannot import {modules} ({install})",
         py.display()
     );
-    eprintln!("NOTICE: no Python with rosbags, mcap and numpy; skipping the ROS 2 bag tests");
+    eprintln!("NOTICE: no Python with {modules}; skipping {skipping}");
     None
 }
 
@@ -241,10 +253,15 @@ pub fn voxmap(args: &[&str]) -> std::process::Output {
 
 /// Run the `voxmap` binary, which must succeed; its standard output.
 pub fn ok(args: &[&str]) -> String {
-    let out = voxmap(args);
+    run_ok(Command::new(voxmap_bin()).args(args))
+}
+
+/// Run a program, which must succeed; its standard output.
+pub fn run_ok(cmd: &mut Command) -> String {
+    let out = cmd.output().expect("spawn");
     assert!(
         out.status.success(),
-        "voxmap {args:?} failed: {}\n{}",
+        "{cmd:?} failed: {}\n{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );

@@ -17,7 +17,7 @@ use voxmap_client::SnapshotSubscriber;
 use voxmap_core::io::mapfile;
 use voxmap_core::snapshot::SnapshotView;
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
-use voxmap_tests::{room_scan, tmpdir, unique_prefix, Service};
+use voxmap_tests::{room_scan, run_ok, tmpdir, unique_prefix, Service};
 
 const REPO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
 
@@ -66,23 +66,12 @@ fn c_prefix() -> Option<PathBuf> {
 
 /// A Python that imports `voxmap` and `pytest`, or `None` (with a notice).
 fn python_api() -> Option<PathBuf> {
-    let py =
-        std::env::var_os("VOXMAP_PYTHON").map_or_else(|| PathBuf::from("python3"), PathBuf::from);
-    let has = Command::new(&py)
-        .args(["-c", "import voxmap, pytest, numpy"])
-        .stderr(std::process::Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if !has {
-        assert!(
-            !required(),
-            "{} cannot import voxmap, pytest and numpy (pip install ./python pytest)",
-            py.display()
-        );
-        eprintln!("NOTICE: no Python with voxmap and pytest: skipping the Python tests");
-        return None;
-    }
-    Some(py)
+    voxmap_tests::python_with(
+        "voxmap, pytest, numpy",
+        "VOXMAP_REQUIRE_FOREIGN",
+        "pip install ./python pytest",
+        "the Python API tests",
+    )
 }
 
 /// Configure and build the CMake project `src` against the package in `prefix`.
@@ -106,18 +95,6 @@ fn cmake_build(src: &str, prefix: &Path, build: &Path) {
         "-DCMAKE_BUILD_TYPE=Release",
     ]);
     run(&["--build", &build, "-j", "2"]);
-}
-
-/// Run a program, which must succeed; its standard output.
-fn run_ok(cmd: &mut Command) -> String {
-    let out = cmd.output().expect("spawn");
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
 /// A small deterministic generator for the queries.
