@@ -121,7 +121,8 @@ struct Coord {
 }
 
 /// Read the points of `cloud`. The cloud is validated before any point is read.
-pub fn points(cloud: &PointCloud2<'_>) -> Result<CloudPoints, CloudError> {
+pub fn points(cloud: &PointCloud2<impl AsRef<[u8]>>) -> Result<CloudPoints, CloudError> {
+    let data = cloud.data.as_ref();
     let mut coords = [Coord {
         offset: 0,
         f64: false,
@@ -161,10 +162,10 @@ pub fn points(cloud: &PointCloud2<'_>) -> Result<CloudPoints, CloudError> {
         });
     }
     let expected = h * u64::from(cloud.row_step);
-    if expected != cloud.data.len() as u64 {
+    if expected != data.len() as u64 {
         return Err(CloudError::DataSize {
             expected,
-            actual: cloud.data.len(),
+            actual: data.len(),
         });
     }
     let mut out = CloudPoints {
@@ -202,14 +203,18 @@ pub fn points(cloud: &PointCloud2<'_>) -> Result<CloudPoints, CloudError> {
 /// Every point of every row through `read` (given the point's `point_step` bytes),
 /// keeping the finite ones. The caller checked that all rows and points are in `data`.
 #[inline(always)]
-fn read_rows(cloud: &PointCloud2<'_>, out: &mut CloudPoints, read: impl Fn(&[u8]) -> [f32; 3]) {
+fn read_rows(
+    cloud: &PointCloud2<impl AsRef<[u8]>>,
+    out: &mut CloudPoints,
+    read: impl Fn(&[u8]) -> [f32; 3],
+) {
     let (row_step, step) = (cloud.row_step as usize, cloud.point_step as usize);
     let row_len = cloud.width as usize * step;
     if row_step == 0 || step == 0 {
         // Zero-sized points or rows (width or height 0, or point_step 0 with width 0).
         return;
     }
-    for row in cloud.data.chunks_exact(row_step) {
+    for row in cloud.data.as_ref().chunks_exact(row_step) {
         for p in row[..row_len].chunks_exact(step) {
             let v = read(p);
             if v[0].is_finite() && v[1].is_finite() && v[2].is_finite() {
@@ -258,7 +263,7 @@ mod tests {
         w: u32,
         h: u32,
         data: &'a [u8],
-    ) -> PointCloud2<'a> {
+    ) -> PointCloud2<&'a [u8]> {
         PointCloud2 {
             header: Header {
                 stamp: Time { sec: 0, nanosec: 0 },
@@ -442,7 +447,7 @@ mod cdr_tests {
     fn a_serialized_cloud_decodes_to_its_points() {
         let pts = [[1.0, 2.0, 3.0], [-4.0, 5.5, 0.25]];
         let bytes = serialized(&pts);
-        let c: msg::PointCloud2 = msg::decode(&bytes).unwrap();
+        let c: msg::PointCloud2<&[u8]> = msg::decode(&bytes).unwrap();
         assert_eq!(
             (c.header.stamp.ns(), c.header.frame_id.as_str()),
             (7_000_000_009, "lidar")
@@ -464,7 +469,7 @@ mod cdr_tests {
                 bytes[k] = v;
             }
             bytes.truncate(cut % (bytes.len() + 1));
-            if let Ok(c) = msg::decode::<msg::PointCloud2>(&bytes) {
+            if let Ok(c) = msg::decode::<msg::PointCloud2<&[u8]>>(&bytes) {
                 if let Ok(r) = points(&c) {
                     prop_assert!(r.points.len() as u64 + r.non_finite <= u64::from(c.width) * u64::from(c.height));
                 }

@@ -5,7 +5,7 @@
 //! Field order and types follow the `.msg` definitions of `sensor_msgs`, `std_msgs`,
 //! `geometry_msgs`, `nav_msgs` and `tf2_msgs` (unchanged from Humble to Kilted).
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// ROS 2 type names of the messages below, as bags and DDS discovery spell them.
 pub mod types {
@@ -16,7 +16,7 @@ pub mod types {
 }
 
 /// `builtin_interfaces/msg/Time`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
 pub struct Time {
     pub sec: i32,
     pub nanosec: u32,
@@ -30,14 +30,14 @@ impl Time {
 }
 
 /// `std_msgs/msg/Header`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 pub struct Header {
     pub stamp: Time,
     pub frame_id: String,
 }
 
 /// `sensor_msgs/msg/PointField`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 pub struct PointField {
     pub name: String,
     pub offset: u32,
@@ -45,9 +45,11 @@ pub struct PointField {
     pub count: u32,
 }
 
-/// `sensor_msgs/msg/PointCloud2`, its `data` borrowed from the serialized message.
-#[derive(Debug, Clone, Deserialize)]
-pub struct PointCloud2<'a> {
+/// `sensor_msgs/msg/PointCloud2` with its `data` as `D`: borrowed from the serialized
+/// message (`&[u8]`, as bags decode it), received whole ([`serde_bytes::ByteBuf`], one
+/// copy, as DDS hands it over) or kept (`Vec<u8>`, a cloud waiting for its transform).
+#[derive(Debug, Clone, Deserialize, Serialize)]
+pub struct PointCloud2<D> {
     pub header: Header,
     pub height: u32,
     pub width: u32,
@@ -55,13 +57,29 @@ pub struct PointCloud2<'a> {
     pub is_bigendian: bool,
     pub point_step: u32,
     pub row_step: u32,
-    #[serde(borrow)]
-    pub data: &'a [u8],
+    pub data: D,
     pub is_dense: bool,
 }
 
+impl<D> PointCloud2<D> {
+    /// The same cloud with its data in another container.
+    pub fn map_data<E>(self, f: impl FnOnce(D) -> E) -> PointCloud2<E> {
+        PointCloud2 {
+            header: self.header,
+            height: self.height,
+            width: self.width,
+            fields: self.fields,
+            is_bigendian: self.is_bigendian,
+            point_step: self.point_step,
+            row_step: self.row_step,
+            data: f(self.data),
+            is_dense: self.is_dense,
+        }
+    }
+}
+
 /// `geometry_msgs/msg/Vector3` and `Point` (same layout).
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
 pub struct Vector3 {
     pub x: f64,
     pub y: f64,
@@ -69,7 +87,7 @@ pub struct Vector3 {
 }
 
 /// `geometry_msgs/msg/Quaternion`.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
 pub struct Quaternion {
     pub x: f64,
     pub y: f64,
@@ -78,14 +96,14 @@ pub struct Quaternion {
 }
 
 /// `geometry_msgs/msg/Transform`, and `Pose` (a `Point` and a `Quaternion`: same layout).
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
 pub struct Transform {
     pub translation: Vector3,
     pub rotation: Quaternion,
 }
 
 /// `geometry_msgs/msg/TransformStamped`: the pose of `child_frame_id` in `header.frame_id`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 pub struct TransformStamped {
     pub header: Header,
     pub child_frame_id: String,
@@ -93,7 +111,7 @@ pub struct TransformStamped {
 }
 
 /// `tf2_msgs/msg/TFMessage`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 pub struct TfMessage {
     pub transforms: Vec<TransformStamped>,
 }
@@ -128,6 +146,42 @@ pub struct Odometry {
     pub child_frame_id: String,
     pub pose: PoseWithCovariance,
     pub twist: TwistWithCovariance,
+}
+
+/// `octomap_msgs/msg/Octomap`: `data` is what OctoMap's `writeBinaryData` (binary maps)
+/// writes, as `octomap_msgs::binaryMapToMsg` fills it.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+pub struct Octomap {
+    pub header: Header,
+    pub binary: bool,
+    pub id: String,
+    pub resolution: f64,
+    pub data: serde_bytes::ByteBuf,
+}
+
+/// `geometry_msgs/msg/Pose` (same layout as [`Transform`]).
+pub type Pose = Transform;
+
+/// `nav_msgs/msg/MapMetaData`.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
+pub struct MapMetaData {
+    pub map_load_time: Time,
+    /// Metres per cell (float32 in the message).
+    pub resolution: f32,
+    pub width: u32,
+    pub height: u32,
+    /// The pose of cell (0, 0)'s corner in the header's frame.
+    pub origin: Pose,
+}
+
+/// `nav_msgs/msg/OccupancyGrid`: row-major from the origin, x fastest; 0 free, 100
+/// occupied, -1 unknown.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+pub struct OccupancyGrid {
+    pub header: Header,
+    pub info: MapMetaData,
+    /// int8 cells; written as bytes (`-1` is `0xff`).
+    pub data: serde_bytes::ByteBuf,
 }
 
 /// A serialized message that is not a valid message of its type.

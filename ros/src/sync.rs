@@ -126,9 +126,7 @@ struct Pending {
     topic: String,
     index: u64,
     log_time_ns: u64,
-    stamp: Time,
-    frame_id: String,
-    data: Vec<u8>,
+    cloud: PointCloud2<Vec<u8>>,
 }
 
 /// Most clouds waiting at once; beyond, the oldest is resolved with what the buffer has.
@@ -163,23 +161,37 @@ impl CloudSync {
         &self.tf
     }
 
-    fn advance(&mut self, log_time_ns: u64) {
-        self.now_ns = self.now_ns.max(log_time_ns);
+    /// Move the clock on to `now_ns` (it never goes back): live input calls this before
+    /// [`ready`](Self::ready), so that clouds time out while no message arrives.
+    pub fn advance(&mut self, now_ns: u64) {
+        self.now_ns = self.now_ns.max(now_ns);
     }
 
-    /// A `tf2_msgs/msg/TFMessage` from `/tf` (`is_static` false) or `/tf_static`. Returns
-    /// the transforms it could not take (the others went in).
+    /// A serialized `tf2_msgs/msg/TFMessage` from `/tf` (`is_static` false) or
+    /// `/tf_static`. Returns the transforms it could not take (the others went in).
     pub fn tf_message(
         &mut self,
         log_time_ns: u64,
         data: &[u8],
         is_static: bool,
     ) -> Vec<TfRejected> {
+        match msg::decode(data) {
+            Ok(m) => self.tf_transforms(log_time_ns, &m, is_static),
+            Err(e) => {
+                self.advance(log_time_ns);
+                vec![TfRejected::Decode(e)]
+            }
+        }
+    }
+
+    /// A decoded `TFMessage`, as [`tf_message`](Self::tf_message).
+    pub fn tf_transforms(
+        &mut self,
+        log_time_ns: u64,
+        m: &TfMessage,
+        is_static: bool,
+    ) -> Vec<TfRejected> {
         self.advance(log_time_ns);
-        let m: TfMessage = match msg::decode(data) {
-            Ok(m) => m,
-            Err(e) => return vec![TfRejected::Decode(e)],
-        };
         let mut bad = Vec::new();
         for t in &m.transforms {
             if !is_static && self.pose_child.as_deref() == Some(t.child_frame_id.as_str()) {
@@ -231,9 +243,9 @@ impl CloudSync {
             .map_err(TfRejected::Insert)
     }
 
-    /// A cloud message: posed at once if its transform is there and no older cloud
-    /// waits, else queued (a copy) until it is. A message that is not a PointCloud2 is
-    /// dropped at once.
+    /// A serialized cloud message: posed at once if its transform is there and no older
+    /// cloud waits, else queued (a copy) until it is. A message that is not a PointCloud2
+    /// is dropped at once.
     pub fn cloud(
         &mut self,
         topic: &str,
@@ -241,35 +253,52 @@ impl CloudSync {
         log_time_ns: u64,
         data: &[u8],
     ) -> Result<(), Dropped> {
+        match msg::decode::<PointCloud2<&[u8]>>(data) {
+            Ok(c) => {
+                self.decoded_cloud(topic, index, log_time_ns, c);
+                Ok(())
+            }
+            Err(e) => {
+                self.advance(log_time_ns);
+                Err(Dropped {
+                    topic: topic.into(),
+                    index,
+                    reason: DropReason::Decode(e),
+                })
+            }
+        }
+    }
+
+    /// A decoded cloud, as [`cloud`](Self::cloud); its data is kept (`Vec<u8>` without a
+    /// copy, `&[u8]` copied) only if it has to wait.
+    pub fn decoded_cloud<D: AsRef<[u8]> + Into<Vec<u8>>>(
+        &mut self,
+        topic: &str,
+        index: u64,
+        log_time_ns: u64,
+        c: PointCloud2<D>,
+    ) {
         self.advance(log_time_ns);
-        let c: PointCloud2 = msg::decode(data).map_err(|e| Dropped {
-            topic: topic.into(),
-            index,
-            reason: DropReason::Decode(e),
-        })?;
         if self.pending.is_empty() {
             let map = &self.config.map_frame;
             if let Ok(pose) = self.tf.lookup(map, &c.header.frame_id, c.header.stamp) {
                 self.done.push(posed(topic.into(), index, c, pose));
-                return Ok(());
+                return;
             }
         }
         self.pending.push_back(Pending {
             topic: topic.into(),
             index,
             log_time_ns,
-            stamp: c.header.stamp,
-            frame_id: c.header.frame_id,
-            data: data.to_vec(),
+            cloud: c.map_data(Into::into),
         });
-        Ok(())
     }
 
     /// Clouds whose wait is over, in order: each posed, or dropped with the reason.
     pub fn ready(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
         let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.front() {
-            let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
+            let lookup = self.tf.lookup(&self.config.map_frame, &p.cloud.header.frame_id, p.cloud.header.stamp);
             let waited = self.now_ns.saturating_sub(p.log_time_ns) as i64 > self.config.wait_ns;
             if lookup.is_err() && !waited && self.pending.len() <= MAX_PENDING {
                 break;
@@ -285,7 +314,7 @@ impl CloudSync {
     pub fn finish(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
         let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.pop_front() {
-            let lookup = self.tf.lookup(&self.config.map_frame, &p.frame_id, p.stamp);
+            let lookup = self.tf.lookup(&self.config.map_frame, &p.cloud.header.frame_id, p.cloud.header.stamp);
             out.push(resolve(p, lookup));
         }
         out
@@ -299,15 +328,14 @@ fn resolve(p: Pending, lookup: Result<Isometry3<f64>, LookupError>) -> Result<Po
         reason,
     };
     let pose = lookup.map_err(|e| drop(DropReason::Transform(e)))?;
-    let c: PointCloud2 = msg::decode(&p.data).map_err(|e| drop(DropReason::Decode(e)))?;
-    posed(p.topic, p.index, c, pose)
+    posed(p.topic, p.index, p.cloud, pose)
 }
 
 /// Cloud `index` of `topic`, decoded as `c`, read into points at `pose`.
 fn posed(
     topic: String,
     index: u64,
-    c: PointCloud2<'_>,
+    c: PointCloud2<impl AsRef<[u8]>>,
     pose: Isometry3<f64>,
 ) -> Result<PosedCloud, Dropped> {
     match cloud::points(&c) {

@@ -182,6 +182,21 @@ pub fn encode_bt(
     leaves: impl IntoIterator<Item = LeafOccupancy>,
     resolution: f64,
 ) -> Result<Vec<u8>, BtError> {
+    let (nodes, data) = encode_bt_data(leaves)?;
+    let mut file = format!(
+        "{HEADER_LINE}\n# (written by voxmap)\n#\nid OcTree\nsize {nodes}\nres {resolution}\ndata\n"
+    )
+    .into_bytes();
+    file.extend_from_slice(&data);
+    Ok(file)
+}
+
+/// The tree data of a `.bt` file without its text header, and its node count: what
+/// OctoMap's `OcTree::writeBinaryData` writes, and what an `octomap_msgs/msg/Octomap`
+/// message carries.
+pub fn encode_bt_data(
+    leaves: impl IntoIterator<Item = LeafOccupancy>,
+) -> Result<(u64, Vec<u8>), BtError> {
     let mut keyed = Vec::new();
     for l in leaves {
         if !l.known.is_empty() {
@@ -202,13 +217,7 @@ pub fn encode_bt(
         w.nodes = 1;
         w.node(0, &keyed);
     }
-    let mut file = format!(
-        "{HEADER_LINE}\n# (written by voxmap)\n#\nid OcTree\nsize {}\nres {}\ndata\n",
-        w.nodes, resolution
-    )
-    .into_bytes();
-    file.extend_from_slice(&w.out);
-    Ok(file)
+    Ok((w.nodes, w.out))
 }
 
 /// What a `.bt` file holds, voxels counted at full depth (a pruned leaf at depth `d`
