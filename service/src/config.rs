@@ -66,6 +66,8 @@ pub struct Config {
     pub queue_depth: usize,
     /// SCHED_FIFO priority of the service's frame/snapshot thread (0 = normal scheduling).
     pub rt_priority: i32,
+    /// Live ROS 2 (`voxmap serve --ros2`).
+    pub ros2: voxmap_ros2::Ros2Config,
 }
 
 /// Flags that override the configuration, for `serve` and `replay` alike.
@@ -177,6 +179,9 @@ impl Config {
         }
         if !(0..=99).contains(&self.rt_priority) {
             bail!("rt_priority must be 0..=99");
+        }
+        if let Err(e) = self.ros2.check() {
+            bail!("{e}");
         }
         if !(0.0..=3.6e6).contains(&self.snapshot_interval_ms) {
             bail!("snapshot_interval_ms must be in [0, 3.6e6] (an hour)");

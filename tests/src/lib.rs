@@ -201,6 +201,27 @@ pub fn tum_frames(step: usize) -> Vec<TumFrame> {
         .collect()
 }
 
+/// The TUM frames (every `step`-th pixel) in `dir/frames`: KITTI `.bin` scans named by
+/// stamp (float32 x y z intensity) and `poses.txt` in TUM's format, for `make_bags.py tum`
+/// and for replay with the poses given directly.
+pub fn write_tum_frames(dir: &std::path::Path, step: usize) -> PathBuf {
+    let frames_dir = dir.join("frames");
+    std::fs::create_dir_all(&frames_dir).unwrap();
+    let mut poses = String::new();
+    for f in tum_frames(step) {
+        let bin: Vec<u8> = f
+            .points
+            .iter()
+            .flat_map(|p| [p[0], p[1], p[2], 0.0])
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        std::fs::write(frames_dir.join(format!("{}.bin", f.stamp)), bin).unwrap();
+        poses.push_str(&format!("{} {}\n", f.stamp, f.pose));
+    }
+    std::fs::write(frames_dir.join("poses.txt"), &poses).unwrap();
+    frames_dir
+}
+
 /// A Python with the `rosbags` package: `$VOXMAP_PYTHON`, else `python3` if it has it.
 /// `None` (with a notice) when there is none, unless VOXMAP_REQUIRE_ROSBAGS is set, as CI
 /// does, which makes that a failure.
@@ -234,6 +255,49 @@ pub fn python_with(modules: &str, require: &str, install: &str, skipping: &str) 
     );
     eprintln!("NOTICE: no Python with {modules}; skipping {skipping}");
     None
+}
+
+/// Run one of OctoMap's programs; `None` when octomap-tools is not installed (CI installs
+/// it and sets VOXMAP_REQUIRE_OCTOMAP=1, which turns absence into a failure).
+pub fn octomap_tool(args: &[&str]) -> Option<String> {
+    match Command::new(args[0]).args(&args[1..]).output() {
+        Ok(o) => {
+            assert!(
+                o.status.success(),
+                "{args:?}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            Some(format!(
+                "{}{}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            ))
+        }
+        Err(e) => {
+            assert!(
+                std::env::var_os("VOXMAP_REQUIRE_OCTOMAP").is_none(),
+                "{}: {e} (install Debian's octomap-tools)",
+                args[0]
+            );
+            eprintln!("octomap-tools not installed; skipping the OctoMap read-back");
+            None
+        }
+    }
+}
+
+/// The integer after `key` in `text`.
+pub fn number_after(text: &str, key: &str) -> u64 {
+    let at = text
+        .find(key)
+        .unwrap_or_else(|| panic!("'{key}' not in:\n{text}"))
+        + key.len();
+    text[at..]
+        .trim_start()
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
 }
 
 /// A fresh directory under the system's temp dir, unique to this test and process.

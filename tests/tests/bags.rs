@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use voxmap_core::io::mapfile;
 use voxmap_tests::{
-    ok, python_with_rosbags, tmpdir, tum_frames, unique_prefix, voxels, voxmap, Service,
+    ok, python_with_rosbags, tmpdir, unique_prefix, voxels, voxmap, write_tum_frames, Service,
 };
 
 fn make_bags(py: &Path, args: &[&str]) {
@@ -21,27 +21,6 @@ fn make_bags(py: &Path, args: &[&str]) {
         "make_bags.py {args:?}: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-}
-
-/// The TUM frames (every `step`-th pixel) in `dir/frames`: KITTI `.bin` scans named by
-/// stamp (float32 x y z intensity) and `poses.txt` in TUM's format, for `make_bags.py tum`
-/// and for replay with the poses given directly.
-fn write_tum_frames(dir: &Path, step: usize) -> PathBuf {
-    let frames_dir = dir.join("frames");
-    std::fs::create_dir_all(&frames_dir).unwrap();
-    let mut poses = String::new();
-    for f in tum_frames(step) {
-        let bin: Vec<u8> = f
-            .points
-            .iter()
-            .flat_map(|p| [p[0], p[1], p[2], 0.0])
-            .flat_map(f32::to_le_bytes)
-            .collect();
-        std::fs::write(frames_dir.join(format!("{}.bin", f.stamp)), bin).unwrap();
-        poses.push_str(&format!("{} {}\n", f.stamp, f.pose));
-    }
-    std::fs::write(frames_dir.join("poses.txt"), &poses).unwrap();
-    frames_dir
 }
 
 const MAPPING: [&str; 6] = ["--resolution", "0.05", "--max-range", "8", "--threads", "2"];

@@ -6,7 +6,10 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::path::Path;
 use std::process::Command;
 use voxmap_core::io::{mapfile, octomap, pcd, ply};
-use voxmap_tests::{ok, room_scan, tmpdir, unique_prefix, voxels, voxmap, voxmap_bin, Service};
+use voxmap_tests::{
+    number_after, octomap_tool, ok, room_scan, tmpdir, unique_prefix, voxels, voxmap, voxmap_bin,
+    Service,
+};
 
 const ROOM: [f64; 3] = [3.0, 2.0, 1.5];
 
@@ -208,47 +211,6 @@ fn kitti_bin_and_ply_scans_with_pose_files_match_pcd() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Run one of OctoMap's programs; `None` when octomap-tools is not installed (CI installs
-/// it and sets VOXMAP_REQUIRE_OCTOMAP=1, which turns absence into a failure).
-fn octomap_tool(args: &[&str]) -> Option<String> {
-    match Command::new(args[0]).args(&args[1..]).output() {
-        Ok(o) => {
-            assert!(
-                o.status.success(),
-                "{args:?}: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-            Some(format!(
-                "{}{}",
-                String::from_utf8_lossy(&o.stdout),
-                String::from_utf8_lossy(&o.stderr)
-            ))
-        }
-        Err(e) => {
-            assert!(
-                std::env::var_os("VOXMAP_REQUIRE_OCTOMAP").is_none(),
-                "{}: {e} (install Debian's octomap-tools)",
-                args[0]
-            );
-            eprintln!("octomap-tools not installed; skipping the OctoMap read-back");
-            None
-        }
-    }
-}
-
-fn number_after(text: &str, key: &str) -> u64 {
-    let at = text
-        .find(key)
-        .unwrap_or_else(|| panic!("'{key}' not in:\n{text}"))
-        + key.len();
-    text[at..]
-        .trim_start()
-        .split(|c: char| !c.is_ascii_digit())
-        .next()
-        .unwrap()
-        .parse()
-        .unwrap()
-}
 
 #[test]
 fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {

@@ -56,6 +56,16 @@ pub struct ServeArgs {
     /// Exit after this many seconds (for demos and tests); 0 = run until a signal.
     #[arg(long, default_value_t = 0.0)]
     pub exit_after: f64,
+    /// Also speak ROS 2 over DDS: clouds and TF in, the map out (see `[ros2]` in the config).
+    #[arg(long)]
+    pub ros2: bool,
+    /// A PointCloud2 topic to map, `TOPIC` or `TOPIC@MAX_RANGE`; repeatable; replaces the
+    /// config's `ros2.cloud_topics`.
+    #[arg(long = "ros2-cloud-topic", value_name = "TOPIC")]
+    pub ros2_cloud_topics: Vec<voxmap_ros2::CloudTopic>,
+    /// The frame the map is built in (default `map`).
+    #[arg(long)]
+    pub ros2_map_frame: Option<String>,
 }
 
 impl ServeArgs {
@@ -80,6 +90,12 @@ impl ServeArgs {
         }
         if let Some(v) = self.rt_priority {
             c.rt_priority = v;
+        }
+        if !self.ros2_cloud_topics.is_empty() {
+            c.ros2.cloud_topics = self.ros2_cloud_topics.clone();
+        }
+        if let Some(f) = &self.ros2_map_frame {
+            c.ros2.map_frame = f.clone();
         }
         c.check()?;
         Ok(c)
@@ -170,6 +186,15 @@ pub fn run(a: ServeArgs) -> Result<()> {
     }
     out.publish(&mut s);
     log_start(&cfg, &names, &s);
+    let bridge = match a.ros2 {
+        false => None,
+        true => Some(voxmap_ros2::Bridge::start(
+            cfg.ros2.clone(),
+            voxmap_ros2::discovery::Discovery::from_env()?,
+            &cfg.prefix,
+            &cfg.map,
+        )?),
+    };
 
     let waitset = WaitSetBuilder::new()
         .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
@@ -232,11 +257,21 @@ pub fn run(a: ServeArgs) -> Result<()> {
         if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
             eprintln!("voxmap serve: {}", s.stats.log_line(&s.map));
+            if let Some(b) = &bridge {
+                eprintln!("voxmap serve: {}", b.counters.line());
+            }
+        }
+        if bridge.as_ref().is_some_and(|b| b.has_ended()) {
+            break;
         }
         if a.exit_after > 0.0 && started.elapsed().as_secs_f64() >= a.exit_after {
             break;
         }
     }
+    let bridge_end = bridge.map(|b| {
+        let line = b.counters.line();
+        (b.stop(), line)
+    });
     control.finish(&mut s);
     out.publish(&mut s);
     if let Some(p) = &a.save_on_exit {
@@ -244,6 +279,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
     eprintln!("voxmap serve: exiting; {}", s.stats.log_line(&s.map));
+    if let Some((end, line)) = bridge_end {
+        eprintln!("voxmap serve: exiting; {line}");
+        end.context("the ROS 2 bridge failed")?;
+    }
     Ok(())
 }
 
