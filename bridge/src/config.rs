@@ -46,7 +46,10 @@ impl CloudTopic {
         }
         if let Some(r) = self.max_range {
             if !(r.is_finite() && r > 0.0) {
-                return Err(format!("cloud topic '{}': max_range must be > 0", self.topic));
+                return Err(format!(
+                    "cloud topic '{}': max_range must be > 0",
+                    self.topic
+                ));
             }
         }
         Ok(())
@@ -118,7 +121,10 @@ impl Ros2Config {
             return Err("ros2.grid_z_min must be <= ros2.grid_z_max, both finite".into());
         }
         if ros2_client::NodeName::new("/", &self.node_name).is_err() {
-            return Err(format!("ros2.node_name '{}' is not a ROS 2 node name", self.node_name));
+            return Err(format!(
+                "ros2.node_name '{}' is not a ROS 2 node name",
+                self.node_name
+            ));
         }
         Ok(())
     }
@@ -133,7 +139,10 @@ mod tests {
         let t: CloudTopic = "/lidar/points".parse().unwrap();
         assert_eq!((t.topic.as_str(), t.max_range), ("/lidar/points", None));
         let t: CloudTopic = "/camera/depth/points@4.5".parse().unwrap();
-        assert_eq!((t.topic.as_str(), t.max_range), ("/camera/depth/points", Some(4.5)));
+        assert_eq!(
+            (t.topic.as_str(), t.max_range),
+            ("/camera/depth/points", Some(4.5))
+        );
         for bad in ["points", "/a@x", "/a@-1", "/", "/a/"] {
             assert!(bad.parse::<CloudTopic>().is_err(), "{bad}");
         }

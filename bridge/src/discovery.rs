@@ -39,7 +39,11 @@ pub struct BadVariable {
 
 impl std::fmt::Display for BadVariable {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}='{}': expected {}", self.name, self.value, self.expected)
+        write!(
+            f,
+            "{}='{}': expected {}",
+            self.name, self.value, self.expected
+        )
     }
 }
 
@@ -56,7 +60,11 @@ impl Discovery {
 
     /// From variables looked up by `var` (an unset or empty variable is its default).
     pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<Self, BadVariable> {
-        let get = |k: &str| var(k).map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
+        let get = |k: &str| {
+            var(k)
+                .map(|v| v.trim().to_string())
+                .filter(|v| !v.is_empty())
+        };
         let domain_id = match get("ROS_DOMAIN_ID") {
             None => 0,
             Some(v) => v
@@ -113,9 +121,16 @@ impl Discovery {
             Range::Subnet => b,
             // Multicast and advertised locators on loopback only; same-host unicast
             // discovery (on by default) finds the peers.
-            Range::Localhost | Range::Off => b.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]),
+            Range::Localhost | Range::Off => {
+                b.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)])
+            }
         };
-        b.build().map_err(|e| format!("creating the DDS participant (domain {}): {e}", self.domain_id))
+        b.build().map_err(|e| {
+            format!(
+                "creating the DDS participant (domain {}): {e}",
+                self.domain_id
+            )
+        })
     }
 
     /// One line for the service's start-up log.
@@ -156,15 +171,20 @@ mod tests {
     use std::collections::HashMap;
 
     fn from(vars: &[(&str, &str)]) -> Result<Discovery, BadVariable> {
-        let m: HashMap<String, String> =
-            vars.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        let m: HashMap<String, String> = vars
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
         Discovery::from_vars(|k| m.get(k).cloned())
     }
 
     #[test]
     fn unset_variables_are_ros_defaults() {
         let d = from(&[]).unwrap();
-        assert_eq!((d.domain_id, d.range, d.static_peers.len()), (0, Range::Subnet, 0));
+        assert_eq!(
+            (d.domain_id, d.range, d.static_peers.len()),
+            (0, Range::Subnet, 0)
+        );
     }
 
     #[test]
@@ -179,7 +199,12 @@ mod tests {
         assert_eq!(d.range, Range::Localhost);
         assert_eq!(d.static_peers, ["127.0.0.1", "localhost", "192.0.2.7"]);
         assert_eq!(d.remote_static_peers(), ["192.0.2.7"]);
-        assert_eq!(from(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")]).unwrap().range, Range::Off);
+        assert_eq!(
+            from(&[("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")])
+                .unwrap()
+                .range,
+            Range::Off
+        );
     }
 
     #[test]

@@ -16,5 +16,5 @@ pub mod discovery;
 pub mod interfaces;
 pub mod outputs;
 
-pub use bridge::{Bridge, BridgeCounters};
+pub use bridge::{Bridge, BridgeCounters, MapTopicsReader};
 pub use config::{CloudTopic, Ros2Config, ServiceMappingName};

@@ -206,7 +206,10 @@ mod tests {
         let (map, buf) = snapshot();
         let view = SnapshotView::open(&buf).unwrap();
         let c = occupied_cloud(&view, "map");
-        assert_eq!((c.header.stamp.sec, c.header.stamp.nanosec), (1_700_000_000, 250_000_000));
+        assert_eq!(
+            (c.header.stamp.sec, c.header.stamp.nanosec),
+            (1_700_000_000, 250_000_000)
+        );
         let pts = voxmap_ros::cloud::points(&c).unwrap().points;
         let mut want: Vec<[f32; 3]> = view
             .occupied_centers()

@@ -298,7 +298,11 @@ impl CloudSync {
     pub fn ready(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
         let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.front() {
-            let lookup = self.tf.lookup(&self.config.map_frame, &p.cloud.header.frame_id, p.cloud.header.stamp);
+            let lookup = self.tf.lookup(
+                &self.config.map_frame,
+                &p.cloud.header.frame_id,
+                p.cloud.header.stamp,
+            );
             let waited = self.now_ns.saturating_sub(p.log_time_ns) as i64 > self.config.wait_ns;
             if lookup.is_err() && !waited && self.pending.len() <= MAX_PENDING {
                 break;
@@ -314,7 +318,11 @@ impl CloudSync {
     pub fn finish(&mut self) -> Vec<Result<PosedCloud, Dropped>> {
         let mut out = std::mem::take(&mut self.done);
         while let Some(p) = self.pending.pop_front() {
-            let lookup = self.tf.lookup(&self.config.map_frame, &p.cloud.header.frame_id, p.cloud.header.stamp);
+            let lookup = self.tf.lookup(
+                &self.config.map_frame,
+                &p.cloud.header.frame_id,
+                p.cloud.header.stamp,
+            );
             out.push(resolve(p, lookup));
         }
         out

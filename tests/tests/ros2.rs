@@ -77,7 +77,12 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     ok(&args);
     let off_map = mapfile::load_map(&offline).unwrap();
     let off_bt = dir.join("offline.bt");
-    ok(&["export", offline.to_str().unwrap(), "--bt", off_bt.to_str().unwrap()]);
+    ok(&[
+        "export",
+        offline.to_str().unwrap(),
+        "--bt",
+        off_bt.to_str().unwrap(),
+    ]);
     let off_snapshot = mapfile::read_as_snapshot(&offline).unwrap();
     let off_view = SnapshotView::open(&off_snapshot).unwrap();
     let off_occupied: BTreeSet<[i64; 3]> = off_view
@@ -89,11 +94,19 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     // Rays for the raytrace service: from the first camera position towards a few occupied
     // voxels, and straight up; the answers must be the offline snapshot's.
     let poses = std::fs::read_to_string(frames.join("poses.txt")).unwrap();
-    let w: Vec<f64> = poses.split_whitespace().skip(1).take(3).map(|v| v.parse().unwrap()).collect();
+    let w: Vec<f64> = poses
+        .split_whitespace()
+        .skip(1)
+        .take(3)
+        .map(|v| v.parse().unwrap())
+        .collect();
     let origin = voxmap_core::WorldPoint::new(w[0], w[1], w[2]);
     let mut rays = Vec::new();
     for p in off_view.occupied_centers().step_by(997).take(4) {
-        rays.push(([origin.x, origin.y, origin.z], [p.x - origin.x, p.y - origin.y, p.z - origin.z]));
+        rays.push((
+            [origin.x, origin.y, origin.z],
+            [p.x - origin.x, p.y - origin.y, p.z - origin.z],
+        ));
     }
     rays.push(([origin.x, origin.y, origin.z], [0.0, 0.0, 1.0]));
     let expected_rays: Vec<(bool, [f64; 3])> = rays
@@ -135,8 +148,20 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     let prefix = unique_prefix("ros2");
     let mut serve = Command::new(voxmap_bin());
     serve
-        .args(["serve", "--prefix", &prefix, "--ros2", "--config", cfg.to_str().unwrap()])
-        .args(["--ros2-cloud-topic", "/camera/depth/points", "--intake", "queue"])
+        .args([
+            "serve",
+            "--prefix",
+            &prefix,
+            "--ros2",
+            "--config",
+            cfg.to_str().unwrap(),
+        ])
+        .args([
+            "--ros2-cloud-topic",
+            "/camera/depth/points",
+            "--intake",
+            "queue",
+        ])
         .args(["--exit-after", "300"])
         .args(MAPPING)
         .envs(env)
@@ -183,7 +208,10 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     assert_eq!(n, std::fs::read_dir(&frames).unwrap().count() as u64 - 1);
 
     // Every cloud integrated; the one with no transform and the malformed one counted.
-    let exit = log.lines().rfind(|l| l.contains("exiting; ros2:")).unwrap_or_else(|| panic!("{log}"));
+    let exit = log
+        .lines()
+        .rfind(|l| l.contains("exiting; ros2:"))
+        .unwrap_or_else(|| panic!("{log}"));
     assert_eq!(number_after(exit, "ros2:"), n + 2, "{exit}");
     assert_eq!(number_after(exit, "received,"), n, "{exit}");
     assert_eq!(number_after(exit, "integrated,"), 1, "{exit}");
@@ -200,22 +228,47 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     let bt = std::fs::read(&off_bt).unwrap();
     let data = std::fs::read(out.join("first_octomap.bin")).unwrap();
     assert!(bt.ends_with(&data) && !data.is_empty());
-    assert_eq!((first["octomap"]["id"].as_str(), first["octomap"]["binary"].as_bool()), (Some("OcTree"), Some(true)));
+    assert_eq!(
+        (
+            first["octomap"]["id"].as_str(),
+            first["octomap"]["binary"].as_bool()
+        ),
+        (Some("OcTree"), Some(true))
+    );
     assert_eq!(first["octomap"]["resolution"].as_f64(), Some(RES));
     let live_bt = dir.join("live.bt");
     let mut file = bt[..bt.len() - data.len()].to_vec();
     file.extend(&data);
     std::fs::write(&live_bt, &file).unwrap();
     let (off_ot, live_ot) = (dir.join("offline.ot"), dir.join("live.ot"));
-    if octomap_tool(&["convert_octree", off_bt.to_str().unwrap(), off_ot.to_str().unwrap()]).is_some() {
-        octomap_tool(&["convert_octree", live_bt.to_str().unwrap(), live_ot.to_str().unwrap()]).unwrap();
-        let cmp = octomap_tool(&["compare_octrees", off_ot.to_str().unwrap(), live_ot.to_str().unwrap()]).unwrap();
+    if octomap_tool(&[
+        "convert_octree",
+        off_bt.to_str().unwrap(),
+        off_ot.to_str().unwrap(),
+    ])
+    .is_some()
+    {
+        octomap_tool(&[
+            "convert_octree",
+            live_bt.to_str().unwrap(),
+            live_ot.to_str().unwrap(),
+        ])
+        .unwrap();
+        let cmp = octomap_tool(&[
+            "compare_octrees",
+            off_ot.to_str().unwrap(),
+            live_ot.to_str().unwrap(),
+        ])
+        .unwrap();
         let nodes = voxmap_core::io::octomap::read_bt(&bt).unwrap().nodes;
         assert_eq!(number_after(&cmp, "Done ("), nodes, "{cmp}");
     }
 
     // /voxmap/grid: occupied cells are the columns of occupied voxels centred in the z range.
-    let (gw, gh) = (first["grid"]["width"].as_u64().unwrap(), first["grid"]["height"].as_u64().unwrap());
+    let (gw, gh) = (
+        first["grid"]["width"].as_u64().unwrap(),
+        first["grid"]["height"].as_u64().unwrap(),
+    );
     let origin_xy = [
         first["grid"]["origin"][0].as_f64().unwrap(),
         first["grid"]["origin"][1].as_f64().unwrap(),
@@ -243,14 +296,32 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     // The services, called from the peer.
     assert_eq!(r["save"][0], true, "{}", r["save"]);
     let saved = mapfile::load_map(&out.join("saved.map")).unwrap();
-    assert_eq!(voxels(&saved), voxels(&off_map), "the live map is the offline map");
+    assert_eq!(
+        voxels(&saved),
+        voxels(&off_map),
+        "the live map is the offline map"
+    );
     assert_eq!(r["save_bad"][0], false);
-    assert!(r["save_bad"][1].as_str().unwrap().contains("nonexistent-dir"), "{}", r["save_bad"]);
+    assert!(
+        r["save_bad"][1]
+            .as_str()
+            .unwrap()
+            .contains("nonexistent-dir"),
+        "{}",
+        r["save_bad"]
+    );
     let got_rays = r["rays"].as_array().unwrap();
     for (g, (hit, end)) in got_rays.iter().zip(&expected_rays) {
-        assert_eq!((g[0].as_bool(), g[1].as_bool()), (Some(true), Some(*hit)), "{g}");
+        assert_eq!(
+            (g[0].as_bool(), g[1].as_bool()),
+            (Some(true), Some(*hit)),
+            "{g}"
+        );
         for k in 0..3 {
-            assert!((g[2][k].as_f64().unwrap() - end[k]).abs() < 1e-9, "{g} vs {end:?}");
+            assert!(
+                (g[2][k].as_f64().unwrap() - end[k]).abs() < 1e-9,
+                "{g} vs {end:?}"
+            );
         }
     }
     let bad_ray = got_rays.last().unwrap();
@@ -258,10 +329,16 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     assert_eq!(r["reset"][0], true);
     assert_eq!(r["after_reset_occupied"], 0);
     assert_eq!(r["load"][0], true, "{}", r["load"]);
-    assert_eq!(centres(&std::fs::read(out.join("loaded_occupied.bin")).unwrap()), off_occupied);
+    assert_eq!(
+        centres(&std::fs::read(out.join("loaded_occupied.bin")).unwrap()),
+        off_occupied
+    );
 
     // A peer that joined after everything still got the current map, latched.
-    assert_eq!(centres(&std::fs::read(out.join("late_occupied.bin")).unwrap()), off_occupied);
+    assert_eq!(
+        centres(&std::fs::read(out.join("late_occupied.bin")).unwrap()),
+        off_occupied
+    );
     assert_eq!(std::fs::read(out.join("late_octomap.bin")).unwrap(), data);
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -211,7 +211,6 @@ fn kitti_bin_and_ply_scans_with_pose_files_match_pcd() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-
 #[test]
 fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
     let dir = tmpdir("export");

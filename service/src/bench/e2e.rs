@@ -11,15 +11,31 @@ use voxmap_client::{MapControl, SnapshotSubscriber};
 /// scans at 0.1 m and 30 m max range. For normal and for real-time (SCHED_FIFO 10)
 /// scheduling of the service's I/O thread and the planner: latency at 10 Hz; then, at
 /// normal priority, the sustained rate with the sensor flat out, and the idle CPU.
-pub fn run(seconds: f64, pin_threads: bool) -> Result<()> {
+/// With `ros2`, instead: normal scheduling only, the service without and with `--ros2`
+/// (its map topics encoded and published every 500 ms), alternated twice.
+pub fn run(seconds: f64, pin_threads: bool, ros2: bool) -> Result<()> {
     println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads (pinned: {pin_threads}), sensor and planner as processes, {seconds} s per phase");
+    if ros2 {
+        for with in [false, true, false, true] {
+            println!(
+                "  service {}",
+                if with {
+                    "with --ros2"
+                } else {
+                    "without --ros2"
+                }
+            );
+            e2e_run(seconds, 0, pin_threads, with)?;
+        }
+        return Ok(());
+    }
     for rt in [0, 10] {
-        e2e_run(seconds, rt, pin_threads)?;
+        e2e_run(seconds, rt, pin_threads, false)?;
     }
     Ok(())
 }
 
-fn e2e_run(seconds: f64, rt: i32, pin_threads: bool) -> Result<()> {
+fn e2e_run(seconds: f64, rt: i32, pin_threads: bool, ros2: bool) -> Result<()> {
     let exe = std::env::current_exe()?;
     let prefix = format!("voxmap-e2e-{}-{rt}", std::process::id());
     let (secs, rts) = (seconds.to_string(), rt.to_string());
@@ -38,6 +54,9 @@ fn e2e_run(seconds: f64, rt: i32, pin_threads: bool) -> Result<()> {
             ])
             .args(["--threads", "2", "--rt-priority", &rts])
             .args(["--pin-threads", &pin_threads.to_string()])
+            .args(if ros2 { &["--ros2"][..] } else { &[] })
+            // Discovery kept to this host: the benchmark needs no peer.
+            .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()?,
@@ -74,6 +93,24 @@ fn e2e_run(seconds: f64, rt: i32, pin_threads: bool) -> Result<()> {
         }
         Ok(c.spawn()?)
     };
+    // With --ros2, a DDS reader of the map topics, as a remote RViz would be.
+    let reader = ros2.then(|| {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let s = stop.clone();
+        let t = std::thread::spawn(move || -> Result<(u64, u64)> {
+            let d = voxmap_ros2::discovery::Discovery::from_vars(|k| {
+                (k == "ROS_AUTOMATIC_DISCOVERY_RANGE").then(|| "LOCALHOST".to_string())
+            })
+            .map_err(|e| anyhow!(e))?;
+            let mut r = voxmap_ros2::MapTopicsReader::new(&d)?;
+            while !s.load(std::sync::atomic::Ordering::Relaxed) {
+                r.take();
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            Ok((r.messages, r.bytes))
+        });
+        (stop, t)
+    });
     let planner = sim("sim-planner", "10", true)?;
     let mut sensor = sim("sim-sensor", "10", false)?;
     sensor.wait()?;
@@ -156,6 +193,13 @@ fn e2e_run(seconds: f64, rt: i32, pin_threads: bool) -> Result<()> {
             "  idle: the service used {} CPU ticks (1/100 s) in 5 s",
             ticks()? - t0
         );
+    }
+    if let Some((stop, t)) = reader {
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let (messages, bytes) = t
+            .join()
+            .map_err(|_| anyhow!("the ROS 2 reader panicked"))??;
+        println!("  ROS 2 reader of the map topics: {messages} messages, {bytes} bytes of data");
     }
     let service = kids
         .get("service")

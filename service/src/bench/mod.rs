@@ -57,6 +57,10 @@ pub struct BenchArgs {
     /// phases of this many seconds.
     #[arg(long, value_name = "SECONDS")]
     e2e: Option<f64>,
+    /// With --e2e: compare the service without and with `--ros2` (alternated, normal
+    /// scheduling), for what encoding and publishing the ROS 2 map topics costs.
+    #[arg(long, requires = "e2e")]
+    e2e_ros2: bool,
 }
 
 /// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
@@ -170,7 +174,7 @@ fn ms(d: std::time::Duration) -> f64 {
 
 pub fn run(a: BenchArgs) -> Result<()> {
     if let Some(secs) = a.e2e {
-        return e2e::run(secs, a.pin_threads);
+        return e2e::run(secs, a.pin_threads, a.e2e_ros2);
     }
     let dir = match &a.workloads {
         Some(d) => d.clone(),
