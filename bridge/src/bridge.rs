@@ -209,12 +209,21 @@ struct Services {
     raytrace: Server<RaytraceRequest, RaytraceResponse>,
 }
 
+/// One cloud topic's subscription.
+struct CloudInput {
+    topic: String,
+    max_range: Option<f64>,
+    sub: Subscription<PointCloud2<ByteBuf>>,
+    /// Messages taken so far (the next one's index).
+    taken: u64,
+}
+
 /// Everything the loop owns.
 struct Loop {
     cfg: Ros2Config,
     counters: Arc<BridgeCounters>,
     poll: Poll,
-    clouds: Vec<(String, Option<f64>, Subscription<PointCloud2<ByteBuf>>, u64)>,
+    clouds: Vec<CloudInput>,
     tf: Subscription<TfMessage>,
     tf_static: Subscription<TfMessage>,
     outputs: Outputs,
@@ -273,7 +282,12 @@ impl Loop {
                 .map_err(|e| anyhow!("{e:?}").context(format!("subscribing to {}", t.topic)))?;
             poll.registry()
                 .register(&mut sub, next_token(), Interest::READABLE)?;
-            clouds.push((t.topic.clone(), t.max_range, sub, 0));
+            clouds.push(CloudInput {
+                topic: t.topic.clone(),
+                max_range: t.max_range,
+                sub,
+                taken: 0,
+            });
         }
         let static_qos = reliable(Durability::TransientLocal, 100);
         let tf_topic = topic(&node, "/tf", "tf2_msgs", "TFMessage", &tf_qos())?;
@@ -439,29 +453,24 @@ impl Loop {
     }
 
     fn take_clouds(&mut self) {
-        for (topic, _, sub, index) in &mut self.clouds {
+        for c in &mut self.clouds {
             loop {
-                match sub.take() {
-                    Ok(Some((c, _))) => {
+                let index = c.taken;
+                match c.sub.take() {
+                    Ok(Some((m, _))) => {
                         self.counters.clouds_received.fetch_add(1, Relaxed);
-                        self.sync.decoded_cloud(
-                            topic,
-                            *index,
-                            now_ns(),
-                            c.map_data(ByteBuf::into_vec),
-                        );
+                        let m = m.map_data(ByteBuf::into_vec);
+                        self.sync.decoded_cloud(&c.topic, index, now_ns(), m);
                     }
                     Ok(None) => break,
                     Err(e) => {
                         self.counters.clouds_received.fetch_add(1, Relaxed);
                         self.counters.clouds_malformed.fetch_add(1, Relaxed);
-                        log_drop(
-                            &mut self.drops_logged,
-                            &format!("{topic} cloud {index}: {e}"),
-                        );
+                        let what = format!("{} cloud {index}: {e}", c.topic);
+                        log_drop(&mut self.drops_logged, &what);
                     }
                 }
-                *index += 1;
+                c.taken += 1;
             }
         }
     }
@@ -483,8 +492,8 @@ impl Loop {
         let range = self
             .clouds
             .iter()
-            .find(|(t, ..)| *t == c.topic)
-            .and_then(|(_, r, ..)| *r);
+            .find(|i| i.topic == c.topic)
+            .and_then(|i| i.max_range);
         let mut points = c.points.points;
         if let Some(r) = range {
             let r2 = (r * r) as f32;

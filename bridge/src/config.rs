@@ -151,11 +151,15 @@ mod tests {
     #[test]
     fn defaults_pass_and_bad_settings_say_which() {
         Ros2Config::default().check().unwrap();
-        let mut c = Ros2Config::default();
-        c.grid_z_min = 3.0;
+        let c = Ros2Config {
+            grid_z_min: 3.0,
+            ..Default::default()
+        };
         assert!(c.check().unwrap_err().contains("grid_z_min"));
-        let mut c = Ros2Config::default();
-        c.node_name = "no spaces".into();
+        let c = Ros2Config {
+            node_name: "no spaces".into(),
+            ..Default::default()
+        };
         assert!(c.check().unwrap_err().contains("node_name"));
     }
 }

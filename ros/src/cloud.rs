@@ -257,13 +257,13 @@ mod tests {
         }
     }
 
-    fn cloud<'a>(
+    fn cloud(
         fields: Vec<PointField>,
         step: u32,
         w: u32,
         h: u32,
-        data: &'a [u8],
-    ) -> PointCloud2<&'a [u8]> {
+        data: &[u8],
+    ) -> PointCloud2<&[u8]> {
         PointCloud2 {
             header: Header {
                 stamp: Time { sec: 0, nanosec: 0 },

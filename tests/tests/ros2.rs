@@ -342,3 +342,37 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     assert_eq!(std::fs::read(out.join("late_octomap.bin")).unwrap(), data);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Discovery variables ROS 2 would refuse are refused at start, naming the variable, and a
+/// bad `[ros2]` setting likewise; nothing is left running.
+#[test]
+fn bad_discovery_variables_and_settings_stop_the_start_with_the_reason() {
+    for (k, v) in [
+        ("ROS_DOMAIN_ID", "300"),
+        ("ROS_AUTOMATIC_DISCOVERY_RANGE", "everywhere"),
+    ] {
+        let out = Command::new(voxmap_bin())
+            .args([
+                "serve",
+                "--prefix",
+                &unique_prefix("ros2bad"),
+                "--ros2",
+                "--exit-after",
+                "5",
+            ])
+            .env(k, v)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(err.contains(&format!("{k}='{v}'")), "{err}");
+    }
+    let out = Command::new(voxmap_bin())
+        .args(["serve", "--prefix", &unique_prefix("ros2bad"), "--ros2"])
+        .args(["--ros2-cloud-topic", "points@-3", "--exit-after", "5"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("points@-3"), "{err}");
+}

@@ -128,6 +128,11 @@ impl MapState {
 
 pub fn run(a: ServeArgs) -> Result<()> {
     let cfg = a.resolve()?;
+    // Checked before anything is opened: a bad variable stops the start.
+    let discovery = match a.ros2 {
+        true => Some(voxmap_ros2::discovery::Discovery::from_env()?),
+        false => None,
+    };
     let names = ServiceNames::new(&cfg.prefix, &cfg.map);
     let node = ports::node(
         "voxmap-serve",
@@ -186,11 +191,11 @@ pub fn run(a: ServeArgs) -> Result<()> {
     }
     out.publish(&mut s);
     log_start(&cfg, &names, &s);
-    let bridge = match a.ros2 {
-        false => None,
-        true => Some(voxmap_ros2::Bridge::start(
+    let bridge = match discovery {
+        None => None,
+        Some(d) => Some(voxmap_ros2::Bridge::start(
             cfg.ros2.clone(),
-            voxmap_ros2::discovery::Discovery::from_env()?,
+            d,
             &cfg.prefix,
             &cfg.map,
         )?),
