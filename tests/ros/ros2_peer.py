@@ -9,6 +9,9 @@ here uses voxmap's code.
         malformed cloud; wait for /voxmap/occupied and /voxmap/octomap_binary stamped with
         the last cloud; call the services; write what came back to OUT_DIR
     ros2_peer.py listen OUT_DIR               join late: take the latched map topics
+    ros2_peer.py cyclone-reset OUT_DIR        call reset_map as rmw_cyclonedds_cpp does:
+        a request header (8 bytes of the client GUID, a 64-bit sequence number) before
+        the request, echoed before the reply
 
 Discovery: loopback only, unicast to 127.0.0.1 (CYCLONEDDS_URI set here unless given), on
 ROS_DOMAIN_ID.
@@ -33,7 +36,7 @@ if 'CYCLONEDDS_URI' not in os.environ:
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float32, float64, int32, int8, sequence, uint32, uint8
+from cyclonedds.idl.types import array, float32, float64, int32, int8, sequence, uint32, uint8
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -192,6 +195,23 @@ class RaytraceResponse(IdlStruct, typename='voxmap_msgs::srv::dds_::Raytrace_Res
     success: bool
     hit: bool
     end_point: Point
+    message: str
+
+
+@dataclass
+class CycloneTriggerRequest(IdlStruct, typename='std_srvs::srv::dds_::Trigger_Request_'):
+    client_guid_low: array[uint8, 8]
+    sequence_high: int32
+    sequence_low: uint32
+    structure_needs_at_least_one_member: uint8
+
+
+@dataclass
+class CycloneTriggerResponse(IdlStruct, typename='std_srvs::srv::dds_::Trigger_Response_'):
+    client_guid_low: array[uint8, 8]
+    sequence_high: int32
+    sequence_low: uint32
+    success: bool
     message: str
 
 
@@ -355,10 +375,22 @@ def listen(out):
     Path(out, 'listen.json').write_text(json.dumps(write_maps(out, maps, 'late'), indent=1))
 
 
+def cyclone_reset(out):
+    dp = DomainParticipant(DOMAIN)
+    reset = Service(dp, 'reset_map', CycloneTriggerRequest, CycloneTriggerResponse)
+    guid = [1, 2, 3, 4, 5, 6, 7, 8]
+    r = reset.call(CycloneTriggerRequest(guid, 0, 77, 0))
+    Path(out, 'cyclone.json').write_text(json.dumps({
+        'guid': list(r.client_guid_low), 'sequence': [r.sequence_high, r.sequence_low],
+        'success': r.success, 'message': r.message}))
+
+
 if __name__ == '__main__':
     if sys.argv[1:2] == ['publish'] and len(sys.argv) == 4:
         publish(sys.argv[2], sys.argv[3])
     elif sys.argv[1:2] == ['listen'] and len(sys.argv) == 3:
         listen(sys.argv[2])
+    elif sys.argv[1:2] == ['cyclone-reset'] and len(sys.argv) == 3:
+        cyclone_reset(sys.argv[2])
     else:
         raise SystemExit(__doc__)

@@ -42,18 +42,24 @@ fn centres(bytes: &[u8]) -> BTreeSet<[i64; 3]> {
         .collect()
 }
 
+/// The Python of the peer (Cyclone DDS and the scene's writer), or `None` with a notice;
+/// CI sets VOXMAP_REQUIRE_ROS2, which makes its absence a failure.
+fn python_with_cyclone() -> Option<std::path::PathBuf> {
+    python_with(
+        "rosbags, numpy, cyclonedds",
+        "VOXMAP_REQUIRE_ROS2",
+        "pip install rosbags numpy cyclonedds",
+        "the live ROS 2 tests",
+    )
+}
+
 fn json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
 #[test]
 fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
-    let Some(py) = python_with(
-        "rosbags, numpy, cyclonedds",
-        "VOXMAP_REQUIRE_ROS2",
-        "pip install rosbags numpy cyclonedds",
-        "the live ROS 2 test",
-    ) else {
+    let Some(py) = python_with_cyclone() else {
         return;
     };
     let dir = tmpdir("ros2");
@@ -375,4 +381,59 @@ fn bad_discovery_variables_and_settings_stop_the_start_with_the_reason() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
     assert!(err.contains("points@-3"), "{err}");
+}
+
+/// `service_mapping = "cyclone"`: a request framed as rmw_cyclonedds_cpp frames it (the
+/// client's GUID half and sequence number first) is answered with the same framing.
+#[test]
+fn services_answer_in_the_cyclone_rmw_mapping() {
+    let Some(py) = python_with_cyclone() else {
+        return;
+    };
+    let dir = tmpdir("ros2cyc");
+    let cfg = dir.join("ros2.toml");
+    std::fs::write(&cfg, "[ros2]\nservice_mapping = \"cyclone\"\n").unwrap();
+    let domain = (101 + std::process::id() % 100).to_string();
+    let env = [
+        ("ROS_DOMAIN_ID", domain.as_str()),
+        ("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST"),
+        ("ROS_STATIC_PEERS", "127.0.0.1"),
+    ];
+    let prefix = unique_prefix("ros2cyc");
+    let service = voxmap_tests::Service {
+        child: Command::new(voxmap_bin())
+            .args([
+                "serve",
+                "--prefix",
+                &prefix,
+                "--ros2",
+                "--config",
+                cfg.to_str().unwrap(),
+            ])
+            .args(["--exit-after", "120"])
+            .envs(env)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+        prefix,
+    };
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("ros/ros2_peer.py");
+    let peer = Command::new(&py)
+        .arg(script)
+        .args(["cyclone-reset", dir.to_str().unwrap()])
+        .envs(env)
+        .output()
+        .unwrap();
+    let (_, log) = service.signal_and_wait("INT");
+    assert!(
+        peer.status.success(),
+        "{}\n{log}",
+        String::from_utf8_lossy(&peer.stderr)
+    );
+    let r = json(&dir.join("cyclone.json"));
+    assert_eq!(r["success"], true, "{r}");
+    assert_eq!(r["guid"], serde_json::json!([1, 2, 3, 4, 5, 6, 7, 8]));
+    assert_eq!(r["sequence"], serde_json::json!([0, 77]));
+    std::fs::remove_dir_all(&dir).unwrap();
 }
