@@ -38,7 +38,7 @@ pub use voxmap_core::snapshot::{InvalidBox, InvalidSegment, SnapshotError, Snaps
 pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
 pub use voxmap_ipc::{
     ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, FrameRejected,
-    MapScope, OpenError, ServiceNames, SnapshotHeader, StatsWire,
+    MapScope, OpenError, ServiceNames, SnapshotHeader, StatsWire, FRAME_VERSION, MAX_FRAME_POINTS,
 };
 
 /// Something went wrong talking to the service or reading a snapshot. The cause (iceoryx2's

@@ -78,6 +78,19 @@ impl std::fmt::Display for FrameRejected {
 
 impl std::error::Error for FrameRejected {}
 
+impl FrameRejected {
+    /// A short name of the reason, for counting.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::UnsupportedVersion(_) => "unsupported version",
+            Self::CountMismatch { .. } => "point count mismatch",
+            Self::TooManyPoints(_) => "too many points",
+            Self::NonFinitePose => "pose not finite",
+            Self::NonUnitQuaternion(_) => "quaternion not unit",
+        }
+    }
+}
+
 impl FrameHeader {
     pub fn with_pose(pose: &Isometry3<f64>) -> Self {
         let q = pose.rotation.quaternion();

@@ -300,6 +300,29 @@ pub fn number_after(text: &str, key: &str) -> u64 {
         .unwrap()
 }
 
+/// A small deterministic generator (an LCG) for test inputs: the same sequence everywhere.
+pub struct TestRng(pub u64);
+
+impl TestRng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        self.0
+    }
+
+    /// Uniform in [0, 1).
+    pub fn f(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Uniform in [0, n) (from the high bits: an LCG's low bits are poor).
+    pub fn below(&mut self, n: u64) -> u64 {
+        ((u128::from(self.next_u64()) * u128::from(n)) >> 64) as u64
+    }
+}
+
 /// A fresh directory under the system's temp dir, unique to this test and process.
 pub fn tmpdir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(unique_prefix(name));

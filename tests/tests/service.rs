@@ -162,7 +162,7 @@ fn closed_room_scan_becomes_a_snapshot_read_in_place() {
         "{err}"
     );
     assert!(
-        err.contains("rejected 1;"),
+        err.contains("rejected 1 (point count mismatch 1);"),
         "stats count the rejection: {err}"
     );
 }
@@ -226,13 +226,8 @@ fn kill_9_then_restart_while_the_planner_keeps_its_snapshot() {
 
 /// Random points in a ball of radius `r` (deterministic).
 fn ball(n: usize, r: f64, seed: u64) -> Vec<[f32; 3]> {
-    let mut s = seed;
-    let mut f = move || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-    };
+    let mut rng = voxmap_tests::TestRng(seed);
+    let mut f = move || rng.f() * 2.0 - 1.0;
     let mut v = Vec::with_capacity(n);
     while v.len() < n {
         let p = [f(), f(), f()];

@@ -158,6 +158,17 @@ impl std::fmt::Display for IntegrateError {
 
 impl std::error::Error for IntegrateError {}
 
+impl IntegrateError {
+    /// A short name of the reason, for counting.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::NonFinitePose => "pose not finite",
+            Self::OriginOutOfRange { .. } => "origin out of range",
+            Self::RangeTooLong { .. } => "range too long",
+        }
+    }
+}
+
 /// Time per phase of one integration.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PhaseTimes {

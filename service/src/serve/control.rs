@@ -116,11 +116,14 @@ impl Control {
             if answer.republish {
                 publish(s);
             }
-            let _ = req.send_copy(ControlResponse::new(
+            if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
                 s.stats.wire(&s.map),
-            ));
+            )) {
+                // The client may have gone; anything else is worth a line.
+                eprintln!("voxmap serve: control response not sent: {e:?}");
+            }
         }
     }
 
@@ -174,11 +177,14 @@ impl Control {
                 }
                 Some(done) => finish_file_job(done, s),
             };
-            let _ = req.send_copy(ControlResponse::new(
+            if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
                 s.stats.wire(&s.map),
-            ));
+            )) {
+                // The client may have gone; anything else is worth a line.
+                eprintln!("voxmap serve: control response not sent: {e:?}");
+            }
         }
     }
 }

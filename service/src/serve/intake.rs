@@ -68,7 +68,14 @@ impl FrameIntake {
                 Stats::record(&mut stats.intake_us, us);
             }
             let seq = h.sequence;
-            if let Some(prev) = self.last_seq.insert(sample.header().publisher_id(), seq) {
+            // Only frames that pass validation count for gaps: garbage headers would make
+            // `dropped` mean nothing (their sequence numbers are random).
+            let valid = h.validate(sample.payload().len()).is_ok();
+            let last = match valid {
+                true => self.last_seq.insert(sample.header().publisher_id(), seq),
+                false => None,
+            };
+            if let Some(prev) = last {
                 // The sequence is the publisher's word: no arithmetic on it may overflow.
                 if queue && seq > prev.saturating_add(1) {
                     stats.dropped = stats.dropped.saturating_add(seq - prev - 1);
@@ -91,7 +98,7 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
     let h = *sample.user_header();
     let outcome = h
         .validate(sample.payload().len())
-        .map_err(|e| e.to_string())
+        .map_err(|e| (e.kind(), e.to_string()))
         .and_then(|pose| {
             let frame = Frame {
                 pose,
@@ -100,14 +107,22 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
             s.integ
                 .integrate(&mut s.map, &frame)
                 .map(|rep| (pose, rep))
-                .map_err(|e| e.to_string())
+                .map_err(|e| (e.kind(), e.to_string()))
         });
     drop(sample);
     let stats = &mut s.stats;
     match outcome {
-        Err(why) => {
+        Err((kind, why)) => {
             stats.rejected += 1;
-            eprintln!("voxmap serve: frame {} rejected: {why}", h.sequence);
+            *stats.rejected_by.entry(kind).or_default() += 1;
+            // The first few one by one, then every 1000th: a publisher sending garbage
+            // must not flood the log (the counters have every one).
+            if stats.rejected <= 5 || stats.rejected.is_multiple_of(1000) {
+                eprintln!(
+                    "voxmap serve: frame {} rejected: {why} ({} rejected so far)",
+                    h.sequence, stats.rejected
+                );
+            }
             false
         }
         Ok((pose, rep)) => {

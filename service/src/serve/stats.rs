@@ -11,6 +11,8 @@ pub(super) struct Stats {
     pub integrated: u64,
     pub dropped: u64,
     pub rejected: u64,
+    /// Rejected frames by reason (`FrameRejected::kind`, `IntegrateError::kind`).
+    pub rejected_by: std::collections::BTreeMap<&'static str, u64>,
     pub points: u64,
     pub skipped_points: u64,
     /// Integration times (ms) of the last frames, oldest first.
@@ -63,8 +65,18 @@ impl Stats {
 
     pub(super) fn log_line(&self, map: &OccupancyMap) -> String {
         let w = self.wire(map);
+        let by: Vec<String> = self
+            .rejected_by
+            .iter()
+            .map(|(k, n)| format!("{k} {n}"))
+            .collect();
+        let by = if by.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", by.join(", "))
+        };
         format!(
-            "frames received {} integrated {} dropped {} rejected {}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
+            "frames received {} integrated {} dropped {} rejected {}{by}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
              snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes",
             w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
             w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, self.publish_failures, w.map_leaves, w.map_memory_bytes

@@ -1,0 +1,66 @@
+//! Arbitrary bytes as a frame: the first 80 as the header's fields, the rest as points.
+//! Validation, then integration of what it accepts into a small map, must never panic;
+//! a rejected frame leaves the map as it was.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_ipc::FrameHeader;
+
+fn u64_at(b: &[u8], i: usize) -> u64 {
+    u64::from_le_bytes(b[i..i + 8].try_into().unwrap())
+}
+
+fuzz_target!(|data: &[u8]| {
+    if data.len() < 80 {
+        return;
+    }
+    let (h, rest) = data.split_at(80);
+    let f = |i| f64::from_bits(u64_at(h, i));
+    let header = FrameHeader {
+        version: u32::from_le_bytes(h[0..4].try_into().unwrap()) % 4,
+        flags: u32::from_le_bytes(h[4..8].try_into().unwrap()),
+        sequence: u64_at(h, 8),
+        timestamp_ns: u64_at(h, 16),
+        translation: [f(24), f(32), f(40)],
+        rotation_xyzw: [f(48), f(56), f(64), f(72)],
+        // The count is the payload's, or a lie, as the first byte says.
+        point_count: match h[0] & 3 {
+            0 => u64_at(h, 8),
+            _ => (rest.len() / 12) as u64,
+        },
+    };
+    let points: Vec<[f32; 3]> = rest
+        .chunks_exact(12)
+        .map(|c| {
+            std::array::from_fn(|k| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap()))
+        })
+        .collect();
+    let Ok(pose) = header.validate(points.len()) else {
+        return;
+    };
+    let mut map = OccupancyMap::new(0.25, SensorModel::default()).unwrap();
+    let mut integ = Integrator::new(IntegratorConfig {
+        threads: 1,
+        max_range: 4.0,
+        pin_threads: false,
+        ..Default::default()
+    })
+    .unwrap();
+    if integ
+        .integrate(
+            &mut map,
+            &Frame {
+                pose,
+                points: &points,
+            },
+        )
+        .is_err()
+    {
+        assert_eq!(
+            map.grid().leaf_count(),
+            0,
+            "a rejected frame changed the map"
+        );
+    }
+});
