@@ -180,7 +180,7 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
         // At most the queue's depth waits at once, so none is lost and every one is
         // validated: wait until the service has taken all sent (a request can be answered
         // just before the last frames are taken). A stalled service fails here.
-        if sent % 4 == 0 || sent == total {
+        if sent.is_multiple_of(4) || sent == total {
             let deadline = std::time::Instant::now() + Duration::from_secs(20);
             let s = loop {
                 let s = match control.stats() {
