@@ -251,12 +251,10 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
     );
 }
 
-/// Found by the hostile publisher's pacing: after about 126,000 control requests (126,413,
-/// 125,816 and 128,562 in three runs) the service stops answering any client, a new one
-/// included, while it keeps integrating frames and logging. Not fixed yet (the cause is
-/// below voxmap's control loop, which receives nothing more); ignored until it is.
+/// One control client asking for 300,000 `stats` in a row is answered every time (about
+/// 280 s, so not part of the default run: `-- --ignored`).
 #[test]
-#[ignore = "known fault: control requests unanswered after ~126k (docs/reliability.md)"]
+#[ignore = "slow: 300,000 requests, about 5 minutes"]
 fn control_requests_are_answered_after_300k() {
     let prefix = unique_prefix("ctl300k");
     let child = Command::new(voxmap_bin())

@@ -40,13 +40,22 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let mut map = OccupancyMap::new(0.25, SensorModel::default()).unwrap();
-    let mut integ = Integrator::new(IntegratorConfig {
-        threads: 1,
-        max_range: 4.0,
-        pin_threads: false,
-        ..Default::default()
-    })
-    .unwrap();
+    // One integrator for every input: making one starts its thread pool.
+    static INTEG: std::sync::OnceLock<std::sync::Mutex<Integrator>> = std::sync::OnceLock::new();
+    let mut integ = INTEG
+        .get_or_init(|| {
+            std::sync::Mutex::new(
+                Integrator::new(IntegratorConfig {
+                    threads: 1,
+                    max_range: 4.0,
+                    pin_threads: false,
+                    ..Default::default()
+                })
+                .unwrap(),
+            )
+        })
+        .lock()
+        .unwrap_or_else(|e| e.into_inner());
     if integ
         .integrate(
             &mut map,
