@@ -11,7 +11,7 @@ use crate::interfaces::{
 use crate::outputs;
 use anyhow::{anyhow, Context as _, Result};
 use ros2_client::dds::rustdds::mio1::{Events, Interest, Poll, Token};
-use ros2_client::dds::rustdds::DomainParticipant;
+use ros2_client::dds::rustdds::{DomainParticipant, Topic, TopicDescription};
 use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscription};
 use ros2_client::qos::{Durability, History, Liveliness, Reliability, WhenFull};
 use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile, ServiceTypeName};
@@ -189,12 +189,43 @@ fn reliable(durability: Durability, depth: usize) -> QosProfile {
     }
 }
 
-/// The map topics' DDS names, in the order of [`Outputs`]' fields.
-const OUTPUT_TOPICS: [&str; 3] = [
-    "rt/voxmap/occupied",
-    "rt/voxmap/octomap_binary",
-    "rt/voxmap/grid",
+/// The map topics under [`NAMESPACE`] (name, package, type), in the order of [`Outputs`]'
+/// fields.
+const MAP_TOPICS: [(&str, &str, &str); 3] = [
+    ("occupied", "sensor_msgs", "PointCloud2"),
+    ("octomap_binary", "octomap_msgs", "Octomap"),
+    ("grid", "nav_msgs", "OccupancyGrid"),
 ];
+
+/// The map topics on `node`, latched (reliable, transient local, the last one): a late
+/// RViz or MoveIt gets the current map.
+fn map_topics(node: &Node) -> Result<[Topic; 3]> {
+    let latched = reliable(Durability::TransientLocal, 1);
+    let topic = |(base, pkg, ty): (&str, &str, &str)| {
+        let name = Name::new(NAMESPACE, base).map_err(|e| anyhow!("{e:?}"))?;
+        node.create_topic(&name, MessageTypeName::new(pkg, ty), &latched)
+            .map_err(|e| anyhow!("{e:?}").context(format!("creating topic {NAMESPACE}/{base}")))
+    };
+    Ok([
+        topic(MAP_TOPICS[0])?,
+        topic(MAP_TOPICS[1])?,
+        topic(MAP_TOPICS[2])?,
+    ])
+}
+
+/// A ROS 2 node `/name` on a participant of its own that discovers as `discovery` says.
+fn new_node(discovery: &Discovery, name: &str) -> Result<(Node, DomainParticipant)> {
+    let participant = discovery.participant().map_err(|e| anyhow!(e))?;
+    let ctx = Context::from_domain_participant(participant)
+        .map_err(|e| anyhow!("{e:?}").context("creating the ROS 2 context"))?;
+    let node = ctx
+        .new_node(
+            NodeName::new("/", name).map_err(|e| anyhow!("{e:?}"))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .map_err(|e| anyhow!("{e:?}").context("creating the ROS 2 node"))?;
+    Ok((node, ctx.domain_participant()))
+}
 
 struct Outputs {
     occupied: Publisher<PointCloud2<ByteBuf>>,
@@ -232,7 +263,9 @@ struct Loop {
     frames: FramePublisher,
     snapshots: SnapshotSubscriber,
     control: MapControl,
-    /// `published_ns` of the snapshot last put on each of [`OUTPUT_TOPICS`].
+    /// The map topics' DDS names (`rt/voxmap/...`), in the order of [`Outputs`]' fields.
+    output_names: [String; 3],
+    /// `published_ns` of the snapshot last put on each map topic.
     last_output: [Option<u64>; 3],
     last_output_at: Option<Instant>,
     drops_logged: u64,
@@ -253,15 +286,7 @@ impl Loop {
                 "voxmap serve: ros2: static peer '{p}' is on another host: rustdds 0.15 reaches peers of this host by unicast, others only by multicast"
             );
         }
-        let participant = discovery.participant().map_err(|e| anyhow!(e))?;
-        let ctx = Context::from_domain_participant(participant)
-            .map_err(|e| anyhow!("{e:?}").context("creating the ROS 2 context"))?;
-        let mut node = ctx
-            .new_node(
-                NodeName::new("/", &cfg.node_name).map_err(|e| anyhow!("{e:?}"))?,
-                NodeOptions::new().enable_rosout(false),
-            )
-            .map_err(|e| anyhow!("{e:?}").context("creating the ROS 2 node"))?;
+        let (mut node, participant) = new_node(discovery, &cfg.node_name)?;
         let name =
             |full: &str| Name::parse(full).map_err(|e| anyhow!("ROS 2 name '{full}': {e:?}"));
         let topic = |node: &Node, full: &str, pkg: &str, ty: &str, qos: &QosProfile| {
@@ -303,16 +328,8 @@ impl Loop {
         poll.registry()
             .register(&mut tf_static, next_token(), Interest::READABLE)?;
 
-        // Latched: a late RViz or MoveIt gets the current map.
-        let latched = reliable(Durability::TransientLocal, 1);
-        let out = |full: &str, pkg: &str, ty: &str| {
-            topic(&node, &format!("{NAMESPACE}/{full}"), pkg, ty, &latched)
-        };
-        let (t_occ, t_oct, t_grid) = (
-            out("occupied", "sensor_msgs", "PointCloud2")?,
-            out("octomap_binary", "octomap_msgs", "Octomap")?,
-            out("grid", "nav_msgs", "OccupancyGrid")?,
-        );
+        let [t_occ, t_oct, t_grid] = map_topics(&node)?;
+        let output_names = [&t_occ, &t_oct, &t_grid].map(|t| t.name());
         let perr = |what: &str| {
             let what = what.to_string();
             move |e| anyhow!("{e:?}").context(format!("creating the {what} publisher"))
@@ -391,10 +408,11 @@ impl Loop {
             frames,
             snapshots,
             control,
+            output_names,
             last_output: [None; 3],
             last_output_at: None,
             drops_logged: 0,
-            participant: ctx.domain_participant(),
+            participant,
             _node: node,
         })
     }
@@ -548,7 +566,8 @@ impl Loop {
             .into_iter()
             .map(|r| r.subscription_topic_data.topic_name().clone())
             .collect();
-        let due: Vec<bool> = OUTPUT_TOPICS
+        let due: Vec<bool> = self
+            .output_names
             .iter()
             .zip(&self.last_output)
             .map(|(t, last)| *last != Some(published) && readers.iter().any(|r| r == t))
@@ -593,7 +612,7 @@ impl Loop {
                     self.counters.output_failures.fetch_add(1, Relaxed);
                     eprintln!(
                         "voxmap serve: ros2: {} not published: {e:#}",
-                        OUTPUT_TOPICS[i]
+                        self.output_names[i]
                     );
                 }
             }
@@ -720,25 +739,8 @@ pub struct MapTopicsReader {
 
 impl MapTopicsReader {
     pub fn new(discovery: &Discovery) -> Result<Self> {
-        let participant = discovery.participant().map_err(|e| anyhow!(e))?;
-        let ctx = Context::from_domain_participant(participant).map_err(|e| anyhow!("{e:?}"))?;
-        let mut node = ctx
-            .new_node(
-                NodeName::new("/", "voxmap_bench_reader").map_err(|e| anyhow!("{e:?}"))?,
-                NodeOptions::new().enable_rosout(false),
-            )
-            .map_err(|e| anyhow!("{e:?}"))?;
-        let qos = reliable(Durability::TransientLocal, 1);
-        let topic = |node: &Node, base: &str, pkg: &str, ty: &str| {
-            let name = Name::new(NAMESPACE, base).map_err(|e| anyhow!("{e:?}"))?;
-            node.create_topic(&name, MessageTypeName::new(pkg, ty), &qos)
-                .map_err(|e| anyhow!("{e:?}"))
-        };
-        let (a, b, c) = (
-            topic(&node, "occupied", "sensor_msgs", "PointCloud2")?,
-            topic(&node, "octomap_binary", "octomap_msgs", "Octomap")?,
-            topic(&node, "grid", "nav_msgs", "OccupancyGrid")?,
-        );
+        let (mut node, _) = new_node(discovery, "voxmap_bench_reader")?;
+        let [a, b, c] = map_topics(&node)?;
         let e = |e| anyhow!("{e:?}");
         let subs = (
             node.create_subscription(&a, None).map_err(e)?,
