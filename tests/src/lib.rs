@@ -47,18 +47,18 @@ pub struct Service {
 }
 
 impl Service {
+    /// `voxmap serve --prefix PREFIX --threads 2 --exit-after 120`, then `extra`.
     pub fn start(prefix: &str, extra: &[&str]) -> Self {
+        let args = [&["--threads", "2", "--exit-after", "120"][..], extra].concat();
+        Self::spawn(prefix, &args, &[])
+    }
+
+    /// `voxmap serve --prefix PREFIX` with exactly `args`, in the environment `env` adds to.
+    pub fn spawn(prefix: &str, args: &[&str], env: &[(&str, &str)]) -> Self {
         let child = Command::new(voxmap_bin())
-            .args([
-                "serve",
-                "--prefix",
-                prefix,
-                "--threads",
-                "2",
-                "--exit-after",
-                "120",
-            ])
-            .args(extra)
+            .args(["serve", "--prefix", prefix])
+            .args(args)
+            .envs(env.iter().copied())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()
@@ -298,6 +298,19 @@ pub fn number_after(text: &str, key: &str) -> u64 {
         .unwrap()
         .parse()
         .unwrap()
+}
+
+/// Call `f` until it succeeds (a service just started may not have its ports yet), for
+/// at most 20 s.
+pub fn connect_with_retry<T>(f: impl Fn() -> Result<T, voxmap_client::ClientError>) -> T {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    loop {
+        match f() {
+            Ok(t) => return t,
+            Err(e) if std::time::Instant::now() > deadline => panic!("connect: {e}"),
+            Err(_) => std::thread::sleep(std::time::Duration::from_millis(50)),
+        }
+    }
 }
 
 /// A small deterministic generator (an LCG) for test inputs: the same sequence everywhere.

@@ -6,12 +6,13 @@
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
-use std::process::{Command, Stdio};
 use std::time::Duration;
 use voxmap_client::{FrameHeader, FramePublisher, MapControl, FRAME_VERSION, MAX_FRAME_POINTS};
 use voxmap_core::io::mapfile;
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
-use voxmap_tests::{room_scan, tmpdir, unique_prefix, voxels, voxmap_bin, Service, TestRng};
+use voxmap_tests::{
+    connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, Service, TestRng,
+};
 
 const DEFAULT_FRAMES: u64 = 20_000;
 
@@ -24,16 +25,6 @@ const DEFECTS: [&str; 6] = [
     "quaternion not unit",
     "origin out of range",
 ];
-
-fn connect<T>(f: impl Fn() -> Result<T, voxmap_client::ClientError>) -> T {
-    for _ in 0..400 {
-        if let Ok(t) = f() {
-            return t;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    f().expect("connect to the service")
-}
 
 /// A good frame: a room scan from one of a few poses, sometimes with hostile points in
 /// its payload (NaN, infinite and huge coordinates), which the service must skip or cut.
@@ -110,27 +101,11 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(DEFAULT_FRAMES);
     let prefix = unique_prefix("hostile");
-    let child = Command::new(voxmap_bin())
-        .args([
-            "serve",
-            "--prefix",
-            &prefix,
-            "--resolution",
-            "0.1",
-            "--max-range",
-            "10",
-        ])
-        .args(["--threads", "2", "--intake", "queue", "--queue-depth", "4"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let svc = Service {
-        child,
-        prefix: prefix.clone(),
-    };
-    let mut pubr = connect(|| FramePublisher::connect(&prefix, "default"));
-    let mut control = connect(|| MapControl::connect(&prefix, "default"));
+    let args = ["--resolution", "0.1", "--max-range", "10", "--threads", "2"];
+    let queue = ["--intake", "queue", "--queue-depth", "4"];
+    let svc = Service::spawn(&prefix, &[&args[..], &queue].concat(), &[]);
+    let mut pubr = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    let mut control = connect_with_retry(|| MapControl::connect(&prefix, "default"));
     control.set_timeout(Duration::from_secs(20));
 
     let mut rng = TestRng(0x5eed_1234);
@@ -257,17 +232,8 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
 #[ignore = "slow: 300,000 requests, about 5 minutes"]
 fn control_requests_are_answered_after_300k() {
     let prefix = unique_prefix("ctl300k");
-    let child = Command::new(voxmap_bin())
-        .args(["serve", "--prefix", &prefix, "--exit-after", "900"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let _svc = Service {
-        child,
-        prefix: prefix.clone(),
-    };
-    let mut c = connect(|| MapControl::connect(&prefix, "default"));
+    let _svc = Service::spawn(&prefix, &["--exit-after", "900"], &[]);
+    let mut c = connect_with_retry(|| MapControl::connect(&prefix, "default"));
     c.set_timeout(Duration::from_millis(500));
     while c.stats().is_err() {}
     c.set_timeout(Duration::from_secs(5));

@@ -5,7 +5,7 @@
 
 use std::collections::BTreeSet;
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use voxmap_client::SnapshotView;
 use voxmap_core::io::mapfile;
 use voxmap_tests::{
@@ -152,31 +152,15 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
     )
     .unwrap();
     let prefix = unique_prefix("ros2");
-    let mut serve = Command::new(voxmap_bin());
-    serve
-        .args([
-            "serve",
-            "--prefix",
-            &prefix,
-            "--ros2",
-            "--config",
-            cfg.to_str().unwrap(),
-        ])
-        .args([
-            "--ros2-cloud-topic",
-            "/camera/depth/points",
-            "--intake",
-            "queue",
-        ])
-        .args(["--exit-after", "300"])
-        .args(MAPPING)
-        .envs(env)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    let service = voxmap_tests::Service {
-        child: serve.spawn().expect("spawn voxmap serve --ros2"),
-        prefix: prefix.clone(),
-    };
+    let ros2 = ["--ros2", "--config", cfg.to_str().unwrap()];
+    let input = [
+        "--ros2-cloud-topic",
+        "/camera/depth/points",
+        "--intake",
+        "queue",
+    ];
+    let args = [&ros2[..], &input, &["--exit-after", "300"], &MAPPING].concat();
+    let service = voxmap_tests::Service::spawn(&prefix, &args, &env);
     let out = dir.join("peer");
     std::fs::create_dir_all(&out).unwrap();
     let rays_json = serde_json::to_string(&rays).unwrap();
@@ -400,24 +384,14 @@ fn services_answer_in_the_cyclone_rmw_mapping() {
         ("ROS_STATIC_PEERS", "127.0.0.1"),
     ];
     let prefix = unique_prefix("ros2cyc");
-    let service = voxmap_tests::Service {
-        child: Command::new(voxmap_bin())
-            .args([
-                "serve",
-                "--prefix",
-                &prefix,
-                "--ros2",
-                "--config",
-                cfg.to_str().unwrap(),
-            ])
-            .args(["--exit-after", "120"])
-            .envs(env)
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap(),
-        prefix,
-    };
+    let args = [
+        "--ros2",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--exit-after",
+        "120",
+    ];
+    let service = voxmap_tests::Service::spawn(&prefix, &args, &env);
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("ros/ros2_peer.py");
     let peer = Command::new(&py)
         .arg(script)

@@ -3,7 +3,7 @@
 use nalgebra::Isometry3;
 use std::time::{Duration, Instant};
 use voxmap_client::{FramePublisher, SnapshotSubscriber, VoxelState, WorldPoint};
-use voxmap_tests::{room_scan, unique_prefix, Service};
+use voxmap_tests::{connect_with_retry, room_scan, unique_prefix, Service};
 
 const H: [f64; 3] = [2.0, 1.5, 1.2];
 const SENSOR: [f64; 3] = [0.3, -0.2, 0.1];
@@ -20,17 +20,6 @@ fn wait_for_seq(sub: &mut SnapshotSubscriber, seq: u64, min_known: u64) -> bool 
         }
     }
     false
-}
-
-fn connect_with_retry<T>(f: impl Fn() -> Result<T, voxmap_client::ClientError>) -> T {
-    let deadline = Instant::now() + Duration::from_secs(20);
-    loop {
-        match f() {
-            Ok(t) => return t,
-            Err(e) if Instant::now() > deadline => panic!("connect: {e}"),
-            Err(_) => std::thread::sleep(Duration::from_millis(50)),
-        }
-    }
 }
 
 /// A service with one 20k-point room scan integrated and published.
