@@ -161,6 +161,18 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
                 let s = match control.stats() {
                     Ok(s) => s,
                     Err(e) => {
+                        let pid = svc.child.id();
+                        let count = |what: &str| {
+                            std::fs::read_dir(format!("/proc/{pid}/{what}"))
+                                .map_or(0, |d| d.count())
+                        };
+                        let maps = std::fs::read_to_string(format!("/proc/{pid}/maps"))
+                            .map_or(0, |m| m.lines().count());
+                        eprintln!(
+                            "service pid {pid}: {} fds, {maps} mappings, {} threads",
+                            count("fd"),
+                            count("task")
+                        );
                         let (_, log) = svc.signal_and_wait("INT");
                         let tail: Vec<&str> = log.lines().rev().take(12).collect();
                         panic!("no answer after {sent} frames: {e:?}; service log (last lines first): {tail:#?}");

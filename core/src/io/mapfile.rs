@@ -86,7 +86,8 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapFileError + '_ {
 }
 
 /// Write `bytes` to `path` atomically: a temporary file in the same directory, fsync,
-/// rename over `path`, fsync the directory. A crash leaves the old file or the new one.
+/// rename over `path`, fsync the directory. A crash leaves the old file or the new one,
+/// and its temporary file, which the next save to `path` removes.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
     write_atomic_parts(path, &[bytes])
 }
@@ -101,11 +102,9 @@ pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<(), MapFileErr
         path: path.into(),
         source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path"),
     })?;
-    let tmp = dir.join(format!(
-        ".{}.tmp.{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
+    let stem = format!(".{}.tmp.", name.to_string_lossy());
+    remove_dead_temporaries(dir, &stem);
+    let tmp = dir.join(format!("{stem}{}", std::process::id()));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
         for part in parts {
@@ -122,6 +121,32 @@ pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<(), MapFileErr
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// Remove the temporary files `<stem><pid>` in `dir` of processes no longer running: a
+/// save killed before its rename leaves one as large as the map, and a service that
+/// crashes and restarts would fill the disk with them. Where the system does not say which
+/// processes run (no `/proc`), nothing is removed.
+fn remove_dead_temporaries(dir: &Path, stem: &str) {
+    let proc = Path::new("/proc");
+    if !proc.join("self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let pid = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(stem))
+            .and_then(|p| p.parse::<u32>().ok());
+        if let Some(pid) = pid {
+            if pid != std::process::id() && !proc.join(pid.to_string()).exists() {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
 }
 
 /// A map file in memory as its head (magic, version, header) and body (leaf records): the
@@ -611,6 +636,29 @@ mod tests {
             "the same save succeeds after"
         );
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_save_removes_what_killed_saves_left() {
+        let dir = std::env::temp_dir().join(format!("voxmap-mapfile-dead-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("m.vxm");
+        // Left by a process that no longer runs (no pid is this large), by one that runs
+        // (pid 1), and a file that only looks similar.
+        let dead = dir.join(format!(".m.vxm.tmp.{}", u32::MAX - 1));
+        let live = dir.join(".m.vxm.tmp.1");
+        let other = dir.join(".m.vxm.tmp.x");
+        for f in [&dead, &live, &other] {
+            std::fs::write(f, b"partial").unwrap();
+        }
+        save_map(&sample_map(), &path).unwrap();
+        if Path::new("/proc/self").exists() {
+            assert!(!dead.exists());
+        }
+        assert!(live.exists(), "a running process's save is left alone");
+        assert!(other.exists());
+        assert_eq!(load_map(&path).unwrap().counts(), sample_map().counts());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
