@@ -19,28 +19,28 @@ echo "reliability figures: commit $commit, $cpu, $(nproc) CPUs, $(date -u +%F)"
 echo "| campaign | inputs | result |"
 echo "|---|---|---|"
 
-fuzz() { # crate-dir target
-    local dir=$1 target=$2 log
+fuzz() { # target
+    local target=$1 log
     log=$(mktemp)
-    local corpus="$dir/corpus/$target" work
+    local corpus="fuzz/corpus/$target" work
     work=$(mktemp -d)
     # A scratch corpus: the checked-in seeds stay as they are.
     [ -d "$corpus" ] && cp -r "$corpus"/. "$work"/
-    if (cd "$dir" && cargo fuzz run -O -a "$target" "$work" -- -runs="$runs" -max_total_time="$seconds" -print_final_stats=1) >"$log" 2>&1; then
+    if (cd fuzz && cargo fuzz run -O -a "$target" "$work" -- -runs="$runs" -max_total_time="$seconds" -print_final_stats=1) >"$log" 2>&1; then
         local n
         n=$(grep -o 'Done [0-9]* runs in [0-9]* second' "$log" | tail -1)
-        echo "| fuzz $dir $target | ${n#Done } | 0 crashes |"
+        echo "| fuzz $target | ${n#Done } | 0 crashes |"
     else
-        echo "| fuzz $dir $target | see $log | FAILED |"
+        echo "| fuzz $target | see $log | FAILED |"
         tail -30 "$log" >&2
         return 1
     fi
     rm -rf "$work"
 }
 
-for t in snapshot_open map_file scan_files; do fuzz core/fuzz "$t"; done
-for t in frame control_request; do fuzz ipc/fuzz "$t"; done
-for t in ros_messages bag_file; do fuzz ros/fuzz "$t"; done
+for t in snapshot_open map_file scan_files frame control_request ros_messages bag_file; do
+    fuzz "$t"
+done
 
 frames=${VOXMAP_HOSTILE_FRAMES:-1000000}
 log=$(mktemp)

@@ -16,7 +16,7 @@ fuzz_target!(|data: &[u8]| {
         if let Ok(bag) = Bag::open(&path) {
             for i in 0..bag.files.len() {
                 let _ = bag.read_file(i, &|_| true, &mut |m| {
-                    let _ = voxmap_ros::msg::decode::<voxmap_ros::msg::PointCloud2>(m.data);
+                    let _ = voxmap_ros::msg::decode::<voxmap_ros::msg::PointCloud2<&[u8]>>(m.data);
                     ControlFlow::Continue(())
                 });
             }

@@ -8,7 +8,7 @@ use voxmap_ros::msg::{self, types};
 use voxmap_ros::sync::{CloudSync, PoseSource, SyncConfig};
 
 fuzz_target!(|data: &[u8]| {
-    if let Ok(c) = msg::decode::<msg::PointCloud2>(data) {
+    if let Ok(c) = msg::decode::<msg::PointCloud2<&[u8]>>(data) {
         if let Ok(r) = voxmap_ros::cloud::points(&c) {
             assert!(r.points.len() as u64 + r.non_finite <= u64::from(c.width) * u64::from(c.height));
         }
