@@ -25,6 +25,7 @@
 //! ```
 
 pub mod coord;
+pub mod field;
 pub mod kernel;
 pub mod mask;
 pub mod model;

@@ -200,6 +200,9 @@ pub struct IntegrateReport {
     /// Leaves (8x8x8 bricks) and voxels updated.
     pub touched_leaves: u64,
     pub touched_voxels: u64,
+    /// Inclusive voxel bounds of the sensor origin and every ray's end: no voxel outside
+    /// changed (a [`crate::field::DistanceField`] update looks only there).
+    pub bounds: Option<(crate::VoxelCoord, crate::VoxelCoord)>,
     /// The frame's box was small enough for the dense walk (see `integrate::walk::dense`).
     pub dense: bool,
     pub times: PhaseTimes,
@@ -374,6 +377,7 @@ impl Integrator {
             // Not `rays.len()`: skipped points leave gaps (see `Sides`).
             report.rays = prepare::ray_count(sides);
             report.cut_rays = cut_rays;
+            report.bounds = Some((lo, hi));
             let dense_box = walk::plan(walk, lo, hi, steps);
             report.dense = dense_box.is_some();
             // The dense walk needs no order but the sides: its grids stay in cache whatever

@@ -1,0 +1,260 @@
+//! The exact distance transform of one tile of 32³ voxels: the separable transform of
+//! Saito and Toriwaki (one axis at a time, each pass a lower envelope of parabolas), cut to
+//! the band, on a dense copy of the obstacles within `radius` of the tile.
+//!
+//! Each cell carries a `u32` key that orders candidates by squared distance first and then
+//! by offset, so that the minimum of keys is the nearest obstacle with a fixed tie-break:
+//!
+//! ```text
+//! bits 15..28  d², voxels² (< 2 * 63²)
+//! bits  8..15  dx + 64
+//! bits  1..8   dy + 64
+//! bit   0      obstacle above (dz > 0)
+//! ```
+//!
+//! `|dz|` is not stored: it follows from d², dx and dy. A pass adds its axis's `d²` and
+//! offset to the previous pass's keys, which left that offset field zero, and takes the
+//! minimum over the offsets within the radius: the minimum over all obstacles of the
+//! whole key, as the three minima nest. Keys at or above `far` (`radius² << 15`) are
+//! outside the band and are clamped to `far` after each pass, so the sums never reach bit
+//! 28. The passes are plain loops over contiguous rows that the compiler vectorizes; the
+//! caller compiles them a second time for AVX2.
+
+use super::UnknownPolicy;
+use crate::coord::VoxelCoord;
+use crate::grid::{Grid, Leaf};
+use crate::mask::Mask512;
+
+/// log2 of a tile's edge in voxels.
+pub(super) const TILE_LOG2: u32 = 5;
+/// A tile's edge in voxels.
+pub(super) const TILE: usize = 1 << TILE_LOG2;
+
+const D2_SHIFT: u32 = 15;
+
+/// The key of the region outside the band.
+#[inline]
+pub(super) fn far_key(radius: u32) -> u32 {
+    (radius * radius) << D2_SHIFT
+}
+
+#[inline]
+fn add_y(dy: i32) -> u32 {
+    ((dy * dy) as u32) << D2_SHIFT | ((dy + 64) as u32) << 1
+}
+
+#[inline]
+fn add_x(dx: i32) -> u32 {
+    ((dx * dx) as u32) << D2_SHIFT | ((dx + 64) as u32) << 8
+}
+
+/// The offset to the nearest obstacle of a key inside the band.
+#[inline]
+pub(super) fn decode(key: u32) -> [i8; 3] {
+    let d2 = (key >> D2_SHIFT) as i32;
+    let dx = ((key >> 8) & 127) as i32 - 64;
+    let dy = ((key >> 1) & 127) as i32 - 64;
+    let dz2 = (d2 - dx * dx - dy * dy).max(0);
+    let dz = f64::from(dz2).sqrt().round() as i32;
+    let dz = if key & 1 != 0 { dz } else { -dz };
+    [dx as i8, dy as i8, dz as i8]
+}
+
+/// The obstacles of a map leaf under a policy.
+#[inline]
+pub(super) fn obstacles(leaf: &Leaf<i8>, policy: UnknownPolicy) -> Mask512 {
+    match policy {
+        UnknownPolicy::Free => leaf.marked,
+        UnknownPolicy::Occupied => Mask512 {
+            words: std::array::from_fn(|w| leaf.marked.words[w] | !leaf.active.words[w]),
+        },
+    }
+}
+
+/// The obstacles of a voxel no leaf holds (unknown).
+pub(super) fn absent_obstacles(policy: UnknownPolicy) -> Mask512 {
+    match policy {
+        UnknownPolicy::Free => Mask512::EMPTY,
+        UnknownPolicy::Occupied => Mask512::FULL,
+    }
+}
+
+/// Per-thread buffers of the transform, reused from tile to tile.
+#[derive(Default)]
+pub(super) struct Scratch {
+    obs: Vec<u8>,
+    run: Vec<u8>,
+    below: Vec<u8>,
+    keyz: Vec<u32>,
+    keyy: Vec<u32>,
+    /// The result: keys of the tile's voxels, x fastest, then y, then z.
+    pub(super) keys: Vec<u32>,
+}
+
+/// Transform the tile with minimum corner `origin` (a multiple of [`TILE`]): fills
+/// `scratch.keys`. Returns false, leaving the keys unset, when no obstacle lies within the
+/// radius of the tile (every key would be far).
+pub(super) fn transform(
+    scratch: &mut Scratch,
+    map: &Grid<i8>,
+    policy: UnknownPolicy,
+    origin: VoxelCoord,
+    radius: u32,
+    avx2: bool,
+) -> bool {
+    let (r, t) = (radius as usize, TILE);
+    let n = t + 2 * r;
+    if !fill_obstacles(&mut scratch.obs, map, policy, origin, radius) {
+        return false;
+    }
+    scratch.run.resize(n * n, 0);
+    scratch.below.resize(t * n * n, 0);
+    scratch.keyz.resize(t * n * n, 0);
+    scratch.keyy.resize(t * t * n, 0);
+    scratch.keys.resize(t * t * t, 0);
+    #[cfg(target_arch = "x86_64")]
+    if avx2 {
+        // SAFETY: the caller passes `avx2` only where `Kernel::Avx2.supported()` holds,
+        // which checks every feature `passes_avx2` enables.
+        unsafe { passes_avx2(scratch, n, r) };
+        return true;
+    }
+    let _ = avx2;
+    passes(scratch, n, r);
+    true
+}
+
+/// Write the obstacles of the region `origin - radius .. origin + TILE + radius` as one
+/// byte per voxel (x fastest); false when there is none.
+fn fill_obstacles(
+    obs: &mut Vec<u8>,
+    map: &Grid<i8>,
+    policy: UnknownPolicy,
+    origin: VoxelCoord,
+    radius: u32,
+) -> bool {
+    let r = radius as i32;
+    let n = TILE as i32 + 2 * r;
+    let g0 = VoxelCoord::new(origin.x - r, origin.y - r, origin.z - r);
+    let absent = absent_obstacles(policy);
+    obs.clear();
+    obs.resize((n * n * n) as usize, u8::from(absent != Mask512::EMPTY));
+    let mut any = absent != Mask512::EMPTY;
+    let lo = |c: i32| c & !7;
+    for lz in (lo(g0.z)..g0.z + n).step_by(8) {
+        for ly in (lo(g0.y)..g0.y + n).step_by(8) {
+            for lx in (lo(g0.x)..g0.x + n).step_by(8) {
+                let o = VoxelCoord::new(lx, ly, lz);
+                let Some(i) = map.leaf_index(o) else { continue };
+                let m = obstacles(map.leaf(i), policy);
+                if m == absent {
+                    continue;
+                }
+                any |= !m.is_empty();
+                // The leaf's voxels inside the region, per axis.
+                let span = |o: i32, g: i32| ((g - o).max(0), (g + n - o).min(8));
+                let (x0, x1) = span(o.x, g0.x);
+                let (y0, y1) = span(o.y, g0.y);
+                let (z0, z1) = span(o.z, g0.z);
+                for z in z0..z1 {
+                    let word = m.words[z as usize];
+                    for y in y0..y1 {
+                        let row = (word >> (8 * y)) as u8;
+                        let at =
+                            (((o.z + z - g0.z) * n + (o.y + y - g0.y)) * n + o.x - g0.x) as usize;
+                        for x in x0..x1 {
+                            obs[at + x as usize] = (row >> x) & 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    any
+}
+
+/// The three passes over a filled scratch (`n = TILE + 2r`).
+#[inline(always)]
+fn passes(s: &mut Scratch, n: usize, r: usize) {
+    let t = TILE;
+    let plane = n * n;
+    let cap = (r + 1) as u8;
+    let far = far_key(r as u32);
+    // Along z: the nearest obstacle below (at or under z) and above, per column. Only
+    // the tile's planes are kept, for the voxels of the region's x and y.
+    let Scratch {
+        obs,
+        run,
+        below,
+        keyz,
+        keyy,
+        keys,
+    } = s;
+    run.fill(cap);
+    for z in 0..r + t {
+        let o = &obs[z * plane..][..plane];
+        for (c, &b) in run.iter_mut().zip(o) {
+            *c = if b != 0 { 0 } else { (*c + 1).min(cap) };
+        }
+        if z >= r {
+            below[(z - r) * plane..][..plane].copy_from_slice(run);
+        }
+    }
+    run.fill(cap);
+    for z in (r..n).rev() {
+        let o = &obs[z * plane..][..plane];
+        for (c, &b) in run.iter_mut().zip(o) {
+            *c = if b != 0 { 0 } else { (*c + 1).min(cap) };
+        }
+        if z < r + t {
+            let zt = z - r;
+            let out = &mut keyz[zt * plane..][..plane];
+            let down = &below[zt * plane..][..plane];
+            for ((k, &b), &a) in out.iter_mut().zip(down).zip(run.iter()) {
+                let (b, a) = (u32::from(b), u32::from(a));
+                let kb = (b * b) << D2_SHIFT;
+                let ka = (a * a) << D2_SHIFT | 1;
+                *k = kb.min(ka).min(far);
+            }
+        }
+    }
+    // Along y: for the tile's (y, z), every x of the region.
+    for zt in 0..t {
+        for yt in 0..t {
+            let out = &mut keyy[(zt * t + yt) * n..][..n];
+            out.fill(far);
+            for (k, y) in (yt..=yt + 2 * r).enumerate() {
+                let c = add_y(k as i32 - r as i32);
+                let src = &keyz[(zt * n + y) * n..][..n];
+                for (o, &s) in out.iter_mut().zip(src) {
+                    *o = (*o).min(s + c);
+                }
+            }
+            for o in out.iter_mut() {
+                *o = (*o).min(far);
+            }
+        }
+    }
+    // Along x: the tile's voxels.
+    for row in 0..t * t {
+        let src = &keyy[row * n..][..n];
+        let out = &mut keys[row * t..][..t];
+        out.fill(far);
+        for k in 0..=2 * r {
+            let c = add_x(k as i32 - r as i32);
+            for (o, &s) in out.iter_mut().zip(&src[k..k + t]) {
+                *o = (*o).min(s + c);
+            }
+        }
+    }
+}
+
+/// [`passes`] compiled for AVX2: eight keys per instruction instead of four.
+///
+/// # Safety
+/// The CPU must have AVX2 (`Kernel::Avx2.supported()` checks it).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize) {
+    passes(s, n, r)
+}
