@@ -33,6 +33,8 @@ pub const FLAG_VALUES: u32 = 1;
 /// The table is a dense array over the blocks' bounds (`index_lo`, `index_dims`), not a
 /// hash table.
 pub const FLAG_DENSE_INDEX: u32 = 2;
+/// A distance field section follows the other sections ([`FieldHeader`]).
+pub const FLAG_FIELD: u32 = 4;
 pub const HEADER_SIZE: usize = std::mem::size_of::<Header>();
 pub const VALUES_PER_LEAF: usize = 512;
 pub const ENTRY_SIZE: usize = std::mem::size_of::<LeafEntry>();
@@ -158,6 +160,52 @@ const _: () = assert!(std::mem::offset_of!(Header, table_offset) == 136);
 const _: () = assert!(std::mem::offset_of!(Header, masks_len) == 168);
 const _: () = assert!(std::mem::offset_of!(Header, total_len) == 184);
 const _: () = assert!(std::mem::offset_of!(Header, checksum) == 192);
+
+/// The distance field section's header: it starts at the first 8-byte boundary after the
+/// last other section (values, else masks) and runs to `total_len`. After it come one
+/// [`FieldEntry`] per leaf (in leaf order), then `data_len` bytes of leaf data, zero-padded
+/// to a multiple of 8.
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct FieldHeader {
+    /// Distances are kept below this many metres: `radius` voxels.
+    pub max_distance: f64,
+    /// The band's radius in voxels, 1 to 63.
+    pub radius: u32,
+    /// What unknown voxels count as: 0 free, 1 occupied.
+    pub unknown: u8,
+    pub reserved: [u8; 3],
+    /// The voxels the field covers, inclusive (the whole index space when it has no
+    /// window and the snapshot no box).
+    pub window_lo: [i32; 3],
+    pub window_hi: [i32; 3],
+    /// Voxels stored (in the band).
+    pub band_count: u64,
+    /// Bytes of leaf data (< 2^32).
+    pub data_len: u64,
+    pub reserved2: u64,
+}
+
+pub const FIELD_HEADER_SIZE: usize = std::mem::size_of::<FieldHeader>();
+const _: () = assert!(FIELD_HEADER_SIZE == 64);
+
+/// A leaf's share of the distance field section: where its data starts in the data bytes,
+/// and its kind: [`FIELD_NONE`], [`FIELD_ALL`] or [`FIELD_MASKED`].
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct FieldEntry {
+    pub data: u32,
+    pub kind: u32,
+}
+
+pub const FIELD_ENTRY_SIZE: usize = std::mem::size_of::<FieldEntry>();
+/// No voxel of the leaf lies in the band; no data.
+pub const FIELD_NONE: u32 = 0;
+/// Every voxel lies in the band: 512 offsets of 3 bytes (dx, dy, dz as `i8`), voxel order.
+pub const FIELD_ALL: u32 = 1;
+/// A 64-byte mask (bit `x | y << 3 | z << 6`, eight little-endian words) of the voxels in
+/// the band, then their offsets, 3 bytes each, in voxel order.
+pub const FIELD_MASKED: u32 = 2;
 
 /// Hash table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its
 /// first probe. Blocks are few (a 60 m map has some thousands), so this costs 16 bytes a

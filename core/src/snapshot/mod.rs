@@ -7,12 +7,14 @@
 //! [`SnapshotView::open`] validates every offset and count once, after which every query
 //! is bounds-safe and never panics, whatever the bytes. See `docs/snapshot-format.md`.
 
+pub mod field;
 pub mod layout;
 pub mod record;
 pub mod view;
 #[cfg(feature = "map")]
 pub mod writer;
 
+pub use field::{FieldView, Nearest};
 pub use layout::{EncodeError, Header, SnapshotError, FORMAT_VERSION, MAGIC};
 pub use view::{InvalidBox, InvalidSegment, SnapshotView};
 #[cfg(feature = "map")]

@@ -633,6 +633,29 @@ fn exercise(bytes: &[u8]) {
         );
         let _ = v.occupied_voxels().take(100_000).count();
         let _ = (v.bounds(), v.counts(), v.header());
+        if let Some(f) = v.distance_field() {
+            let points: Vec<WorldPoint> = (-30..30)
+                .map(|i| {
+                    WorldPoint::new(
+                        0.11 * f64::from(i),
+                        -0.07 * f64::from(i),
+                        0.05 * f64::from(i),
+                    )
+                })
+                .chain([
+                    WorldPoint::new(f64::NAN, 0.0, 0.0),
+                    WorldPoint::new(1e12, 0.0, 0.0),
+                ])
+                .collect();
+            let (mut d, mut g, mut n) = (Vec::new(), Vec::new(), Vec::new());
+            f.distances_at(&points, &mut d);
+            f.distances_and_gradients_at(&points, &mut g);
+            f.nearest_obstacles(&points, &mut n);
+            for p in &voxels {
+                let _ = f.distance(*p);
+            }
+            let _ = (f.window(), f.band_voxels(), f.max_distance());
+        }
     }
 }
 
@@ -661,6 +684,26 @@ proptest! {
         let mut b = SMALL.with(|s| s.clone());
         for (d, s) in b[layout::HEADER_SIZE..].iter_mut().zip(body.iter().cycle()) {
             *d = *s;
+        }
+        exercise(&b);
+    }
+
+    /// Flips and cuts mostly inside the distance field section.
+    #[test]
+    fn mutated_field_sections_never_panic(flips in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..8), cut in any::<usize>()) {
+        thread_local!(static GOOD: (Vec<u8>, usize) = {
+            let map = random_map(5, 1);
+            let bytes = with_field(&map, Scope::Whole, crate::field::UnknownPolicy::Free);
+            let start = bytes.len() - field_section_len(&bytes);
+            (bytes, start)
+        });
+        let (mut b, start) = GOOD.with(|g| g.clone());
+        for (at, x) in flips {
+            let i = if at % 4 != 0 { start + at % (b.len() - start) } else { at % b.len() };
+            b[i] ^= x;
+        }
+        if cut % 4 == 0 {
+            b.truncate(cut % (b.len() + 1));
         }
         exercise(&b);
     }
@@ -766,4 +809,184 @@ fn leaves_with_nothing_known_are_left_out() {
     assert_eq!(a.leaf_count(), b.leaf_count());
     assert_eq!(a.counts(), b.counts());
     assert_eq!(before, after);
+}
+
+fn with_field(map: &OccupancyMap, scope: Scope, unknown: crate::field::UnknownPolicy) -> Vec<u8> {
+    let cfg = crate::field::FieldConfig {
+        max_distance: 0.5,
+        unknown,
+        window: None,
+    };
+    let mut field = crate::field::DistanceField::new(cfg, map.resolution()).unwrap();
+    field.rebuild(map, None);
+    Plan::new(map, scope, Meta::default())
+        .with_field(&field)
+        .to_vec()
+}
+
+/// Bytes of the field section at the end of a snapshot.
+fn field_section_len(bytes: &[u8]) -> usize {
+    let v = SnapshotView::open(bytes).unwrap();
+    let f = v.distance_field().unwrap();
+    let data: usize = bytes.len(); // the section runs to the end
+    let h: layout::Header = *v.header();
+    let end =
+        (h.masks_offset + layout::align8(h.masks_len)).max(if h.flags & layout::FLAG_VALUES != 0 {
+            h.values_offset + 512 * h.leaf_count
+        } else {
+            0
+        });
+    let _ = f;
+    data - layout::align8(end) as usize
+}
+
+/// Every voxel of every leaf (and around them): the snapshot's field answers what the
+/// field kept, under both policies, whole and in a box; interpolation between centres
+/// passes through each centre's value, and its gradient points away from an obstacle.
+#[test]
+fn field_section_answers_like_the_field() {
+    use crate::field::{DistanceField, FieldConfig, UnknownPolicy};
+    let map = random_map(21, 2);
+    for unknown in [UnknownPolicy::Free, UnknownPolicy::Occupied] {
+        let cfg = FieldConfig {
+            max_distance: 0.5,
+            unknown,
+            window: None,
+        };
+        let mut field = DistanceField::new(cfg, 0.1).unwrap();
+        field.rebuild(&map, None);
+        let bytes = Plan::new(&map, Scope::Whole, Meta::default())
+            .with_field(&field)
+            .to_vec();
+        let view = SnapshotView::open_checked(&bytes).unwrap();
+        let f = view.distance_field().expect("a field");
+        assert_eq!(f.band_voxels(), field.band_voxels());
+        assert_eq!((f.radius(), f.unknown()), (5, unknown));
+        let (mut checked, mut interpolated) = (0, 0);
+        for (origin, _) in map.grid().leaves() {
+            for i in (0..512).step_by(3) {
+                let v = crate::tree::voxel_at(origin, i);
+                let want = field.distance(v).unwrap_or(0.5);
+                assert_eq!(f.distance(v), Some(want), "{v:?}");
+                let c = map.transform().voxel_center(v);
+                // None where a neighbour of the interpolation is unknown (map edges).
+                if let Some(at) = f.distance_at(&c) {
+                    assert!((at - want).abs() < 1e-9, "{v:?}: {at} vs {want}");
+                    interpolated += 1;
+                }
+                match (f.nearest_obstacle(&c), field.nearest(v)) {
+                    (
+                        Nearest::At {
+                            voxel, distance, ..
+                        },
+                        Some(o),
+                    ) => {
+                        assert_eq!(
+                            voxel,
+                            v + VoxelCoord::new(o[0].into(), o[1].into(), o[2].into())
+                        );
+                        assert!((distance - want).abs() < 1e-12);
+                    }
+                    (Nearest::NoneWithin, None) => {}
+                    (got, want) => panic!("{v:?}: {got:?} vs {want:?}"),
+                }
+                checked += 1;
+            }
+        }
+        assert!(
+            checked > 10_000 && interpolated > checked / 2,
+            "{interpolated} of {checked}"
+        );
+        // Outside every leaf: unknown under `free`, an obstacle under `occupied`.
+        let far = VoxelCoord::new(5000, 5000, 5000);
+        let want = (unknown == UnknownPolicy::Occupied).then_some(0.0);
+        assert_eq!(f.distance(far), want);
+    }
+    // No field: none.
+    let plain = encode(&map, Scope::Whole, false);
+    assert!(SnapshotView::open(&plain)
+        .unwrap()
+        .distance_field()
+        .is_none());
+}
+
+#[test]
+fn field_gradient_points_away_from_the_obstacle() {
+    use crate::field::{DistanceField, FieldConfig};
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    for z in -12..12 {
+        for y in -12..12 {
+            for x in -12..12 {
+                map.set_value(VoxelCoord::new(x, y, z), -50);
+            }
+        }
+    }
+    map.set_value(VoxelCoord::new(0, 0, 0), 100);
+    let mut field = DistanceField::new(
+        FieldConfig {
+            max_distance: 1.0,
+            ..Default::default()
+        },
+        0.1,
+    )
+    .unwrap();
+    field.rebuild(&map, None);
+    let bytes = Plan::new(&map, Scope::Whole, Meta::default())
+        .with_field(&field)
+        .to_vec();
+    let view = SnapshotView::open(&bytes).unwrap();
+    let f = view.distance_field().unwrap();
+    let mut rng = Rng(2);
+    for _ in 0..500 {
+        let dir = nalgebra::Vector3::new(rng.f() - 0.5, rng.f() - 0.5, rng.f() - 0.5).normalize();
+        let r = 0.25 + 0.5 * rng.f();
+        let p = WorldPoint::new(0.05, 0.05, 0.05) + dir * r;
+        let (d, g) = f.distance_and_gradient_at(&p).unwrap();
+        // Trilinear over exact centre distances: within half a voxel's diagonal.
+        assert!((d - r).abs() < 0.05, "{p:?}: {d} vs {r}");
+        assert!(
+            g.dot(&dir) > 0.7 * g.norm() && (g.norm() - 1.0).abs() < 0.3,
+            "{p:?}: {g:?}"
+        );
+        let h = 1e-4;
+        let fd = (f
+            .distance_at(&(p + nalgebra::Vector3::new(h, 0.0, 0.0)))
+            .unwrap()
+            - f.distance_at(&(p - nalgebra::Vector3::new(h, 0.0, 0.0)))
+                .unwrap())
+            / (2.0 * h);
+        assert!(
+            (fd - g.x).abs() < 1e-3 || (fd - g.x).abs() < 0.2 * g.norm(),
+            "{fd} vs {}",
+            g.x
+        );
+    }
+    // Beyond the max distance: the max, flat.
+    let (d, g) = f
+        .distance_and_gradient_at(&WorldPoint::new(1.15, 0.55, -0.45))
+        .unwrap();
+    assert_eq!((d, g.norm()), (1.0, 0.0));
+}
+
+#[test]
+fn a_box_scope_limits_the_field_to_the_box() {
+    let map = random_map(23, 1);
+    let scope = Scope::Box {
+        min: [-1.0, -1.0, -1.0],
+        max: [1.0, 1.0, 1.0],
+    };
+    let bytes = with_field(&map, scope, crate::field::UnknownPolicy::Occupied);
+    let view = SnapshotView::open_checked(&bytes).unwrap();
+    let f = view.distance_field().unwrap();
+    assert_eq!(
+        f.window(),
+        (VoxelCoord::new(-10, -10, -10), VoxelCoord::new(9, 9, 9))
+    );
+    assert_eq!(f.distance(VoxelCoord::new(10, 0, 0)), None);
+    assert!(f.distance(VoxelCoord::new(9, 0, 0)).is_some());
+    assert_eq!(
+        f.distance_at(&WorldPoint::new(0.99, 0.0, 0.0)),
+        None,
+        "a corner is outside"
+    );
 }

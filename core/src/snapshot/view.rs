@@ -133,8 +133,8 @@ impl Extend<VoxelState> for StateCodes<'_> {
 
 /// A leaf found in the table: its index (for the values section) and mask record.
 #[derive(Clone, Copy, Debug)]
-struct LeafRef {
-    index: u64,
+pub(super) struct LeafRef {
+    pub(super) index: u64,
     record: u32,
     kinds: (u8, u8),
 }
@@ -164,6 +164,8 @@ pub struct SnapshotView<'a> {
     /// The mask records (the masks section without its padding).
     masks: &'a [u8],
     header: Header,
+    /// The distance field section, when there is one ([`FLAG_FIELD`]).
+    field: Option<super::field::FieldParts<'a>>,
     /// The table is a dense array ([`FLAG_DENSE_INDEX`]).
     dense: bool,
     tf: GridTransform,
@@ -198,7 +200,7 @@ impl<'a> SnapshotView<'a> {
         if h.header_size as usize != HEADER_SIZE {
             return Err(SnapshotError::BadHeader("header_size"));
         }
-        if h.flags & !(FLAG_VALUES | FLAG_DENSE_INDEX) != 0 {
+        if h.flags & !(FLAG_VALUES | FLAG_DENSE_INDEX | FLAG_FIELD) != 0 {
             return Err(SnapshotError::BadHeader("unknown flags"));
         }
         if h.total_len > got {
@@ -271,9 +273,24 @@ impl<'a> SnapshotView<'a> {
             max: h.clamp_max,
             threshold: h.threshold,
         };
+        let field = if h.flags & FLAG_FIELD != 0 {
+            let end = (h.masks_offset + align8(h.masks_len)).max(if h.flags & FLAG_VALUES != 0 {
+                h.values_offset + n * VALUES_PER_LEAF as u64
+            } else {
+                0
+            });
+            let at = align8(end);
+            let body = bytes[..h.total_len as usize]
+                .get(at as usize..)
+                .ok_or(SnapshotError::SectionOutOfBounds("field"))?;
+            Some(super::field::FieldParts::open(body, n, h.resolution)?)
+        } else {
+            None
+        };
         // In bounds: every section was checked to lie inside total_len <= bytes.len().
         let sub = |off: u64, len: u64| &bytes[off as usize..(off + len) as usize];
         let v = SnapshotView {
+            field,
             bytes: &bytes[..h.total_len as usize],
             table: bytemuck::cast_slice(sub(h.table_offset, 4 * cap)),
             blocks: bytemuck::cast_slice(sub(h.blocks_offset, BLOCK_SIZE as u64 * nb)),
@@ -402,6 +419,12 @@ impl<'a> SnapshotView<'a> {
         (lo[0] <= hi[0]).then(|| (VoxelCoord::from_array(lo), VoxelCoord::from_array(hi)))
     }
 
+    /// The distance field, if the snapshot carries one: queries on it read in place.
+    pub fn distance_field(&self) -> Option<super::field::FieldView<'a>> {
+        self.field
+            .map(|parts| super::field::FieldView::new(*self, parts))
+    }
+
     pub fn has_values(&self) -> bool {
         self.header.flags & FLAG_VALUES != 0
     }
@@ -423,7 +446,7 @@ impl<'a> SnapshotView<'a> {
 
     /// The leaf holding voxel `v`.
     #[inline]
-    fn find_leaf(&self, v: VoxelCoord) -> Option<LeafRef> {
+    pub(super) fn find_leaf(&self, v: VoxelCoord) -> Option<LeafRef> {
         let b = block_origin(v).to_array();
         let block = self.find_block(b)?;
         self.leaf_index(block, leaf_in_block(v))

@@ -229,6 +229,16 @@ pub struct Plan<'a> {
     records: Vec<Vec<u8>>,
     masks_len: u64,
     sums: Sums,
+    /// The voxels a box scope keeps (inclusive), `None` for the whole map.
+    scope_box: Option<(VoxelCoord, VoxelCoord)>,
+    field: Option<FieldPlan>,
+}
+
+/// The distance field section, encoded: header, one entry per planned leaf, data pieces.
+struct FieldPlan {
+    header: FieldHeader,
+    entries: Vec<FieldEntry>,
+    data: Vec<Vec<u8>>,
 }
 
 /// Section offsets and the total length.
@@ -238,6 +248,8 @@ struct Sections {
     entries: u64,
     masks: u64,
     values: u64,
+    /// 0 without a distance field.
+    field: u64,
     total: u64,
 }
 
@@ -325,6 +337,14 @@ fn fill_table(slots: &mut [u8], order: &[u64]) {
 impl<'a> Plan<'a> {
     pub fn new(map: &'a OccupancyMap, scope: Scope, meta: Meta) -> Self {
         let mut keeps = Vec::new();
+        let scope_box = match scope {
+            Scope::Whole => None,
+            Scope::Box { min, max } => Some(
+                map.transform()
+                    .voxels_centred_in(&WorldPoint::from(min), &WorldPoint::from(max))
+                    .unwrap_or((VoxelCoord::new(1, 1, 1), VoxelCoord::new(0, 0, 0))),
+            ),
+        };
         let mut leaves: Vec<PlannedLeaf<'a>> = match scope {
             // Leaves are not read here; the pass below reads each one once.
             Scope::Whole => {
@@ -430,7 +450,88 @@ impl<'a> Plan<'a> {
             records,
             masks_len: at,
             sums,
+            scope_box,
+            field: None,
         }
+    }
+
+    /// Carry `field` (kept beside the planned map) in the snapshot, for the leaves planned.
+    pub fn with_field(mut self, field: &crate::field::DistanceField) -> Self {
+        let whole = (
+            VoxelCoord::new(i32::MIN, i32::MIN, i32::MIN),
+            VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
+        );
+        let (mut lo, mut hi) = field.window().unwrap_or(whole);
+        if let Some((blo, bhi)) = self.scope_box {
+            lo = lo.max(blo);
+            hi = hi.min(bhi);
+        }
+        let pieces: Vec<(Vec<FieldEntry>, Vec<u8>, u64)> = self
+            .leaves
+            .par_chunks(PIECE)
+            .map(|piece| {
+                let mut entries = Vec::with_capacity(piece.len());
+                let mut data = Vec::new();
+                let mut band = 0u64;
+                for p in piece {
+                    let Some((mask, offsets)) = field.leaf(p.origin) else {
+                        entries.push(FieldEntry {
+                            data: 0,
+                            kind: FIELD_NONE,
+                        });
+                        continue;
+                    };
+                    let at = data.len() as u32;
+                    let count = mask.count();
+                    band += u64::from(count);
+                    if count == 512 {
+                        entries.push(FieldEntry {
+                            data: at,
+                            kind: FIELD_ALL,
+                        });
+                        data.extend(offsets.iter().flat_map(|o| o.map(|c| c as u8)));
+                    } else {
+                        entries.push(FieldEntry {
+                            data: at,
+                            kind: FIELD_MASKED,
+                        });
+                        data.extend(mask.words.iter().flat_map(|w| w.to_le_bytes()));
+                        data.extend(mask.iter_ones().flat_map(|i| offsets[i].map(|c| c as u8)));
+                    }
+                }
+                (entries, data, band)
+            })
+            .collect();
+        let mut entries = Vec::with_capacity(self.leaves.len());
+        let mut data = Vec::with_capacity(pieces.len());
+        let (mut at, mut band_count) = (0u64, 0u64);
+        for (e, d, b) in pieces {
+            // Offsets within a piece become offsets within the section's data; past
+            // u32::MAX they would wrap, and `write` refuses the plan.
+            entries.extend(e.into_iter().map(|mut e| {
+                e.data = (at + u64::from(e.data)).min(u64::from(u32::MAX)) as u32;
+                e
+            }));
+            at += d.len() as u64;
+            band_count += b;
+            data.push(d);
+        }
+        self.field = Some(FieldPlan {
+            header: FieldHeader {
+                max_distance: field.max_distance(),
+                radius: field.radius(),
+                unknown: field.config().unknown.code(),
+                reserved: [0; 3],
+                window_lo: lo.to_array(),
+                window_hi: hi.to_array(),
+                band_count,
+                data_len: at,
+                reserved2: 0,
+            },
+            entries,
+            data,
+        });
+        self
     }
 
     pub fn leaf_count(&self) -> usize {
@@ -444,10 +545,19 @@ impl<'a> Plan<'a> {
         let entries = blocks + BLOCK_SIZE as u64 * self.blocks.len() as u64;
         let masks = entries + ENTRY_SIZE as u64 * n;
         let values_end = masks + align8(self.masks_len);
-        let (values, total) = if self.meta.with_values {
+        let (values, end) = if self.meta.with_values {
             (values_end, values_end + VALUES_PER_LEAF as u64 * n)
         } else {
             (0, values_end)
+        };
+        let (field, total) = match &self.field {
+            Some(f) => {
+                let at = align8(end);
+                let len = (FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * f.entries.len()) as u64
+                    + align8(f.header.data_len);
+                (at, at + len)
+            }
+            None => (0, end),
         };
         Sections {
             table,
@@ -455,6 +565,7 @@ impl<'a> Plan<'a> {
             entries,
             masks,
             values,
+            field,
             total,
         }
     }
@@ -472,9 +583,14 @@ impl<'a> Plan<'a> {
             entries,
             masks,
             values,
+            field,
             total,
         } = self.sections();
         if self.masks_len > MAX_MASKS_LEN
+            || self
+                .field
+                .as_ref()
+                .is_some_and(|f| f.header.data_len > u64::from(u32::MAX))
             || self.table_capacity >= 1 << 32
             || self.leaves.len() as u64 >= u64::from(u32::MAX)
         {
@@ -516,7 +632,13 @@ impl<'a> Plan<'a> {
         // Cut the sections into disjoint pieces and write them in parallel.
         let (_, rest) = buf.split_at_mut(entries as usize);
         let (entry_bytes, rest) = rest.split_at_mut((masks - entries) as usize);
-        let (mask_section, value_bytes) = rest.split_at_mut(align8(self.masks_len) as usize);
+        let (mask_section, rest) = rest.split_at_mut(align8(self.masks_len) as usize);
+        let values_len = if self.meta.with_values {
+            VALUES_PER_LEAF * self.leaves.len()
+        } else {
+            0
+        };
+        let (value_bytes, field_bytes) = rest.split_at_mut(values_len);
         let (mut mask_bytes, padding) = mask_section.split_at_mut(self.masks_len as usize);
         padding.fill(0);
         let mut record_pieces = Vec::with_capacity(self.records.len());
@@ -553,6 +675,23 @@ impl<'a> Plan<'a> {
                     }
                 });
         }
+        if let Some(f) = &self.field {
+            // From the end of the last section: its padding, then the field section.
+            let field_bytes = &mut field_bytes
+                [(field - (masks + align8(self.masks_len) + values_len as u64)) as usize..];
+            let (head, rest) = field_bytes.split_at_mut(FIELD_HEADER_SIZE);
+            head.copy_from_slice(bytemuck::bytes_of(&f.header));
+            let (entry_out, mut data_out) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
+            entry_out.copy_from_slice(bytemuck::cast_slice(&f.entries));
+            let mut pieces = Vec::with_capacity(f.data.len());
+            for d in &f.data {
+                pieces.push((take(&mut data_out, d.len()), d));
+            }
+            data_out.fill(0);
+            pieces
+                .into_par_iter()
+                .for_each(|(out, d)| out.copy_from_slice(d));
+        }
         let sums = &self.sums;
         let checksum = buf[HEADER_SIZE..]
             .par_chunks(CRC_PIECE)
@@ -577,7 +716,7 @@ impl<'a> Plan<'a> {
                 FLAG_DENSE_INDEX
             } else {
                 0
-            },
+            } | if self.field.is_some() { FLAG_FIELD } else { 0 },
             header_size: HEADER_SIZE as u32,
             frac_bits: q.frac_bits,
             threshold: q.threshold,

@@ -1,0 +1,391 @@
+//! The distance field section of a snapshot, read in place: [`FieldView`].
+//!
+//! Each leaf of the snapshot has a [`FieldEntry`]: none of its voxels in the band, all of
+//! them (512 offsets), or a mask and the offsets of the voxels it sets. An offset is the
+//! step from a voxel to its nearest obstacle voxel, so a query reads three bytes and takes
+//! one square root; the leaf is found by the same block lookup as a state query.
+
+use super::layout::*;
+use super::view::SnapshotView;
+use super::SnapshotError;
+use crate::coord::{VoxelCoord, WorldPoint, MAX_VOXEL_INDEX};
+use crate::field::{offset_len2, UnknownPolicy, MAX_RADIUS};
+use crate::tree::{leaf_offset, LEAF_VOXELS};
+use nalgebra::Vector3;
+
+/// The validated pieces of a field section.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct FieldParts<'a> {
+    header: FieldHeader,
+    entries: &'a [[u8; FIELD_ENTRY_SIZE]],
+    data: &'a [u8],
+}
+
+impl<'a> FieldParts<'a> {
+    /// Check a field section (`body` runs from its start to the snapshot's end) for a
+    /// snapshot of `leaves` leaves at `resolution`.
+    pub(super) fn open(
+        body: &'a [u8],
+        leaves: u64,
+        resolution: f64,
+    ) -> Result<Self, SnapshotError> {
+        let bad = SnapshotError::BadHeader;
+        let hb = body
+            .get(..FIELD_HEADER_SIZE)
+            .ok_or(SnapshotError::SectionOutOfBounds("field"))?;
+        let h: FieldHeader = bytemuck::pod_read_unaligned(hb);
+        if !(1..=MAX_RADIUS).contains(&h.radius) {
+            return Err(bad("field radius"));
+        }
+        let want = f64::from(h.radius) * resolution;
+        if !(h.max_distance.is_finite() && (h.max_distance - want).abs() <= 1e-9 * want) {
+            return Err(bad("field max_distance"));
+        }
+        if UnknownPolicy::from_code(h.unknown).is_none() {
+            return Err(bad("field unknown policy"));
+        }
+        if h.reserved != [0; 3] || h.reserved2 != 0 {
+            return Err(bad("field reserved bytes"));
+        }
+        if (0..3).any(|k| h.window_lo[k] > h.window_hi[k]) {
+            return Err(bad("field window"));
+        }
+        if h.data_len > u64::from(u32::MAX) {
+            return Err(bad("field data_len"));
+        }
+        let entries_len = leaves * FIELD_ENTRY_SIZE as u64;
+        let len = FIELD_HEADER_SIZE as u64 + entries_len + align8(h.data_len);
+        if len != body.len() as u64 {
+            return Err(SnapshotError::SectionOutOfBounds("field"));
+        }
+        let entries: &[[u8; FIELD_ENTRY_SIZE]] =
+            bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..][..entries_len as usize]);
+        let data = &body[FIELD_HEADER_SIZE + entries_len as usize..][..h.data_len as usize];
+        let mut band = 0u64;
+        for e in entries {
+            let e: FieldEntry = bytemuck::pod_read_unaligned(e);
+            let at = u64::from(e.data);
+            let need = match e.kind {
+                FIELD_NONE => 0,
+                FIELD_ALL => {
+                    band += LEAF_VOXELS as u64;
+                    3 * LEAF_VOXELS as u64
+                }
+                FIELD_MASKED => {
+                    let count = mask_at(data, e.data)
+                        .ok_or(SnapshotError::BadIndex(
+                            "field leaf data outside the section",
+                        ))?
+                        .iter()
+                        .map(|w| u64::from(w.count_ones()))
+                        .sum::<u64>();
+                    band += count;
+                    64 + 3 * count
+                }
+                _ => return Err(SnapshotError::BadIndex("field leaf kind")),
+            };
+            if at + need > h.data_len {
+                return Err(SnapshotError::BadIndex(
+                    "field leaf data outside the section",
+                ));
+            }
+        }
+        if band != h.band_count {
+            return Err(bad("field band_count"));
+        }
+        Ok(Self {
+            header: h,
+            entries,
+            data,
+        })
+    }
+}
+
+/// The mask of a masked leaf's data at `at`.
+#[inline]
+fn mask_at(data: &[u8], at: u32) -> Option<[u64; 8]> {
+    let b = data.get(at as usize..at as usize + 64)?;
+    Some(std::array::from_fn(|w| {
+        u64::from_le_bytes(b[8 * w..8 * w + 8].try_into().unwrap_or([0; 8]))
+    }))
+}
+
+/// Where a point's nearest obstacle is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Nearest {
+    /// The field does not cover the point (outside its window, or unknown space it does
+    /// not hold).
+    Unknown,
+    /// No obstacle lies within the field's max distance.
+    NoneWithin,
+    /// The nearest obstacle voxel and the distance between its centre and the centre of
+    /// the point's voxel (metres).
+    At {
+        voxel: VoxelCoord,
+        centre: WorldPoint,
+        distance: f64,
+    },
+}
+
+/// One voxel of the field.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Cell {
+    Unknown,
+    Far,
+    Near([i8; 3]),
+}
+
+/// The distance field of a snapshot, queried in place (from
+/// [`SnapshotView::distance_field`]). Distances are in metres between voxel centres,
+/// exact for the voxels (see [`crate::field`]); `distance_at` interpolates them.
+///
+/// ```
+/// use voxmap_core::{OccupancyMap, SensorModel, VoxelCoord, WorldPoint};
+/// use voxmap_core::field::{DistanceField, FieldConfig};
+/// use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
+/// let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+/// for x in -10..10 { map.set_value(VoxelCoord::new(x, 0, 0), -10); }
+/// map.set_value(VoxelCoord::new(0, 0, 0), 100);
+/// let mut field = DistanceField::new(FieldConfig::default(), 0.1).unwrap();
+/// field.rebuild(&map, None);
+/// let bytes = Plan::new(&map, Scope::Whole, Meta::default()).with_field(&field).to_vec();
+/// let view = SnapshotView::open(&bytes).unwrap();
+/// let f = view.distance_field().unwrap();
+/// assert!((f.distance(VoxelCoord::new(5, 0, 0)).unwrap() - 0.5).abs() < 1e-12);
+/// assert_eq!(f.distance(VoxelCoord::new(0, 40, 0)), None); // nothing known there
+/// ```
+#[derive(Clone, Copy, Debug)]
+pub struct FieldView<'a> {
+    view: SnapshotView<'a>,
+    parts: FieldParts<'a>,
+    lo: VoxelCoord,
+    hi: VoxelCoord,
+    policy: UnknownPolicy,
+    res: f64,
+    max: f64,
+}
+
+impl<'a> FieldView<'a> {
+    pub(super) fn new(view: SnapshotView<'a>, parts: FieldParts<'a>) -> Self {
+        let h = parts.header;
+        Self {
+            view,
+            parts,
+            lo: VoxelCoord::from_array(h.window_lo),
+            hi: VoxelCoord::from_array(h.window_hi),
+            policy: UnknownPolicy::from_code(h.unknown).unwrap_or_default(),
+            res: view.resolution(),
+            max: h.max_distance,
+        }
+    }
+
+    /// Distances at or above this are not kept: a query there answers this value.
+    pub fn max_distance(&self) -> f64 {
+        self.max
+    }
+
+    /// The band's radius in voxels.
+    pub fn radius(&self) -> u32 {
+        self.parts.header.radius
+    }
+
+    /// What unknown voxels count as.
+    pub fn unknown(&self) -> UnknownPolicy {
+        self.policy
+    }
+
+    /// The voxels the field covers, inclusive.
+    pub fn window(&self) -> (VoxelCoord, VoxelCoord) {
+        (self.lo, self.hi)
+    }
+
+    /// Voxels stored (within the max distance of an obstacle).
+    pub fn band_voxels(&self) -> u64 {
+        self.parts.header.band_count
+    }
+
+    #[inline]
+    fn covers(&self, v: VoxelCoord) -> bool {
+        let (lo, hi) = (self.lo, self.hi);
+        lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
+    }
+
+    /// Voxel `i` of leaf `index` (a leaf the snapshot holds).
+    #[inline]
+    fn cell_in(&self, index: u64, i: usize) -> Cell {
+        let Some(e) = self.parts.entries.get(index as usize) else {
+            return Cell::Far;
+        };
+        let e: FieldEntry = bytemuck::pod_read_unaligned(e);
+        let data = self.parts.data;
+        let at = match e.kind {
+            FIELD_ALL => e.data as usize + 3 * i,
+            FIELD_MASKED => {
+                let Some(m) = mask_at(data, e.data) else {
+                    return Cell::Far;
+                };
+                let (w, b) = (i / 64, i % 64);
+                if m[w] >> b & 1 == 0 {
+                    return Cell::Far;
+                }
+                let rank: u32 = m[..w].iter().map(|x| x.count_ones()).sum::<u32>()
+                    + (m[w] & ((1u64 << b) - 1)).count_ones();
+                e.data as usize + 64 + 3 * rank as usize
+            }
+            _ => return Cell::Far,
+        };
+        match data.get(at..at + 3) {
+            Some(o) => Cell::Near([o[0] as i8, o[1] as i8, o[2] as i8]),
+            None => Cell::Far,
+        }
+    }
+
+    /// A voxel no leaf of the snapshot holds: unknown space.
+    #[inline]
+    fn absent(&self) -> Cell {
+        match self.policy {
+            UnknownPolicy::Occupied => Cell::Near([0; 3]),
+            UnknownPolicy::Free => Cell::Unknown,
+        }
+    }
+
+    #[inline]
+    fn cell(&self, v: VoxelCoord) -> Cell {
+        if !self.covers(v) {
+            return Cell::Unknown;
+        }
+        match self.view.find_leaf(v) {
+            Some(l) => self.cell_in(l.index, leaf_offset(v)),
+            None => self.absent(),
+        }
+    }
+
+    #[inline]
+    fn metres(&self, c: Cell) -> Option<f64> {
+        match c {
+            Cell::Unknown => None,
+            Cell::Far => Some(self.max),
+            Cell::Near(o) => Some((f64::from(offset_len2(o)).sqrt() * self.res).min(self.max)),
+        }
+    }
+
+    /// The distance from voxel `v`'s centre to the nearest obstacle's (metres), capped at
+    /// [`Self::max_distance`]; `None` where the field does not reach.
+    pub fn distance(&self, v: VoxelCoord) -> Option<f64> {
+        self.metres(self.cell(v))
+    }
+
+    /// The eight voxels whose centres surround `p`, as distances, and `p`'s place between
+    /// them (0..1 per axis).
+    #[inline]
+    fn corners(&self, p: &WorldPoint) -> Option<([f64; 8], [f64; 3])> {
+        let u = self.view.transform().point_to_units(p).map(|c| c - 0.5);
+        if !u.iter().all(|c| c.is_finite() && c.abs() < MAX_VOXEL_INDEX) {
+            return None;
+        }
+        let f = u.map(f64::floor);
+        let t = [u[0] - f[0], u[1] - f[1], u[2] - f[2]];
+        let b = VoxelCoord::new(f[0] as i32, f[1] as i32, f[2] as i32);
+        let top = b + VoxelCoord::new(1, 1, 1);
+        let mut d = [0.0; 8];
+        if (b.x & 7) != 7 && (b.y & 7) != 7 && (b.z & 7) != 7 && self.covers(b) && self.covers(top)
+        {
+            // All eight in one leaf: one lookup.
+            let leaf = self.view.find_leaf(b);
+            let i0 = leaf_offset(b);
+            for (k, out) in d.iter_mut().enumerate() {
+                let i = i0 + (k & 1) + (k >> 1 & 1) * 8 + (k >> 2) * 64;
+                let c = leaf.map_or(self.absent(), |l| self.cell_in(l.index, i));
+                *out = self.metres(c)?;
+            }
+        } else {
+            for (k, out) in d.iter_mut().enumerate() {
+                let v = b + VoxelCoord::new((k & 1) as i32, (k >> 1 & 1) as i32, (k >> 2) as i32);
+                *out = self.metres(self.cell(v))?;
+            }
+        }
+        Some((d, t))
+    }
+
+    /// The distance at `p` (metres), trilinear between the eight voxel centres around it,
+    /// capped at [`Self::max_distance`]; `None` where the field does not reach any of
+    /// them (outside its window, or unknown space under the `free` policy).
+    pub fn distance_at(&self, p: &WorldPoint) -> Option<f64> {
+        let (d, [tx, ty, tz]) = self.corners(p)?;
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let x00 = lerp(d[0], d[1], tx);
+        let x10 = lerp(d[2], d[3], tx);
+        let x01 = lerp(d[4], d[5], tx);
+        let x11 = lerp(d[6], d[7], tx);
+        Some(lerp(lerp(x00, x10, ty), lerp(x01, x11, ty), tz))
+    }
+
+    /// [`Self::distance_at`] and its gradient (the derivative of the interpolation, per
+    /// metre): it points away from the nearest obstacles, and is zero where every
+    /// surrounding voxel is at the max distance.
+    pub fn distance_and_gradient_at(&self, p: &WorldPoint) -> Option<(f64, Vector3<f64>)> {
+        let (d, [tx, ty, tz]) = self.corners(p)?;
+        let (sy, sz) = (1.0 - ty, 1.0 - tz);
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let x00 = lerp(d[0], d[1], tx);
+        let x10 = lerp(d[2], d[3], tx);
+        let x01 = lerp(d[4], d[5], tx);
+        let x11 = lerp(d[6], d[7], tx);
+        let value = lerp(lerp(x00, x10, ty), lerp(x01, x11, ty), tz);
+        let gx = ((d[1] - d[0]) * sy * sz
+            + (d[3] - d[2]) * ty * sz
+            + (d[5] - d[4]) * sy * tz
+            + (d[7] - d[6]) * ty * tz)
+            / self.res;
+        let gy = ((x10 - x00) * sz + (x11 - x01) * tz) / self.res;
+        let gz = (lerp(x01, x11, ty) - lerp(x00, x10, ty)) / self.res;
+        Some((value, Vector3::new(gx, gy, gz)))
+    }
+
+    /// The obstacle voxel nearest to the voxel holding `p`.
+    pub fn nearest_obstacle(&self, p: &WorldPoint) -> Nearest {
+        let Some(v) = self.view.transform().voxel_of(p) else {
+            return Nearest::Unknown;
+        };
+        match self.cell(v) {
+            Cell::Unknown => Nearest::Unknown,
+            Cell::Far => Nearest::NoneWithin,
+            Cell::Near(o) => {
+                let voxel = v + VoxelCoord::new(o[0].into(), o[1].into(), o[2].into());
+                Nearest::At {
+                    voxel,
+                    centre: self.view.transform().voxel_center(voxel),
+                    distance: f64::from(offset_len2(o)).sqrt() * self.res,
+                }
+            }
+        }
+    }
+
+    /// [`Self::distance_at`] at many points, appended to `out` in order; NaN where the
+    /// field does not reach.
+    pub fn distances_at(&self, points: &[WorldPoint], out: &mut Vec<f64>) {
+        out.extend(
+            points
+                .iter()
+                .map(|p| self.distance_at(p).unwrap_or(f64::NAN)),
+        );
+    }
+
+    /// [`Self::distance_and_gradient_at`] at many points, appended to `out` as
+    /// `[distance, gx, gy, gz]`; all NaN where the field does not reach.
+    pub fn distances_and_gradients_at(&self, points: &[WorldPoint], out: &mut Vec<[f64; 4]>) {
+        out.extend(
+            points
+                .iter()
+                .map(|p| match self.distance_and_gradient_at(p) {
+                    Some((d, g)) => [d, g.x, g.y, g.z],
+                    None => [f64::NAN; 4],
+                }),
+        );
+    }
+
+    /// [`Self::nearest_obstacle`] at many points, appended to `out` in order.
+    pub fn nearest_obstacles(&self, points: &[WorldPoint], out: &mut Vec<Nearest>) {
+        out.extend(points.iter().map(|p| self.nearest_obstacle(p)));
+    }
+}
