@@ -5,6 +5,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use voxmap_core::field::{DistanceField, FieldConfig, UnknownPolicy};
 use voxmap_core::{Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 use voxmap_ipc::ports::qos::FRAME_SUBSCRIBER_BUFFER;
 
@@ -68,6 +69,19 @@ pub struct Config {
     pub rt_priority: i32,
     /// Live ROS 2 (`voxmap serve --ros2`).
     pub ros2: voxmap_ros2::Ros2Config,
+    /// The distance field.
+    pub esdf: EsdfConfig,
+}
+
+/// `[esdf]`: whether the service keeps a distance field, and its [`FieldConfig`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EsdfConfig {
+    pub enabled: bool,
+    pub max_distance: f64,
+    pub unknown: UnknownPolicy,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window: Option<[f64; 3]>,
 }
 
 /// Flags that override the configuration, for `serve` and `replay` alike.
@@ -112,6 +126,19 @@ pub struct MappingArgs {
     /// Sensor model: occupancy threshold.
     #[arg(long)]
     pub occupancy_threshold: Option<f64>,
+    /// Keep a distance field (ESDF) beside the map (`[esdf] enabled`).
+    #[arg(long)]
+    pub esdf: bool,
+    /// Distance field: distances kept below this (metres).
+    #[arg(long)]
+    pub esdf_max_distance: Option<f64>,
+    /// Distance field: what unknown voxels count as, free or occupied.
+    #[arg(long)]
+    pub esdf_unknown: Option<UnknownPolicy>,
+    /// Distance field: only in a box of these half-extents (metres, X,Y,Z) around the
+    /// sensor.
+    #[arg(long, value_delimiter = ',', num_args = 3, value_name = "X,Y,Z")]
+    pub esdf_window: Option<Vec<f64>>,
 }
 
 impl MappingArgs {
@@ -132,7 +159,12 @@ impl MappingArgs {
              subsample_factor => subsample_factor, bundle_threshold => bundle_threshold,
              p_hit => sensor_model.p_hit, p_miss => sensor_model.p_miss,
              clamp_min => sensor_model.clamp_min, clamp_max => sensor_model.clamp_max,
-             occupancy_threshold => sensor_model.occupancy_threshold);
+             occupancy_threshold => sensor_model.occupancy_threshold,
+             esdf_max_distance => esdf.max_distance, esdf_unknown => esdf.unknown);
+        c.esdf.enabled |= self.esdf;
+        if let Some(w) = &self.esdf_window {
+            c.esdf.window = Some([w[0], w[1], w[2]]);
+        }
         c.check()?;
         Ok(c)
     }
@@ -195,14 +227,32 @@ impl Config {
                 voxmap_core::integrate::MAX_RANGE_VOXELS
             );
         }
-        // The map and integrator check the rest with their own messages.
+        // The map, integrator and field check the rest with their own messages.
         self.new_map()?;
         self.integrator()?;
+        self.field_config().radius(self.resolution)?;
         Ok(())
     }
 
     pub fn new_map(&self) -> Result<OccupancyMap> {
         Ok(OccupancyMap::new(self.resolution, self.sensor_model)?)
+    }
+
+    /// The distance field's settings (whether or not it is enabled).
+    pub fn field_config(&self) -> FieldConfig {
+        FieldConfig {
+            max_distance: self.esdf.max_distance,
+            unknown: self.esdf.unknown,
+            window: self.esdf.window,
+        }
+    }
+
+    /// A distance field for a map of `resolution`, if `[esdf]` is enabled.
+    pub fn field(&self, resolution: f64) -> Result<Option<DistanceField>> {
+        if !self.esdf.enabled {
+            return Ok(None);
+        }
+        Ok(Some(DistanceField::new(self.field_config(), resolution)?))
     }
 
     pub fn integrator(&self) -> Result<Integrator> {
@@ -253,6 +303,9 @@ mod tests {
             ("max_range = 1000.0\n", "8192"),
             ("[sensor_model]\np_hitt = 0.9\n", "unknown field"),
             ("snapshot_interval_ms = 1e23\n", "snapshot_interval_ms"),
+            ("[esdf]\nmax_distance = 9.0\n", "esdf max_distance"),
+            ("[esdf]\nunknown = \"maybe\"\n", "unknown variant `maybe`"),
+            ("[esdf]\nwindow = [1.0, -1.0, 1.0]\n", "esdf window"),
         ] {
             std::fs::write(&f, bad).unwrap();
             let e = format!(

@@ -14,6 +14,7 @@ mod rng;
 mod serve;
 mod sim;
 mod simproc;
+mod tum;
 
 use clap::{Parser, Subcommand};
 

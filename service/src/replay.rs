@@ -202,6 +202,10 @@ struct Offline {
     map: voxmap_core::OccupancyMap,
     integ: voxmap_core::Integrator,
     out: PathBuf,
+    /// With `--esdf`: the distance field, kept as the service keeps it, and its update
+    /// times (ms).
+    field: Option<voxmap_core::field::DistanceField>,
+    field_ms: Vec<f64>,
 }
 
 struct Online {
@@ -267,6 +271,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             map: cfg.new_map()?,
             integ: cfg.integrator()?,
             out: a.out.clone().context("--offline needs --out MAP")?,
+            field: cfg.field(cfg.resolution)?,
+            field_ms: Vec::new(),
         }))
     } else {
         let control = MapControl::connect(&a.prefix, &a.map)
@@ -371,7 +377,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         match &mut sink {
             Sink::DryRun => {}
             Sink::Offline(off) => {
-                let Offline { map, integ, .. } = &mut **off;
+                let Offline {
+                    map,
+                    integ,
+                    field,
+                    field_ms,
+                    ..
+                } = &mut **off;
                 let t = Instant::now();
                 let r = integ.integrate(
                     map,
@@ -381,6 +393,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                     },
                 );
                 integrate_s += t.elapsed().as_secs_f64();
+                if let (Ok(rep), Some(f)) = (&r, field) {
+                    let sensor = voxmap_core::WorldPoint::from(scan.pose.translation.vector);
+                    let fr = integ.install(|| f.update(map, rep.bounds, Some(sensor)));
+                    field_ms.push(fr.time.as_secs_f64() * 1e3);
+                }
                 if let Err(e) = r {
                     if a.on_error == OnError::Abort {
                         bail!("{}: {e}", scan.name);
@@ -439,7 +456,13 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     match sink {
         Sink::DryRun => {}
         Sink::Offline(off) => {
-            let Offline { map, out, .. } = *off;
+            let Offline {
+                map,
+                out,
+                field,
+                mut field_ms,
+                ..
+            } = *off;
             let c = map.counts();
             println!(
                 "integration {integrate_s:.2} s ({:.2} Mpoints/s); map: {} occupied, {} free voxels, {} leaves, {} bytes",
@@ -449,6 +472,18 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 c.leaves,
                 map.memory_bytes()
             );
+            if let Some(f) = &field {
+                let total: f64 = field_ms.iter().sum();
+                field_ms.sort_by(f64::total_cmp);
+                println!(
+                    "distance field: {} updates, {total:.1} ms in all, median {:.2} ms, max {:.2} ms; {} voxels in the band, {} bytes",
+                    field_ms.len(),
+                    crate::quantile::percentile(&field_ms, 0.5),
+                    field_ms.last().copied().unwrap_or(0.0),
+                    f.band_voxels(),
+                    f.memory_bytes()
+                );
+            }
             mapfile::save_map(&map, &out)?;
             println!("wrote {}", out.display());
         }

@@ -62,7 +62,8 @@ pub struct DistanceField {
     window: Option<(VoxelCoord, VoxelCoord)>,
     /// Per pool thread: the transform's buffers.
     scratch: Vec<Mutex<Scratch>>,
-    avx2: bool,
+    /// The kernel the transform is compiled for (the process's).
+    kernel: crate::kernel::Kernel,
 }
 
 impl std::fmt::Debug for DistanceField {
@@ -87,8 +88,7 @@ impl DistanceField {
             seen: Grid::new(),
             window: None,
             scratch: Vec::new(),
-            avx2: crate::kernel::Kernel::process() != crate::kernel::Kernel::Scalar
-                && crate::kernel::Kernel::Avx2.supported(),
+            kernel: crate::kernel::Kernel::process(),
         })
     }
 
@@ -285,11 +285,11 @@ impl DistanceField {
         while self.scratch.len() < threads {
             self.scratch.push(Mutex::new(Scratch::default()));
         }
-        let (scratch, radius, policy, avx2, window) = (
+        let (scratch, radius, policy, kernel, window) = (
             &self.scratch,
             self.radius,
             self.cfg.unknown,
-            self.avx2,
+            self.kernel,
             self.window,
         );
         let grid = map.grid();
@@ -319,7 +319,7 @@ impl DistanceField {
                 }
                 let slot = rayon::current_thread_index().unwrap_or(0) % scratch.len();
                 let mut s = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
-                if !tile::transform(&mut s, grid, policy, origin, radius, avx2) {
+                if !tile::transform(&mut s, grid, policy, origin, radius, kernel) {
                     return leaves.into_iter().map(|(o, _)| (o, None)).collect();
                 }
                 let far = tile::far_key(radius);

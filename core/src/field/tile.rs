@@ -23,6 +23,7 @@
 use super::UnknownPolicy;
 use crate::coord::VoxelCoord;
 use crate::grid::{Grid, Leaf};
+use crate::kernel::Kernel;
 use crate::mask::Mask512;
 
 /// log2 of a tile's edge in voxels.
@@ -48,14 +49,25 @@ fn add_x(dx: i32) -> u32 {
     ((dx * dx) as u32) << D2_SHIFT | ((dx + 64) as u32) << 8
 }
 
+/// `ROOTS[k * k] = k` for k < 64 (the squares a key's |dz|² can be).
+static ROOTS: [u8; 4096] = {
+    let mut t = [0u8; 4096];
+    let mut k = 0;
+    while k < 64 {
+        t[k * k] = k as u8;
+        k += 1;
+    }
+    t
+};
+
 /// The offset to the nearest obstacle of a key inside the band.
 #[inline]
 pub(super) fn decode(key: u32) -> [i8; 3] {
     let d2 = (key >> D2_SHIFT) as i32;
     let dx = ((key >> 8) & 127) as i32 - 64;
     let dy = ((key >> 1) & 127) as i32 - 64;
-    let dz2 = (d2 - dx * dx - dy * dy).max(0);
-    let dz = f64::from(dz2).sqrt().round() as i32;
+    let dz2 = (d2 - dx * dx - dy * dy).clamp(0, 4095) as usize;
+    let dz = i32::from(ROOTS[dz2]);
     let dz = if key & 1 != 0 { dz } else { -dz };
     [dx as i8, dy as i8, dz as i8]
 }
@@ -100,7 +112,7 @@ pub(super) fn transform(
     policy: UnknownPolicy,
     origin: VoxelCoord,
     radius: u32,
-    avx2: bool,
+    kernel: Kernel,
 ) -> bool {
     let (r, t) = (radius as usize, TILE);
     let n = t + 2 * r;
@@ -112,15 +124,16 @@ pub(super) fn transform(
     scratch.keyz.resize(t * n * n, 0);
     scratch.keyy.resize(t * t * n, 0);
     scratch.keys.resize(t * t * t, 0);
-    #[cfg(target_arch = "x86_64")]
-    if avx2 {
-        // SAFETY: the caller passes `avx2` only where `Kernel::Avx2.supported()` holds,
-        // which checks every feature `passes_avx2` enables.
-        unsafe { passes_avx2(scratch, n, r) };
-        return true;
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512 F, DQ and BW
+        // (`Kernel::supported`), the features `passes_avx512` enables.
+        Kernel::Avx512 => unsafe { passes_avx512(scratch, n, r) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
+        Kernel::Avx2 => unsafe { passes_avx2(scratch, n, r) },
+        _ => passes(scratch, n, r),
     }
-    let _ = avx2;
-    passes(scratch, n, r);
     true
 }
 
@@ -173,15 +186,14 @@ fn fill_obstacles(
     any
 }
 
-/// The three passes over a filled scratch (`n = TILE + 2r`).
+/// The three passes over a filled scratch (`n = TILE + 2r`). Written as loops over
+/// fixed-length rows with no branches, so that each inlined copy vectorizes.
 #[inline(always)]
 fn passes(s: &mut Scratch, n: usize, r: usize) {
     let t = TILE;
     let plane = n * n;
     let cap = (r + 1) as u8;
     let far = far_key(r as u32);
-    // Along z: the nearest obstacle below (at or under z) and above, per column. Only
-    // the tile's planes are kept, for the voxels of the region's x and y.
     let Scratch {
         obs,
         run,
@@ -190,31 +202,34 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
         keyy,
         keys,
     } = s;
+    // Along z: per column, the distance to the nearest obstacle at or below z (capped at
+    // r + 1), then at or above; only the tile's planes are kept, for all of the region's
+    // x and y.
+    let step = |run: &mut [u8], o: &[u8]| {
+        for (c, &b) in run.iter_mut().zip(o) {
+            // b is 0 or 1: keep the count where b is 0, zero it where b is 1.
+            *c = (*c + 1).min(cap) & b.wrapping_sub(1);
+        }
+    };
     run.fill(cap);
     for z in 0..r + t {
-        let o = &obs[z * plane..][..plane];
-        for (c, &b) in run.iter_mut().zip(o) {
-            *c = if b != 0 { 0 } else { (*c + 1).min(cap) };
-        }
+        step(run, &obs[z * plane..][..plane]);
         if z >= r {
             below[(z - r) * plane..][..plane].copy_from_slice(run);
         }
     }
     run.fill(cap);
     for z in (r..n).rev() {
-        let o = &obs[z * plane..][..plane];
-        for (c, &b) in run.iter_mut().zip(o) {
-            *c = if b != 0 { 0 } else { (*c + 1).min(cap) };
-        }
+        step(run, &obs[z * plane..][..plane]);
         if z < r + t {
             let zt = z - r;
             let out = &mut keyz[zt * plane..][..plane];
             let down = &below[zt * plane..][..plane];
-            for ((k, &b), &a) in out.iter_mut().zip(down).zip(run.iter()) {
-                let (b, a) = (u32::from(b), u32::from(a));
+            for i in 0..plane {
+                let (b, a) = (u32::from(down[i]), u32::from(run[i]));
                 let kb = (b * b) << D2_SHIFT;
                 let ka = (a * a) << D2_SHIFT | 1;
-                *k = kb.min(ka).min(far);
+                out[i] = kb.min(ka).min(far);
             }
         }
     }
@@ -223,11 +238,11 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
         for yt in 0..t {
             let out = &mut keyy[(zt * t + yt) * n..][..n];
             out.fill(far);
-            for (k, y) in (yt..=yt + 2 * r).enumerate() {
+            for k in 0..=2 * r {
                 let c = add_y(k as i32 - r as i32);
-                let src = &keyz[(zt * n + y) * n..][..n];
-                for (o, &s) in out.iter_mut().zip(src) {
-                    *o = (*o).min(s + c);
+                let src = &keyz[(zt * n + yt + k) * n..][..n];
+                for i in 0..n {
+                    out[i] = out[i].min(src[i] + c);
                 }
             }
             for o in out.iter_mut() {
@@ -235,17 +250,18 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
             }
         }
     }
-    // Along x: the tile's voxels.
+    // Along x: the tile's voxels, a row of TILE at a time in registers.
     for row in 0..t * t {
         let src = &keyy[row * n..][..n];
-        let out = &mut keys[row * t..][..t];
-        out.fill(far);
+        let mut acc = [far; TILE];
         for k in 0..=2 * r {
             let c = add_x(k as i32 - r as i32);
-            for (o, &s) in out.iter_mut().zip(&src[k..k + t]) {
-                *o = (*o).min(s + c);
+            let s: &[u32; TILE] = src[k..k + TILE].try_into().expect("n >= TILE + 2r");
+            for i in 0..TILE {
+                acc[i] = acc[i].min(s[i] + c);
             }
         }
+        keys[row * t..][..t].copy_from_slice(&acc);
     }
 }
 
@@ -256,5 +272,15 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize) {
+    passes(s, n, r)
+}
+
+/// [`passes`] compiled for AVX-512: sixteen keys per instruction.
+///
+/// # Safety
+/// The CPU must have AVX-512 F and BW (`Kernel::Avx512.supported()` checks them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+unsafe fn passes_avx512(s: &mut Scratch, n: usize, r: usize) {
     passes(s, n, r)
 }

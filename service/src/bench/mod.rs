@@ -2,6 +2,7 @@
 //! side by side with the paper's numbers.
 
 mod e2e;
+mod esdf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -61,6 +62,23 @@ pub struct BenchArgs {
     /// scheduling), for what encoding and publishing the ROS 2 map topics costs.
     #[arg(long, requires = "e2e")]
     e2e_ros2: bool,
+    /// Instead: the distance field benchmark (bulk builds over the workloads' maps and
+    /// OctoMap's scan.dat, per-frame updates over the TUM sequence, bytes, queries).
+    #[arg(long)]
+    esdf: bool,
+    /// With --esdf: distances kept below this (metres).
+    #[arg(long, default_value_t = 2.0)]
+    esdf_max_distance: f64,
+    /// With --esdf: what unknown voxels count as, free or occupied.
+    #[arg(long, default_value = "free")]
+    esdf_unknown: voxmap_core::field::UnknownPolicy,
+    /// With --esdf: the TUM RGB-D folder (depth/*.png, my_association.txt); default
+    /// shared/data/real/tum_fr2_pioneer_slam2.
+    #[arg(long, value_name = "DIR")]
+    esdf_sequence: Option<PathBuf>,
+    /// With --esdf: also write the TUM frames as PCD files here (for bench/esdf_edt3d.cpp).
+    #[arg(long, value_name = "DIR")]
+    esdf_write_pcd: Option<PathBuf>,
 }
 
 /// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
@@ -186,6 +204,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     if a.runs == 0 {
         bail!("--runs must be >= 1");
+    }
+    if a.esdf {
+        return esdf::run(&a, &files);
     }
     if !a.json {
         println!(

@@ -154,6 +154,9 @@ impl Control {
             }
             ControlKind::Clear => {
                 s.map.clear();
+                if let Some(f) = &mut s.field {
+                    f.clear();
+                }
                 Answer::ok("cleared".into(), true)
             }
             ControlKind::SetScope => match r.scope() {
@@ -204,7 +207,20 @@ fn finish_file_job(done: Done, s: &mut MapState) -> Answer {
                     voxmap_core::integrate::MAX_RANGE_VOXELS
                 ));
             }
+            if let Some(f) = &s.field {
+                match voxmap_core::field::DistanceField::new(*f.config(), m.resolution()) {
+                    Ok(f) => s.field = Some(f),
+                    Err(e) => {
+                        return Answer::err(format!(
+                            "{} not loaded: the distance field cannot work at its resolution of {} m: {e}",
+                            p.display(),
+                            m.resolution()
+                        ))
+                    }
+                }
+            }
             s.map = m;
+            s.rebuild_field();
             Answer::ok(format!("loaded {}", p.display()), true)
         }
         Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e)) => Answer::err(e),

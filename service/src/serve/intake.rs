@@ -12,6 +12,7 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use std::collections::HashMap;
 use voxmap_core::Frame;
+use voxmap_core::WorldPoint;
 use voxmap_ipc::FrameHeader;
 
 type FrameSample = Sample<ipc::Service, [[f32; 3]], FrameHeader>;
@@ -138,6 +139,12 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
                 now_ns()
             };
             s.sensor = pose.translation.vector.into();
+            if let Some(f) = &mut s.field {
+                let (integ, map) = (&s.integ, &s.map);
+                let sensor = WorldPoint::from(pose.translation.vector);
+                let r = integ.install(|| f.update(map, rep.bounds, Some(sensor)));
+                Stats::record(&mut s.stats.esdf_ms, r.time.as_secs_f64() * 1e3);
+            }
             true
         }
     }

@@ -16,9 +16,10 @@ use iceoryx2::prelude::*;
 use iceoryx2::waitset::WaitSetRunResult;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
+use voxmap_core::field::DistanceField;
 use voxmap_core::io::mapfile;
 use voxmap_core::snapshot::Scope;
-use voxmap_core::{Integrator, OccupancyMap};
+use voxmap_core::{Integrator, OccupancyMap, WorldPoint};
 use voxmap_ipc::ports::{self, open_control, open_event, open_frames, open_snapshots, qos};
 use voxmap_ipc::{MapScope, ServiceNames};
 
@@ -114,9 +115,26 @@ pub(crate) struct MapState {
     sensor: [f64; 3],
     scope: MapScope,
     stats: stats::Stats,
+    /// The distance field kept beside the map, with `[esdf] enabled`.
+    field: Option<DistanceField>,
 }
 
 impl MapState {
+    /// Build the distance field anew for the map as it is (after a load or a clear).
+    fn rebuild_field(&mut self) {
+        if let Some(f) = &mut self.field {
+            let sensor = Some(WorldPoint::from(self.sensor));
+            let (integ, map) = (&self.integ, &self.map);
+            let r = integ.install(|| f.rebuild(map, sensor));
+            eprintln!(
+                "voxmap serve: distance field built in {:.1} ms ({} tiles, {} voxels in the band)",
+                r.time.as_secs_f64() * 1e3,
+                r.tiles,
+                f.band_voxels()
+            );
+        }
+    }
+
     /// What the next snapshot covers.
     fn snapshot_scope(&self) -> Scope {
         match self.scope.bounds(self.sensor) {
@@ -172,11 +190,13 @@ pub fn run(a: ServeArgs) -> Result<()> {
             .create()
             .map_err(|e| anyhow!(e).context("creating the control server"))?,
     )?;
+    let map = match &a.load {
+        Some(p) => mapfile::load_map(p)?,
+        None => cfg.new_map()?,
+    };
     let mut s = MapState {
-        map: match &a.load {
-            Some(p) => mapfile::load_map(p)?,
-            None => cfg.new_map()?,
-        },
+        field: cfg.field(map.resolution())?,
+        map,
         integ: cfg.integrator()?,
         sequence: 0,
         stamp_ns: now_ns(),
@@ -185,6 +205,9 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stats: stats::Stats::default(),
     };
     s.stats.kernel = s.integ.kernel().name();
+    if a.load.is_some() {
+        s.rebuild_field();
+    }
     // After the integration pool exists, so only this (I/O) thread runs real-time.
     if cfg.rt_priority > 0 {
         crate::os::set_realtime(cfg.rt_priority)?;
@@ -292,8 +315,19 @@ pub fn run(a: ServeArgs) -> Result<()> {
 }
 
 fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
+    let field = match &s.field {
+        None => String::new(),
+        Some(f) => format!(
+            ", distance field to {} m (unknown {}{})",
+            f.max_distance(),
+            f.config().unknown.name(),
+            f.config()
+                .window
+                .map_or(String::new(), |w| format!(", window ±{w:?} m"))
+        ),
+    };
     eprintln!(
-        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}; frames on '{}'",
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}{field}; frames on '{}'",
         cfg.prefix,
         cfg.map,
         s.map.resolution(),

@@ -39,8 +39,14 @@ impl SnapshotOut {
             with_values: self.with_values,
         };
         let scope = s.snapshot_scope();
-        let (integ, map) = (&s.integ, &s.map);
-        let plan = integ.install(|| Plan::new(map, scope, meta));
+        let (integ, map, field) = (&s.integ, &s.map, &s.field);
+        let plan = integ.install(|| {
+            let plan = Plan::new(map, scope, meta);
+            match field {
+                Some(f) => plan.with_field(f),
+                None => plan,
+            }
+        });
         let n = plan.encoded_len();
         let mut sample = self
             .publisher

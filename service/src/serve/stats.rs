@@ -17,6 +17,8 @@ pub(super) struct Stats {
     pub skipped_points: u64,
     /// Integration times (ms) of the last frames, oldest first.
     pub integrate_ms: std::collections::VecDeque<f64>,
+    /// Distance field update times (ms) of the last frames, with `[esdf] enabled`.
+    pub esdf_ms: std::collections::VecDeque<f64>,
     /// Send-to-receive times (us) of the last time-stamped frames.
     pub intake_us: std::collections::VecDeque<f64>,
     pub last_snapshot_bytes: usize,
@@ -75,8 +77,19 @@ impl Stats {
         } else {
             format!(" ({})", by.join(", "))
         };
+        let esdf = if self.esdf_ms.is_empty() {
+            String::new()
+        } else {
+            let mut t: Vec<f64> = self.esdf_ms.iter().copied().collect();
+            t.sort_by(f64::total_cmp);
+            format!(
+                "; distance field ms p50 {:.2} p99 {:.2}",
+                percentile(&t, 0.5),
+                percentile(&t, 0.99)
+            )
+        };
         format!(
-            "frames received {} integrated {} dropped {} rejected {}{by}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}; \
+            "frames received {} integrated {} dropped {} rejected {}{by}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}{esdf}; \
              snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes",
             w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
             w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, self.publish_failures, w.map_leaves, w.map_memory_bytes
