@@ -42,6 +42,33 @@ impl Mask512 {
         self.words.iter().all(|&w| w == 0)
     }
 
+    /// The in-leaf coordinates (0..8 per axis) of the smallest box holding every set bit,
+    /// as (min, max) inclusive; `None` when empty. Read from the words and rows, not bit by
+    /// bit.
+    #[inline(always)]
+    pub fn extent(&self) -> Option<([i32; 3], [i32; 3])> {
+        // Bit x|y<<3 of a word; word index z.
+        let (mut xs, mut ys, mut zs) = (0u8, 0u8, 0u8);
+        for (z, &w) in self.words.iter().enumerate() {
+            if w != 0 {
+                zs |= 1 << z;
+                for y in 0..8 {
+                    let row = (w >> (8 * y)) as u8;
+                    if row != 0 {
+                        ys |= 1 << y;
+                        xs |= row;
+                    }
+                }
+            }
+        }
+        if zs == 0 {
+            return None;
+        }
+        let lo = [xs, ys, zs].map(|m| m.trailing_zeros() as i32);
+        let hi = [xs, ys, zs].map(|m| 7 - m.leading_zeros() as i32);
+        Some((lo, hi))
+    }
+
     /// Indices of the set bits, ascending.
     pub fn iter_ones(&self) -> impl Iterator<Item = usize> + '_ {
         self.words

@@ -225,11 +225,20 @@ impl DistanceField {
             }
             if was != now {
                 report.changed_leaves += 1;
-                let a = tile_of(VoxelCoord::new(origin.x - r, origin.y - r, origin.z - r));
+                // The tiles within the radius of a voxel whose obstacle changed.
+                let flipped = Mask512 {
+                    words: std::array::from_fn(|w| was.words[w] ^ now.words[w]),
+                };
+                let (lo, hi) = flipped.extent().expect("masks differ");
+                let a = tile_of(VoxelCoord::new(
+                    origin.x + lo[0] - r,
+                    origin.y + lo[1] - r,
+                    origin.z + lo[2] - r,
+                ));
                 let b = tile_of(VoxelCoord::new(
-                    origin.x + 7 + r,
-                    origin.y + 7 + r,
-                    origin.z + 7 + r,
+                    origin.x + hi[0] + r,
+                    origin.y + hi[1] + r,
+                    origin.z + hi[2] + r,
                 ));
                 for z in a.z..=b.z {
                     for y in a.y..=b.y {

@@ -99,6 +99,8 @@ pub(super) struct Scratch {
     below: Vec<u8>,
     keyz: Vec<u32>,
     keyy: Vec<u32>,
+    /// Per row of `keyz`: whether any key is in the band.
+    live: Vec<bool>,
     /// The result: keys of the tile's voxels, x fastest, then y, then z.
     pub(super) keys: Vec<u32>,
 }
@@ -201,67 +203,123 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
         keyz,
         keyy,
         keys,
+        live,
     } = s;
     // Along z: per column, the distance to the nearest obstacle at or below z (capped at
     // r + 1), then at or above; only the tile's planes are kept, for all of the region's
     // x and y.
-    let step = |run: &mut [u8], o: &[u8]| {
-        for (c, &b) in run.iter_mut().zip(o) {
-            // b is 0 or 1: keep the count where b is 0, zero it where b is 1.
-            *c = (*c + 1).min(cap) & b.wrapping_sub(1);
-        }
-    };
+    let run = &mut run[..plane];
     run.fill(cap);
     for z in 0..r + t {
-        step(run, &obs[z * plane..][..plane]);
+        step(run, &obs[z * plane..][..plane], cap);
         if z >= r {
             below[(z - r) * plane..][..plane].copy_from_slice(run);
         }
     }
     run.fill(cap);
     for z in (r..n).rev() {
-        step(run, &obs[z * plane..][..plane]);
+        step(run, &obs[z * plane..][..plane], cap);
         if z < r + t {
             let zt = z - r;
             let out = &mut keyz[zt * plane..][..plane];
             let down = &below[zt * plane..][..plane];
-            for i in 0..plane {
-                let (b, a) = (u32::from(down[i]), u32::from(run[i]));
-                let kb = (b * b) << D2_SHIFT;
-                let ka = (a * a) << D2_SHIFT | 1;
-                out[i] = kb.min(ka).min(far);
-            }
+            z_keys(out, down, run, far);
         }
     }
-    // Along y: for the tile's (y, z), every x of the region.
+    // Rows (along x) of the z pass with any key in the band: the others add nothing.
+    live.clear();
+    live.extend(
+        keyz.chunks_exact(n)
+            .map(|row| row.iter().fold(far, |m, &k| m.min(k)) < far),
+    );
+    // Along y: for the tile's (y, z), every x of the region, sixteen x at a time held in
+    // registers over the offsets.
     for zt in 0..t {
         for yt in 0..t {
             let out = &mut keyy[(zt * t + yt) * n..][..n];
             out.fill(far);
-            for k in 0..=2 * r {
+            let rows = (0..=2 * r).filter(|&k| live[zt * n + yt + k]);
+            let mut c0 = 0;
+            while c0 + 16 <= n {
+                let mut acc = [far; 16];
+                for k in rows.clone() {
+                    let c = add_y(k as i32 - r as i32);
+                    let src: &[u32; 16] = keyz[(zt * n + yt + k) * n + c0..][..16]
+                        .try_into()
+                        .expect("16");
+                    for i in 0..16 {
+                        acc[i] = acc[i].min(src[i] + c);
+                    }
+                }
+                for i in 0..16 {
+                    out[c0 + i] = acc[i].min(far);
+                }
+                c0 += 16;
+            }
+            for k in rows {
                 let c = add_y(k as i32 - r as i32);
                 let src = &keyz[(zt * n + yt + k) * n..][..n];
-                for i in 0..n {
-                    out[i] = out[i].min(src[i] + c);
+                for i in c0..n {
+                    out[i] = out[i].min(src[i] + c).min(far);
                 }
-            }
-            for o in out.iter_mut() {
-                *o = (*o).min(far);
             }
         }
     }
-    // Along x: the tile's voxels, a row of TILE at a time in registers.
+    // Along x: the tile's voxels, a row of TILE at a time in registers; rows with nothing
+    // in the band stay far.
     for row in 0..t * t {
         let src = &keyy[row * n..][..n];
         let mut acc = [far; TILE];
-        for k in 0..=2 * r {
-            let c = add_x(k as i32 - r as i32);
-            let s: &[u32; TILE] = src[k..k + TILE].try_into().expect("n >= TILE + 2r");
-            for i in 0..TILE {
-                acc[i] = acc[i].min(s[i] + c);
+        if src.iter().fold(far, |m, &k| m.min(k)) < far {
+            for k in 0..=2 * r {
+                let c = add_x(k as i32 - r as i32);
+                let s: &[u32; TILE] = src[k..k + TILE].try_into().expect("n >= TILE + 2r");
+                for i in 0..TILE {
+                    acc[i] = acc[i].min(s[i] + c);
+                }
             }
         }
         keys[row * t..][..t].copy_from_slice(&acc);
+    }
+}
+
+/// Keys of one plane from the distances below and above, sixteen at a time.
+#[inline(always)]
+fn z_keys(out: &mut [u32], below: &[u8], above: &[u8], far: u32) {
+    let key = |b: u8, a: u8| {
+        let (b, a) = (u32::from(b), u32::from(a));
+        ((b * b) << D2_SHIFT).min((a * a) << D2_SHIFT | 1).min(far)
+    };
+    let mut o = out.chunks_exact_mut(16);
+    let mut d = below.chunks_exact(16);
+    let mut u = above.chunks_exact(16);
+    for ((o, d), u) in (&mut o).zip(&mut d).zip(&mut u) {
+        let (o, d, u): (&mut [u32; 16], &[u8; 16], &[u8; 16]) = (
+            o.try_into().expect("16"),
+            d.try_into().expect("16"),
+            u.try_into().expect("16"),
+        );
+        for i in 0..16 {
+            o[i] = key(d[i], u[i]);
+        }
+    }
+    for ((o, &d), &u) in o
+        .into_remainder()
+        .iter_mut()
+        .zip(d.remainder())
+        .zip(u.remainder())
+    {
+        *o = key(d, u);
+    }
+}
+
+/// One plane of the z sweep: a column's count goes up by one (to `cap`) and back to 0 on
+/// an obstacle (`o` is 0 or 1).
+#[inline(always)]
+fn step(run: &mut [u8], o: &[u8], cap: u8) {
+    let o = &o[..run.len()];
+    for i in 0..run.len() {
+        run[i] = (run[i] + 1).min(cap) & o[i].wrapping_sub(1);
     }
 }
 

@@ -68,27 +68,13 @@ const EMPTY: u8 = u8::MAX;
 /// extent per axis rather than visiting voxels.
 #[inline(always)]
 fn extend_bounds(lo: &mut [i32; 3], hi: &mut [i32; 3], origin: VoxelCoord, keep: &Mask512) {
-    // Bit x|y<<3 of a word; word index z.
-    let (mut xs, mut ys, mut zs) = (0u8, 0u8, 0u8);
-    for (z, &w) in keep.words.iter().enumerate() {
-        if w != 0 {
-            zs |= 1 << z;
-            for y in 0..8 {
-                let row = (w >> (8 * y)) as u8;
-                if row != 0 {
-                    ys |= 1 << y;
-                    xs |= row;
-                }
-            }
-        }
-    }
-    if zs == 0 {
+    let Some((a, b)) = keep.extent() else {
         return;
-    }
+    };
     let o = origin.to_array();
-    for (a, m) in [xs, ys, zs].into_iter().enumerate() {
-        lo[a] = lo[a].min(o[a] + m.trailing_zeros() as i32);
-        hi[a] = hi[a].max(o[a] + 7 - m.leading_zeros() as i32);
+    for k in 0..3 {
+        lo[k] = lo[k].min(o[k] + a[k]);
+        hi[k] = hi[k].max(o[k] + b[k]);
     }
 }
 
