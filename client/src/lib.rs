@@ -34,7 +34,10 @@ use std::time::Duration;
 use voxmap_ipc::ports::{open_control, open_event, open_frames, open_snapshots};
 
 pub use nalgebra::Isometry3;
-pub use voxmap_core::snapshot::{InvalidBox, InvalidSegment, SnapshotError, SnapshotView};
+pub use voxmap_core::field::UnknownPolicy;
+pub use voxmap_core::snapshot::{
+    FieldView, InvalidBox, InvalidSegment, Nearest, SnapshotError, SnapshotView,
+};
 pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
 pub use voxmap_ipc::{
     ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, FrameRejected,

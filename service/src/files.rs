@@ -182,6 +182,12 @@ pub struct ExportArgs {
     /// a map file it keeps the log-odds, for probabilities).
     #[arg(long)]
     pub snapshot: Option<PathBuf>,
+    /// With --snapshot from a map file: carry its distance field, to this distance (m).
+    #[arg(long, value_name = "METRES")]
+    pub esdf_max_distance: Option<f64>,
+    /// With --esdf-max-distance: what unknown voxels count as, free or occupied.
+    #[arg(long, default_value = "free")]
+    pub esdf_unknown: voxmap_core::field::UnknownPolicy,
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
@@ -189,7 +195,17 @@ pub fn export(a: ExportArgs) -> Result<()> {
         bail!("nothing to do: pass --bt OUT.bt, --ply OUT.ply and/or --snapshot OUT");
     }
     if let Some(out) = &a.snapshot {
-        let bytes = mapfile::read_as_snapshot(&a.input)?;
+        let bytes = match a.esdf_max_distance {
+            None => mapfile::read_as_snapshot(&a.input)?,
+            Some(max_distance) => {
+                let cfg = voxmap_core::field::FieldConfig {
+                    max_distance,
+                    unknown: a.esdf_unknown,
+                    window: None,
+                };
+                mapfile::read_as_snapshot_with_field(&a.input, &cfg)?
+            }
+        };
         mapfile::save_snapshot(&bytes, out)?;
         let v = SnapshotView::open(&bytes)?;
         let (known, occupied) = v.counts();

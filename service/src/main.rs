@@ -4,6 +4,7 @@ mod bags;
 mod bench;
 mod config;
 mod demo;
+mod distance;
 mod filejobs;
 mod files;
 mod os;
@@ -43,6 +44,8 @@ enum Cmd {
     Render(render::RenderArgs),
     /// Show what a map, snapshot or .bt file holds, or why it is invalid.
     Inspect(files::InspectArgs),
+    /// The distance field of a map or snapshot file at points: `x y z distance gx gy gz`.
+    Distance(distance::DistanceArgs),
     /// Print the embedded default configuration (a starting point for --config).
     Config,
     /// Time frame integration on the paper's synthetic workloads.
@@ -77,6 +80,7 @@ fn run(cmd: Cmd) -> anyhow::Result<()> {
         Cmd::Export(a) => files::export(a),
         Cmd::Render(a) => render::run(a),
         Cmd::Inspect(a) => files::inspect(a),
+        Cmd::Distance(a) => distance::run(a),
         Cmd::Config => {
             print!("{}", config::DEFAULT_TOML);
             Ok(())

@@ -55,6 +55,12 @@ pub enum MapFileError {
         path: PathBuf,
         source: SnapshotError,
     },
+    /// A distance field cannot be built for the map in the file (its settings do not fit
+    /// the map's resolution).
+    Field {
+        path: PathBuf,
+        source: crate::coord::ConfigError,
+    },
 }
 
 impl std::fmt::Display for MapFileError {
@@ -72,6 +78,13 @@ impl std::fmt::Display for MapFileError {
                 )
             }
             Self::Snapshot { path, source } => write!(f, "{}: {source}", path.display()),
+            Self::Field { path, source } => {
+                write!(
+                    f,
+                    "{}: no distance field for this map: {source}",
+                    path.display()
+                )
+            }
         }
     }
 }
@@ -406,6 +419,22 @@ pub fn read_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
 /// snapshot is read as [`read_snapshot`] does; a map is decoded and encoded as a whole-map
 /// snapshot with its log-odds values (so probabilities can be read), sequence 0.
 pub fn read_as_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
+    read_as_snapshot_with(path, None)
+}
+
+/// [`read_as_snapshot`], and a map file's snapshot carries the distance field of `field`
+/// built from its map (a snapshot file is returned as it is, with or without one).
+pub fn read_as_snapshot_with_field(
+    path: &Path,
+    field: &crate::field::FieldConfig,
+) -> Result<Vec<u8>, MapFileError> {
+    read_as_snapshot_with(path, Some(field))
+}
+
+fn read_as_snapshot_with(
+    path: &Path,
+    field: Option<&crate::field::FieldConfig>,
+) -> Result<Vec<u8>, MapFileError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
     if !bytes.starts_with(&MAP_MAGIC) {
         SnapshotView::open_checked(&bytes).map_err(|source| MapFileError::Snapshot {
@@ -420,7 +449,18 @@ pub fn read_as_snapshot(path: &Path) -> Result<Vec<u8>, MapFileError> {
         with_values: true,
         ..Default::default()
     };
-    Ok(crate::snapshot::Plan::new(&map, crate::snapshot::Scope::Whole, meta).to_vec())
+    let plan = crate::snapshot::Plan::new(&map, crate::snapshot::Scope::Whole, meta);
+    let Some(cfg) = field else {
+        return Ok(plan.to_vec());
+    };
+    let mut f = crate::field::DistanceField::new(*cfg, map.resolution()).map_err(|source| {
+        MapFileError::Field {
+            path: path.into(),
+            source,
+        }
+    })?;
+    f.rebuild(&map, None);
+    Ok(plan.with_field(&f).to_vec())
 }
 
 #[cfg(test)]
