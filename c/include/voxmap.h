@@ -160,6 +160,54 @@ void voxmap_control_free(struct voxmap_control *control);
 // failing call into voxmap.
 const char *voxmap_last_error(void);
 
+// Whether the view carries a distance field: 1 (its max distance in metres and whether
+// unknown voxels count as obstacles written where not null), 0 when not, or an error code.
+//
+// # Safety
+// `view` is null or a live view; `max_distance` and `unknown_is_occupied` are null or
+// writable.
+int voxmap_view_field(const struct voxmap_view *view,
+                      double *max_distance,
+                      int *unknown_is_occupied);
+
+// The distance (metres) at `p`, interpolated between the voxel centres around it and
+// capped at the field's max distance, and its gradient (per metre, pointing away from the
+// nearest obstacles; `gradient` may be null): 1 when written, 0 where the field does not
+// reach (unknown space, outside its window), or an error code (no field).
+//
+// # Safety
+// `view` is null or a live view; `p` is null or holds 3 doubles; `distance` is null or
+// writable; `gradient` is null or holds 3 writable doubles.
+int voxmap_view_distance_at(const struct voxmap_view *view,
+                            const double *p,
+                            double *distance,
+                            double *gradient);
+
+// The obstacle voxel nearest to the voxel holding `p`: 1 with its centre (and the
+// distance between the two voxels' centres, where not null) written; 2 when none lies
+// within the max distance; 0 where the field does not reach; or an error code.
+//
+// # Safety
+// `view` is null or a live view; `p` is null or holds 3 doubles; `centre` is null or holds
+// 3 writable doubles; `distance` is null or writable.
+int voxmap_view_nearest_obstacle(const struct voxmap_view *view,
+                                 const double *p,
+                                 double *centre,
+                                 double *distance);
+
+// `voxmap_view_distance_at` at `n` points (`xyz`: x, y, z per point): `distance[i]` (NaN
+// where the field does not reach) and, when `gradient` is not null, `gradient[3i..3i+3]`.
+// Returns 0, or an error code with every output NaN.
+//
+// # Safety
+// `view` is null or a live view; `xyz` is null or holds `3 n` doubles; `distance` is null
+// or holds `n` writable doubles; `gradient` is null or holds `3 n` writable doubles.
+int voxmap_view_distances_at(const struct voxmap_view *view,
+                             const double *xyz,
+                             size_t n,
+                             double *distance,
+                             double *gradient);
+
 // Connect to map `map` of the service under `prefix`. Null on failure.
 //
 // # Safety

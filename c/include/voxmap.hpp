@@ -177,6 +177,63 @@ class View {
     return q;
   }
 
+  /// Whether the snapshot carries a distance field (a service run with --esdf).
+  bool has_field() const { return detail::check(voxmap_view_field(v_, nullptr, nullptr)) == 1; }
+
+  /// The field's max distance (metres): distances are capped there. Throws without a field.
+  double field_max_distance() const {
+    double d = 0;
+    if (detail::check(voxmap_view_field(v_, &d, nullptr)) == 0)
+      throw Error(VOXMAP_ERR_INVALID, "the snapshot carries no distance field");
+    return d;
+  }
+
+  /// The distance (metres) to the nearest obstacle at p, interpolated between the voxel
+  /// centres around it and capped at the max distance; nothing where the field does not
+  /// reach (unknown space, outside its window). Throws without a field.
+  std::optional<double> distance_at(const Vec3& p) const {
+    double d = 0;
+    if (detail::check(voxmap_view_distance_at(v_, p.data(), &d, nullptr)) == 0) return std::nullopt;
+    return d;
+  }
+
+  /// A distance and its gradient (per metre, pointing away from the nearest obstacles).
+  struct Distance {
+    double distance;
+    Vec3 gradient;
+  };
+
+  /// distance_at and its gradient.
+  std::optional<Distance> distance_and_gradient_at(const Vec3& p) const {
+    Distance r{};
+    if (detail::check(voxmap_view_distance_at(v_, p.data(), &r.distance, r.gradient.data())) == 0)
+      return std::nullopt;
+    return r;
+  }
+
+  /// The centre of the obstacle voxel nearest to the voxel holding p; nothing when none
+  /// lies within the max distance or the field does not reach p (tell them apart with
+  /// distance_at). Throws without a field.
+  std::optional<Vec3> nearest_obstacle(const Vec3& p) const {
+    Vec3 c{};
+    if (detail::check(voxmap_view_nearest_obstacle(v_, p.data(), c.data(), nullptr)) != 1) return std::nullopt;
+    return c;
+  }
+
+  /// distance_at at n points (x, y, z each): distance[i], NaN where the field does not
+  /// reach; gradient (3 n doubles) may be null. One call for a whole trajectory.
+  void distances_at(const double* xyz, std::size_t n, double* distance, double* gradient = nullptr) const {
+    detail::check(voxmap_view_distances_at(v_, xyz, n, distance, gradient));
+  }
+
+  /// distances_at over a contiguous container of points (Vec3 or Eigen::Vector3d).
+  template <class Points, class = decltype(detail::doubles(std::declval<const Points&>().data()))>
+  std::vector<double> distances_at(const Points& points) const {
+    std::vector<double> out(points.size());
+    if (!out.empty()) distances_at(detail::doubles(points.data()), points.size(), out.data());
+    return out;
+  }
+
   /// Call f(const Vec3& centre) for each occupied voxel, in chunks read into a buffer.
   template <class F>
   void for_each_occupied(F&& f) const {

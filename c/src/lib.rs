@@ -1,6 +1,7 @@
 //! voxmap-c: the C API of voxmap (`include/voxmap.h`, generated from this crate by cbindgen;
 //! `include/voxmap.hpp` is the C++ layer over it).
 //!
+//! - [`field`]: the distance field of a view, when its snapshot carries one.
 //! - [`view`]: `voxmap_view`, a validated snapshot read in place (from a file, from a
 //!   caller's bytes, or from shared memory), with the planner's queries.
 //! - [`subscriber`]: `voxmap_subscriber`, the newest snapshot of a running service.
@@ -18,6 +19,7 @@
 
 pub mod control;
 pub mod error;
+pub mod field;
 pub mod publisher;
 pub mod subscriber;
 pub mod view;

@@ -157,7 +157,9 @@ pub unsafe extern "C" fn voxmap_view_free(view: *mut voxmap_view) {
 ///
 /// # Safety
 /// `view` is null or a live view.
-unsafe fn snapshot<'a>(view: *const voxmap_view) -> Result<&'a SnapshotView<'static>, Failure> {
+pub(crate) unsafe fn snapshot<'a>(
+    view: *const voxmap_view,
+) -> Result<&'a SnapshotView<'static>, Failure> {
     // SAFETY: the caller's promise.
     Ok(&unsafe { ref_arg(view, "view") }?.view)
 }

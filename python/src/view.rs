@@ -10,7 +10,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use std::sync::Arc;
 use voxmap_client::HeldSnapshot;
-use voxmap_core::snapshot::SnapshotView;
+use voxmap_core::snapshot::{FieldView, Nearest, SnapshotView};
 use voxmap_core::WorldPoint;
 
 /// What keeps a view's bytes alive (held, never read).
@@ -53,6 +53,15 @@ impl View {
             _backing: Backing::Held(Box::new(held)),
         }
     }
+
+    /// The snapshot's distance field, or VoxmapError when it carries none.
+    fn field_view(&self) -> PyResult<FieldView<'static>> {
+        self.view.distance_field().ok_or_else(|| {
+            crate::VoxmapError::new_err(
+                "the snapshot carries no distance field (run the service with --esdf)",
+            )
+        })
+    }
 }
 
 /// An (N, 3) array of `T` from any array-like, converted (and copied) only if it is not
@@ -80,6 +89,8 @@ pub(crate) fn points<'py, T: numpy::Element>(
 }
 
 /// A (min, max) pair of 3-vectors.
+/// Distances (N,) and gradients (N, 3).
+type DistancesGradients<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>);
 type Corners<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
 
 fn array3<'py>(py: Python<'py>, p: WorldPoint) -> Bound<'py, PyArray1<f64>> {
@@ -207,6 +218,74 @@ impl View {
         self.view.probability(v)
     }
 
+    /// The distance field's (max distance in metres, unknown policy "free" or "occupied"),
+    /// or None when the snapshot carries none (a service run with --esdf carries one).
+    #[getter]
+    fn field(&self) -> Option<(f64, &'static str)> {
+        let f = self.view.distance_field()?;
+        Some((f.max_distance(), f.unknown().name()))
+    }
+
+    /// The distance (metres) to the nearest obstacle at p, interpolated between the voxel
+    /// centres around it and capped at the max distance, or None where the field does not
+    /// reach (unknown space, outside its window). Raises VoxmapError without a field.
+    fn distance_at(&self, p: [f64; 3]) -> PyResult<Option<f64>> {
+        Ok(self.field_view()?.distance_at(&WorldPoint::from(p)))
+    }
+
+    /// (distance, gradient as an array) at p, or None where the field does not reach; the
+    /// gradient (per metre) points away from the nearest obstacles.
+    fn distance_and_gradient_at<'py>(
+        &self,
+        py: Python<'py>,
+        p: [f64; 3],
+    ) -> PyResult<Option<(f64, Bound<'py, PyArray1<f64>>)>> {
+        let f = self.field_view()?;
+        Ok(f.distance_and_gradient_at(&WorldPoint::from(p))
+            .map(|(d, g)| (d, vec![g.x, g.y, g.z].into_pyarray(py))))
+    }
+
+    /// The centre of the obstacle voxel nearest to the voxel holding p, as an array; None
+    /// when none lies within the max distance or the field does not reach p.
+    fn nearest_obstacle<'py>(
+        &self,
+        py: Python<'py>,
+        p: [f64; 3],
+    ) -> PyResult<Option<Bound<'py, PyArray1<f64>>>> {
+        Ok(
+            match self.field_view()?.nearest_obstacle(&WorldPoint::from(p)) {
+                Nearest::At { centre, .. } => Some(array3(py, centre)),
+                _ => None,
+            },
+        )
+    }
+
+    /// Distances and gradients at the rows of an (N, 3) float64 array: an (N,) array of
+    /// distances (NaN where the field does not reach) and an (N, 3) array of gradients;
+    /// the GIL is released while they are computed.
+    fn distances_at<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+    ) -> PyResult<DistancesGradients<'py>> {
+        let f = self.field_view()?;
+        let arr = self::points::<f64>(points, "float64")?;
+        let xyz = arr.as_slice()?;
+        let (d, g) = py.detach(move || {
+            let pts: Vec<WorldPoint> = xyz
+                .chunks_exact(3)
+                .map(|p| WorldPoint::new(p[0], p[1], p[2]))
+                .collect();
+            let mut out = Vec::with_capacity(pts.len());
+            f.distances_and_gradients_at(&pts, &mut out);
+            let d: Vec<f64> = out.iter().map(|o| o[0]).collect();
+            let g: Vec<f64> = out.iter().flat_map(|o| [o[1], o[2], o[3]]).collect();
+            (d, g)
+        });
+        let n = d.len();
+        Ok((d.into_pyarray(py), g.into_pyarray(py).reshape([n, 3])?))
+    }
+
     /// Every occupied voxel's centre, as an (M, 3) float64 array.
     fn occupied_centres<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let view = self.view;
@@ -221,8 +300,11 @@ impl View {
 
     fn __repr__(&self) -> String {
         let (known, occupied) = self.view.counts();
+        let field = self.view.distance_field().map_or(String::new(), |f| {
+            format!(", distance field to {} m", f.max_distance())
+        });
         format!(
-            "<voxmap.View sequence {} resolution {} m, {known} known, {occupied} occupied>",
+            "<voxmap.View sequence {} resolution {} m, {known} known, {occupied} occupied{field}>",
             self.view.sequence(),
             self.view.resolution()
         )

@@ -53,6 +53,26 @@ class View:
         """Occupancy probability of a known voxel, when the snapshot stores values."""
     def occupied_centres(self) -> npt.NDArray[np.float64]:
         """Every occupied voxel's centre, (M, 3)."""
+    @property
+    def field(self) -> Optional[Tuple[float, str]]:
+        """(max distance in metres, unknown policy "free" or "occupied") of the snapshot's
+        distance field, or None when it carries none (a service run with --esdf does)."""
+    def distance_at(self, p: _Vec3) -> Optional[float]:
+        """Distance (m) to the nearest obstacle at p, interpolated between voxel centres and
+        capped at the max distance; None where the field does not reach. Raises
+        VoxmapError without a field."""
+    def distance_and_gradient_at(
+        self, p: _Vec3
+    ) -> Optional[Tuple[float, npt.NDArray[np.float64]]]:
+        """(distance, gradient) at p; the gradient (per metre) points away from obstacles."""
+    def nearest_obstacle(self, p: _Vec3) -> Optional[npt.NDArray[np.float64]]:
+        """Centre of the obstacle voxel nearest to p's voxel; None when none is within the
+        max distance or the field does not reach p."""
+    def distances_at(
+        self, points: npt.ArrayLike
+    ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Distances (N,) (NaN where the field does not reach) and gradients (N, 3) at the
+        rows of an (N, 3) array, with the GIL released."""
 
 def open(path: "os.PathLike[str] | str") -> View:
     """Open a map file or snapshot file (verified whole)."""

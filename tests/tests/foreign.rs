@@ -15,7 +15,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 use voxmap_client::SnapshotSubscriber;
 use voxmap_core::io::mapfile;
-use voxmap_core::snapshot::SnapshotView;
+use voxmap_core::snapshot::{Nearest, SnapshotView};
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
 use voxmap_tests::{room_scan, run_ok, tmpdir, unique_prefix, Service};
 
@@ -326,6 +326,114 @@ fn c_and_cpp_answer_as_the_rust_view_and_survive_mutated_snapshots() {
         opened > 100 && opened < 10_000,
         "{opened} of 10000 mutated snapshots opened"
     );
+    std::fs::remove_dir_all(&f.dir).unwrap();
+}
+
+/// A snapshot file with the fixture map's distance field, points around and beyond it, and
+/// the Rust field's answers in the layout of `c/tests/programs/field.cpp`.
+fn field_fixture(f: &Fixture) -> (PathBuf, PathBuf, PathBuf) {
+    let cfg = voxmap_core::field::FieldConfig {
+        max_distance: 0.3,
+        ..Default::default()
+    };
+    let snap = mapfile::read_as_snapshot_with_field(&f.map, &cfg).unwrap();
+    let snapshot = f.dir.join("field.snap");
+    mapfile::save_snapshot(&snap, &snapshot).unwrap();
+    let view = SnapshotView::open(&snap).unwrap();
+    let field = view.distance_field().expect("a field");
+    let mut rng = Rng(0x9E3779B97F4A7C15);
+    let mut points: Vec<[f64; 3]> = (0..5000)
+        .map(|i| {
+            // Half near the walls (the band), half anywhere.
+            let h = [3.0, 2.0, 1.5];
+            let mut p = [0, 1, 2].map(|k| rng.within(-h[k] - 0.5, h[k] + 0.5));
+            if i % 2 == 0 {
+                let k = i % 3;
+                p[k] = h[k] * if rng.f() < 0.5 { -1.0 } else { 1.0 } + rng.within(-0.4, 0.4);
+            }
+            p
+        })
+        .collect();
+    points.extend([[f64::NAN, 0.0, 0.0], [1e12, 0.0, 0.0], [0.0, 0.0, 50.0]]);
+    let mut q = (points.len() as u64).to_le_bytes().to_vec();
+    points
+        .iter()
+        .flatten()
+        .for_each(|v| q.extend(v.to_le_bytes()));
+    let pts = f.dir.join("field_points.bin");
+    std::fs::write(&pts, q).unwrap();
+    let mut o = field.max_distance().to_le_bytes().to_vec();
+    let wp: Vec<WorldPoint> = points.iter().map(|p| WorldPoint::from(*p)).collect();
+    for p in &wp {
+        let d = field.distance_and_gradient_at(p);
+        o.extend(i32::from(d.is_some()).to_le_bytes());
+        let (d, g) = d.map_or((0.0, [0.0; 3]), |(d, g)| (d, [g.x, g.y, g.z]));
+        o.extend(d.to_le_bytes());
+        g.iter().for_each(|x| o.extend(x.to_le_bytes()));
+        let (code, c, dist) = match field.nearest_obstacle(p) {
+            Nearest::Unknown => (0i32, [0.0; 3], 0.0),
+            Nearest::NoneWithin => (2, [0.0; 3], 0.0),
+            Nearest::At {
+                centre, distance, ..
+            } => (1, [centre.x, centre.y, centre.z], distance),
+        };
+        o.extend(code.to_le_bytes());
+        c.iter().for_each(|x| o.extend(x.to_le_bytes()));
+        o.extend(dist.to_le_bytes());
+    }
+    let mut batched = Vec::new();
+    field.distances_and_gradients_at(&wp, &mut batched);
+    batched
+        .iter()
+        .flatten()
+        .for_each(|x| o.extend(x.to_le_bytes()));
+    let expected = f.dir.join("field_expected.bin");
+    std::fs::write(&expected, o).unwrap();
+    (snapshot, pts, expected)
+}
+
+#[test]
+fn distance_field_from_cpp_and_python_answers_as_the_rust_view() {
+    let Some(prefix) = c_prefix() else { return };
+    let f = fixture("c_field");
+    let (snapshot, pts, expected) = field_fixture(&f);
+    let build = f.dir.join("build");
+    cmake_build("c/tests/programs", &prefix, &build);
+    let out = f.dir.join("field_cpp.bin");
+    run_ok(Command::new(build.join("field")).args([&snapshot, &pts, &out]));
+    let (got, want) = (
+        std::fs::read(&out).unwrap(),
+        std::fs::read(&expected).unwrap(),
+    );
+    assert_eq!(got.len(), want.len(), "answer layouts differ");
+    if let Some(i) = (0..got.len()).find(|&i| got[i] != want[i]) {
+        panic!(
+            "C++ field answer differs from Rust's at byte {i} of {}",
+            want.len()
+        );
+    }
+    // A snapshot without a field: a clear error, not a crash.
+    let bad = Command::new(build.join("field"))
+        .args([&f.snapshot, &pts, &out])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("no distance field"),
+        "{bad:?}"
+    );
+    if let Some(py) = python_api() {
+        let said = run_ok(
+            Command::new(py)
+                .args(["-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider"])
+                .arg(format!("{REPO}/python/tests/test_field.py"))
+                .env("VOXMAP_FIXTURE", &f.dir),
+        );
+        assert!(
+            said.contains(" passed") && !said.contains("skipped"),
+            "{said}"
+        );
+    }
     std::fs::remove_dir_all(&f.dir).unwrap();
 }
 

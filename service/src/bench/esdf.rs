@@ -64,6 +64,14 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
     }
     match scan_dat() {
         Ok(Some(points)) => {
+            if let Some(out) = &a.esdf_write_pcd {
+                std::fs::create_dir_all(out)?;
+                let cloud = pcd::PointCloud {
+                    points: points.clone(),
+                    pose: nalgebra::Isometry3::identity(),
+                };
+                pcd::write(&out.join("scan_dat.pcd"), &cloud)?;
+            }
             let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
             let frame = Frame {
                 pose: nalgebra::Isometry3::identity(),
@@ -297,9 +305,11 @@ fn sequence(a: &BenchArgs, threads: usize, cfg: FieldConfig) -> Result<()> {
     Ok(())
 }
 
-/// The frames as binary PCD files (pose in VIEWPOINT), for other tools on the same data.
+/// The frames as binary PCD files (pose in VIEWPOINT) in `dir/tum`, for other tools on the
+/// same data.
 fn write_pcds(dir: &Path, frames: &[crate::tum::DepthFrame]) -> Result<()> {
-    std::fs::create_dir_all(dir)?;
+    let dir = dir.join("tum");
+    std::fs::create_dir_all(&dir)?;
     for f in frames {
         let cloud = pcd::PointCloud {
             points: f.points.clone(),

@@ -76,7 +76,8 @@ pub struct BenchArgs {
     /// shared/data/real/tum_fr2_pioneer_slam2.
     #[arg(long, value_name = "DIR")]
     esdf_sequence: Option<PathBuf>,
-    /// With --esdf: also write the TUM frames as PCD files here (for bench/esdf_edt3d.cpp).
+    /// With --esdf: also write the TUM frames (DIR/tum/*.pcd) and scan.dat
+    /// (DIR/scan_dat.pcd) as PCD files here, for bench/esdf_vs_edt3d.sh.
     #[arg(long, value_name = "DIR")]
     esdf_write_pcd: Option<PathBuf>,
 }
