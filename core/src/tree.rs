@@ -19,6 +19,38 @@ pub const INTERNAL_CHILDREN: usize = 1 << (3 * INTERNAL_LOG2);
 /// to an internal node.
 pub const BLOCK_LEAVES: usize = 512;
 
+/// `MORTON[i]`: the Morton (Z-order) place of in-leaf offset `i = x | y << 3 | z << 6`,
+/// bits interleaved x, y, z from the lowest: the eight voxels of an aligned 2x2x2 cube are
+/// consecutive. The distance field section stores a leaf's voxels in this order, so that
+/// the eight voxels an interpolation reads share cache lines.
+pub static MORTON: [u16; LEAF_VOXELS] = {
+    let mut t = [0u16; LEAF_VOXELS];
+    let mut i = 0;
+    while i < LEAF_VOXELS {
+        let (x, y, z) = (i & 7, i >> 3 & 7, i >> 6 & 7);
+        let mut m = 0;
+        let mut b = 0;
+        while b < 3 {
+            m |= ((x >> b & 1) | (y >> b & 1) << 1 | (z >> b & 1) << 2) << (3 * b);
+            b += 1;
+        }
+        t[i] = m as u16;
+        i += 1;
+    }
+    t
+};
+
+/// The inverse of [`MORTON`]: the in-leaf offset at each Morton place.
+pub static UNMORTON: [u16; LEAF_VOXELS] = {
+    let mut t = [0u16; LEAF_VOXELS];
+    let mut i = 0;
+    while i < LEAF_VOXELS {
+        t[MORTON[i] as usize] = i as u16;
+        i += 1;
+    }
+    t
+};
+
 /// Origin (minimum corner) of the block holding `v`.
 #[inline]
 pub fn block_origin(v: VoxelCoord) -> VoxelCoord {

@@ -10,7 +10,7 @@ use super::view::SnapshotView;
 use super::SnapshotError;
 use crate::coord::{VoxelCoord, WorldPoint, MAX_VOXEL_INDEX};
 use crate::field::{offset_len2, UnknownPolicy, MAX_RADIUS};
-use crate::tree::{leaf_offset, LEAF_VOXELS};
+use crate::tree::{leaf_offset, LEAF_VOXELS, MORTON};
 use nalgebra::Vector3;
 
 /// The validated pieces of a field section.
@@ -127,6 +127,22 @@ pub enum Nearest {
     },
 }
 
+/// One leaf's share of the field, read from its entry.
+#[derive(Clone, Copy, Debug)]
+enum Band<'a> {
+    /// No voxel within the max distance.
+    None,
+    /// Every voxel: 512 offsets.
+    All(&'a [u8]),
+    /// The voxels of `mask`, their offsets in voxel order; `ranks[w]`: set bits before
+    /// word `w`.
+    Masked {
+        mask: [u64; 8],
+        ranks: [u32; 8],
+        offsets: &'a [u8],
+    },
+}
+
 /// One voxel of the field.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Cell {
@@ -210,31 +226,60 @@ impl<'a> FieldView<'a> {
         lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
     }
 
-    /// Voxel `i` of leaf `index` (a leaf the snapshot holds).
+    /// The band of leaf `index` (a leaf the snapshot holds), read once for its voxels.
     #[inline]
-    fn cell_in(&self, index: u64, i: usize) -> Cell {
+    fn band_of(&self, index: u64) -> Band<'a> {
         let Some(e) = self.parts.entries.get(index as usize) else {
-            return Cell::Far;
+            return Band::None;
         };
         let e: FieldEntry = bytemuck::pod_read_unaligned(e);
         let data = self.parts.data;
-        let at = match e.kind {
-            FIELD_ALL => e.data as usize + 3 * i,
+        match e.kind {
+            FIELD_ALL => data
+                .get(e.data as usize..e.data as usize + 3 * LEAF_VOXELS)
+                .map_or(Band::None, Band::All),
             FIELD_MASKED => {
-                let Some(m) = mask_at(data, e.data) else {
-                    return Cell::Far;
+                let Some(mask) = mask_at(data, e.data) else {
+                    return Band::None;
                 };
-                let (w, b) = (i / 64, i % 64);
-                if m[w] >> b & 1 == 0 {
+                let mut ranks = [0u32; 8];
+                let mut below = 0;
+                for (r, w) in ranks.iter_mut().zip(mask) {
+                    *r = below;
+                    below += w.count_ones();
+                }
+                let at = e.data as usize + 64;
+                data.get(at..at + 3 * below as usize)
+                    .map_or(Band::None, |offsets| Band::Masked {
+                        mask,
+                        ranks,
+                        offsets,
+                    })
+            }
+            _ => Band::None,
+        }
+    }
+
+    /// Voxel `i` (in-leaf offset) of a leaf's band, stored at its Morton place.
+    #[inline]
+    fn cell_in(band: &Band<'_>, i: usize) -> Cell {
+        let m = usize::from(MORTON[i & (LEAF_VOXELS - 1)]);
+        let at = match band {
+            Band::None => return Cell::Far,
+            Band::All(_) => 3 * m,
+            Band::Masked { mask, ranks, .. } => {
+                let (w, b) = (m / 64 & 7, m % 64);
+                if mask[w] >> b & 1 == 0 {
                     return Cell::Far;
                 }
-                let rank: u32 = m[..w].iter().map(|x| x.count_ones()).sum::<u32>()
-                    + (m[w] & ((1u64 << b) - 1)).count_ones();
-                e.data as usize + 64 + 3 * rank as usize
+                3 * (ranks[w] + (mask[w] & ((1u64 << b) - 1)).count_ones()) as usize
             }
-            _ => return Cell::Far,
         };
-        match data.get(at..at + 3) {
+        let offsets = match band {
+            Band::All(o) | Band::Masked { offsets: o, .. } => o,
+            Band::None => return Cell::Far,
+        };
+        match offsets.get(at..at + 3) {
             Some(o) => Cell::Near([o[0] as i8, o[1] as i8, o[2] as i8]),
             None => Cell::Far,
         }
@@ -255,7 +300,7 @@ impl<'a> FieldView<'a> {
             return Cell::Unknown;
         }
         match self.view.find_leaf(v) {
-            Some(l) => self.cell_in(l.index, leaf_offset(v)),
+            Some(l) => Self::cell_in(&self.band_of(l.index), leaf_offset(v)),
             None => self.absent(),
         }
     }
@@ -288,14 +333,27 @@ impl<'a> FieldView<'a> {
         let b = VoxelCoord::new(f[0] as i32, f[1] as i32, f[2] as i32);
         let top = b + VoxelCoord::new(1, 1, 1);
         let mut d = [0.0; 8];
-        if (b.x & 7) != 7 && (b.y & 7) != 7 && (b.z & 7) != 7 && self.covers(b) && self.covers(top)
-        {
-            // All eight in one leaf: one lookup.
-            let leaf = self.view.find_leaf(b);
-            let i0 = leaf_offset(b);
+        if self.covers(b) && self.covers(top) {
+            // Each leaf the eight lie in is looked up and read once: one leaf for most
+            // points, up to eight at a leaf's corner.
+            let mut leaves: [(VoxelCoord, Option<Band<'a>>); 8] = [(top, None); 8];
+            let mut n = 0;
             for (k, out) in d.iter_mut().enumerate() {
-                let i = i0 + (k & 1) + (k >> 1 & 1) * 8 + (k >> 2) * 64;
-                let c = leaf.map_or(self.absent(), |l| self.cell_in(l.index, i));
+                let v = b + VoxelCoord::new((k & 1) as i32, (k >> 1 & 1) as i32, (k >> 2) as i32);
+                let o = crate::tree::leaf_origin(v);
+                let at = match leaves[..n].iter().position(|(lo, _)| *lo == o) {
+                    Some(at) => at,
+                    None => {
+                        leaves[n] = (o, self.view.find_leaf(v).map(|l| self.band_of(l.index)));
+                        n += 1;
+                        n - 1
+                    }
+                };
+                let band = &leaves[at].1;
+                let c = match band {
+                    Some(band) => Self::cell_in(band, leaf_offset(v)),
+                    None => self.absent(),
+                };
                 *out = self.metres(c)?;
             }
         } else {

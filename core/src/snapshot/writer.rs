@@ -6,9 +6,10 @@
 use super::layout::*;
 use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
-use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf};
+use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf, LEAF_VOXELS};
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
+use crate::tree::{MORTON, UNMORTON};
 use rayon::prelude::*;
 
 /// Leaves per parallel piece of work (small in tests, so their maps span many pieces).
@@ -470,19 +471,29 @@ impl<'a> Plan<'a> {
                     let at = data.len() as u32;
                     let count = mask.count();
                     band += u64::from(count);
+                    // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
+                    let morton = (0..LEAF_VOXELS).map(|m| usize::from(UNMORTON[m]));
                     if count == 512 {
                         entries.push(FieldEntry {
                             data: at,
                             kind: FIELD_ALL,
                         });
-                        data.extend(offsets.iter().flat_map(|o| o.map(|c| c as u8)));
+                        data.extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
                     } else {
                         entries.push(FieldEntry {
                             data: at,
                             kind: FIELD_MASKED,
                         });
-                        data.extend(mask.words.iter().flat_map(|w| w.to_le_bytes()));
-                        data.extend(mask.iter_ones().flat_map(|i| offsets[i].map(|c| c as u8)));
+                        let mut bits = Mask512::EMPTY;
+                        for i in mask.iter_ones() {
+                            bits.set(usize::from(MORTON[i]));
+                        }
+                        data.extend(bits.words.iter().flat_map(|w| w.to_le_bytes()));
+                        data.extend(
+                            morton
+                                .filter(|&i| mask.get(i))
+                                .flat_map(|i| offsets[i].map(|c| c as u8)),
+                        );
                     }
                 }
                 (entries, data, band)
