@@ -9,6 +9,7 @@
 use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::mpsc::{channel, Receiver, Sender};
+use voxmap_core::field::DistanceField;
 use voxmap_core::io::mapfile::{self, EncodedMap};
 use voxmap_core::OccupancyMap;
 
@@ -20,8 +21,12 @@ pub enum Job {
 /// A finished job, with the path it was for.
 pub enum Done {
     Saved(PathBuf, Result<(), String>),
-    Loaded(PathBuf, Result<OccupancyMap, String>),
+    /// The map, and the distance field the file carried.
+    Loaded(PathBuf, Result<Box<Loaded>, String>),
 }
+
+/// A map read from a file, and the distance field the file carried.
+pub type Loaded = (OccupancyMap, Option<DistanceField>);
 
 pub struct FileWorker {
     jobs: Sender<Job>,
@@ -45,7 +50,9 @@ impl FileWorker {
                             Done::Saved(path, r)
                         }
                         Job::Load { path } => {
-                            let r = mapfile::load_map(&path).map_err(|e| e.to_string());
+                            let r = mapfile::load_map_with_field(&path)
+                                .map(Box::new)
+                                .map_err(|e| e.to_string());
                             Done::Loaded(path, r)
                         }
                     };
@@ -133,7 +140,9 @@ mod tests {
             std::thread::yield_now();
         }
         match &got[..] {
-            [Done::Saved(_, Ok(())), Done::Loaded(_, Ok(m)), Done::Loaded(p, Err(e))] => {
+            [Done::Saved(_, Ok(())), Done::Loaded(_, Ok(loaded)), Done::Loaded(p, Err(e))] => {
+                let (m, field) = &**loaded;
+                assert!(field.is_none());
                 assert_eq!(m.grid().get(VoxelCoord::new(1, 2, 3)), Some(40));
                 assert!(
                     p.ends_with("missing.vxm") && e.contains("missing.vxm"),

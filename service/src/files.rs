@@ -30,7 +30,7 @@ impl Loaded {
         let name = path.display();
         let mut d: Vec<(&'static str, String)> = Vec::new();
         if bytes.starts_with(&mapfile::MAP_MAGIC) {
-            let map = mapfile::decode_map(&bytes).map_err(|e| match e {
+            let (map, field) = mapfile::decode_map_with_field(&bytes).map_err(|e| match e {
                 mapfile::Decode::Version(v) => anyhow::anyhow!(
                     "{name}: map file version {v} is not supported (this build reads {})",
                     mapfile::MAP_VERSION
@@ -41,7 +41,10 @@ impl Loaded {
             let m = map.model();
             d.push((
                 "format",
-                format!("voxmap map file, version {}", mapfile::MAP_VERSION),
+                format!(
+                    "voxmap map file, version {}",
+                    u32::from_le_bytes(bytes[8..12].try_into().unwrap_or_default())
+                ),
             ));
             d.push(("resolution", format!("{} m", map.resolution())));
             d.push((
@@ -57,6 +60,23 @@ impl Loaded {
             d.push((
                 "memory when loaded",
                 format!("{} bytes", map.memory_bytes()),
+            ));
+            d.push((
+                "distance field",
+                match &field {
+                    None => "none".into(),
+                    Some(f) => format!(
+                        "to {} m, unknown {}, {} voxels in the band{}",
+                        f.max_distance(),
+                        f.config().unknown.name(),
+                        f.band_voxels(),
+                        f.window().map_or(String::new(), |(lo, hi)| format!(
+                            ", window {:?}..{:?}",
+                            lo.to_array(),
+                            hi.to_array()
+                        ))
+                    ),
+                },
             ));
             let leaves: Vec<_> = map.leaf_occupancy().collect();
             push_bounds(&mut d, &leaves, map.resolution());

@@ -484,8 +484,16 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                     f.memory_bytes()
                 );
             }
-            mapfile::save_map(&map, &out)?;
-            println!("wrote {}", out.display());
+            mapfile::save_map_with_field(&map, field.as_ref(), &out)?;
+            println!(
+                "wrote {}{}",
+                out.display(),
+                if field.is_some() {
+                    " (with its distance field)"
+                } else {
+                    ""
+                }
+            );
         }
         Sink::Service(online) => {
             let control = &online.control;

@@ -161,6 +161,65 @@ impl DistanceField {
         (!l.active.is_empty()).then_some((&l.active, &l.values))
     }
 
+    /// A field read back from a file (see `io::mapfile`) for `map`, covering `window`:
+    /// refused, with the reason, unless its offsets lie in the band and its obstacles are
+    /// exactly the map's (every obstacle stored at offset 0, nothing else there).
+    pub fn restore(
+        cfg: FieldConfig,
+        map: &OccupancyMap,
+        window: Option<(VoxelCoord, VoxelCoord)>,
+        leaves: Vec<(VoxelCoord, Mask512, [[i8; 3]; LEAF_VOXELS])>,
+    ) -> Result<Self, String> {
+        let mut f = Self::new(cfg, map.resolution()).map_err(|e| e.to_string())?;
+        f.window = window;
+        let (policy, r2) = (cfg.unknown, (f.radius * f.radius) as i32);
+        let absent = tile::absent_obstacles(policy);
+        let obstacles_at = |o: VoxelCoord| match map.grid().leaf_index(o) {
+            Some(i) => tile::obstacles(map.grid().leaf(i), policy),
+            None => absent,
+        };
+        for (o, band, offsets) in leaves {
+            if o.to_array()
+                .iter()
+                .any(|c| c & 7 != 0 || c.unsigned_abs() >= 1 << 30)
+            {
+                return Err(format!(
+                    "leaf origin {o:?} not leaf-aligned or out of range"
+                ));
+            }
+            let obstacles = obstacles_at(o);
+            for i in band.iter_ones() {
+                let len2 = super::offset_len2(offsets[i]);
+                if len2 >= r2 {
+                    return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
+                }
+                if (len2 == 0) != obstacles.get(i) {
+                    return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
+                }
+            }
+            let li = f.grid.leaf_index_or_insert(o, None);
+            let leaf = f.grid.leaf_mut(li);
+            if !leaf.active.is_empty() {
+                return Err(format!("leaf {o:?} stored twice"));
+            }
+            leaf.active = band;
+            leaf.values = offsets;
+        }
+        // Every obstacle of the map's leaves that the field covers is in it, at offset 0.
+        for (o, leaf) in map.grid().leaves() {
+            let obstacles = tile::obstacles(leaf, policy);
+            let li = f.seen.leaf_index_or_insert(o, None);
+            f.seen.leaf_mut(li).marked = obstacles;
+            for i in obstacles.iter_ones() {
+                let v = crate::tree::voxel_at(o, i);
+                if f.covers(v) && f.grid.get(v) != Some([0; 3]) {
+                    return Err(format!("the map's obstacle at {v:?} is missing"));
+                }
+            }
+        }
+        Ok(f)
+    }
+
     /// Forget everything (after the map was cleared).
     pub fn clear(&mut self) {
         self.grid = Grid::new();

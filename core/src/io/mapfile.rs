@@ -4,11 +4,18 @@
 //! ```text
 //! magic "VXMMAP\0\0" | version u32 | header length u32 | header (bincode) | header crc32 u32
 //! body: leaf_count records of { origin [i32; 3], known mask [u64; 8], values [i8; 512] }
+//! version 2 only, the distance field: field leaf_count records of
+//!   { origin [i32; 3], band mask [u64; 8], one (dx, dy, dz) i8 offset per band voxel }
 //! ```
+//! A file without a distance field is version 1, which earlier builds read; one with a
+//! field ([`save_map_with_field`]) is version 2, whose header adds the field's settings,
+//! record count, length and CRC-32. A loaded field is checked against its map (every
+//! obstacle at offset 0, nothing else there), so a field of another map is refused.
 //! All integers little-endian. The header holds the body's CRC-32; a file is loaded
 //! completely and verified before a map is built, so a bad file changes nothing.
 
 use crate::coord::VoxelCoord;
+use crate::field::{DistanceField, FieldConfig};
 use crate::grid::LEAF_VOXELS;
 use crate::map::OccupancyMap;
 use crate::model::SensorModel;
@@ -18,12 +25,32 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const MAP_MAGIC: [u8; 8] = *b"VXMMAP\0\0";
-pub const MAP_VERSION: u32 = 1;
+/// The newest version this build reads and writes: 2 with a distance field, else 1.
+pub const MAP_VERSION: u32 = 2;
+/// The version of files without a distance field.
+const MAP_VERSION_PLAIN: u32 = 1;
 /// A body record: origin, then known mask at `MASK_AT`, then values at `VALUES_AT`.
 const MASK_AT: usize = 12;
 const VALUES_AT: usize = MASK_AT + 64;
 const RECORD: usize = VALUES_AT + LEAF_VOXELS;
 const MAX_HEADER: usize = 4096;
+
+/// A version 2 header: the map's, then the distance field's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct FileHeaderWithField {
+    map: FileHeader,
+    field: FieldFileHeader,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct FieldFileHeader {
+    config: FieldConfig,
+    /// The voxels the field covered (its window when saved), inclusive.
+    window: Option<([i32; 3], [i32; 3])>,
+    leaf_count: u64,
+    body_len: u64,
+    body_crc32: u32,
+}
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 struct FileHeader {
@@ -167,16 +194,18 @@ fn remove_dead_temporaries(dir: &Path, stem: &str) {
 pub struct EncodedMap {
     pub head: Vec<u8>,
     pub body: Vec<u8>,
+    /// The distance field's records (empty without one).
+    pub field: Vec<u8>,
 }
 
 impl EncodedMap {
     /// Write the file atomically (see [`write_atomic`]).
     pub fn write(&self, path: &Path) -> Result<(), MapFileError> {
-        write_atomic_parts(path, &[&self.head, &self.body])
+        write_atomic_parts(path, &[&self.head, &self.body, &self.field])
     }
 
     pub fn len(&self) -> usize {
-        self.head.len() + self.body.len()
+        self.head.len() + self.body.len() + self.field.len()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -186,6 +215,7 @@ impl EncodedMap {
     pub fn into_bytes(self) -> Vec<u8> {
         let mut out = self.head;
         out.extend_from_slice(&self.body);
+        out.extend_from_slice(&self.field);
         out
     }
 }
@@ -199,6 +229,12 @@ pub fn encode_map(map: &OccupancyMap) -> Vec<u8> {
 /// [`crate::grid::Grid::leaves_in_block_order`]), so equal maps give equal files; records
 /// are filled and checksummed in parallel on the current rayon pool.
 pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
+    encode_map_parts_with(map, None)
+}
+
+/// [`encode_map_parts`], with the distance field kept beside the map when given (a
+/// version 2 file).
+pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) -> EncodedMap {
     use rayon::prelude::*;
     let leaves: Vec<_> = map
         .grid()
@@ -233,19 +269,51 @@ pub fn encode_map_parts(map: &OccupancyMap) -> EncodedMap {
         leaf_count: leaves.len() as u64,
         body_crc32: par_crc32(&body),
     };
+    let Some(f) = field else {
+        return EncodedMap {
+            head: encode_head(&header, MAP_VERSION_PLAIN),
+            body,
+            field: Vec::new(),
+        };
+    };
+    let mut leaves: Vec<_> = f.leaves().collect();
+    leaves.sort_unstable_by_key(|(o, _, _)| (o.z, o.y, o.x));
+    let mut records = Vec::new();
+    for (o, mask, offsets) in &leaves {
+        for c in o.to_array() {
+            records.extend_from_slice(&c.to_le_bytes());
+        }
+        for w in mask.words {
+            records.extend_from_slice(&w.to_le_bytes());
+        }
+        for i in mask.iter_ones() {
+            records.extend(offsets[i].map(|c| c as u8));
+        }
+    }
+    let header = FileHeaderWithField {
+        map: header,
+        field: FieldFileHeader {
+            config: *f.config(),
+            window: f.window().map(|(lo, hi)| (lo.to_array(), hi.to_array())),
+            leaf_count: leaves.len() as u64,
+            body_len: records.len() as u64,
+            body_crc32: par_crc32(&records),
+        },
+    };
     EncodedMap {
-        head: encode_head(&header),
+        head: encode_head(&header, MAP_VERSION),
         body,
+        field: records,
     }
 }
 
 /// A file's head: magic, version, header length, header, header checksum.
-fn encode_head(header: &FileHeader) -> Vec<u8> {
+fn encode_head(header: &impl Serialize, version: u32) -> Vec<u8> {
     let hb = bincode::serde::encode_to_vec(header, bincode::config::standard())
         .expect("plain struct encodes");
     let mut head = Vec::with_capacity(20 + hb.len());
     head.extend_from_slice(&MAP_MAGIC);
-    head.extend_from_slice(&MAP_VERSION.to_le_bytes());
+    head.extend_from_slice(&version.to_le_bytes());
     head.extend_from_slice(&(hb.len() as u32).to_le_bytes());
     head.extend_from_slice(&hb);
     head.extend_from_slice(&crc32fast::hash(&hb).to_le_bytes());
@@ -277,10 +345,27 @@ pub fn save_map(map: &OccupancyMap, path: &Path) -> Result<(), MapFileError> {
     encode_map_parts(map).write(path)
 }
 
+/// Save a map and its distance field atomically (a version 2 file).
+pub fn save_map_with_field(
+    map: &OccupancyMap,
+    field: Option<&DistanceField>,
+    path: &Path,
+) -> Result<(), MapFileError> {
+    encode_map_parts_with(map, field).write(path)
+}
+
 /// Load a map file into a new map. Nothing is returned unless the whole file verified.
 pub fn load_map(path: &Path) -> Result<OccupancyMap, MapFileError> {
+    Ok(load_map_with_field(path)?.0)
+}
+
+/// Load a map file and the distance field it carries, if any. Nothing is returned unless
+/// the whole file verified.
+pub fn load_map_with_field(
+    path: &Path,
+) -> Result<(OccupancyMap, Option<DistanceField>), MapFileError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
-    decode_map(&bytes).map_err(decode_err(path))
+    decode_map_with_field(&bytes).map_err(decode_err(path))
 }
 
 fn decode_err(path: &Path) -> impl FnOnce(Decode) -> MapFileError + '_ {
@@ -303,14 +388,22 @@ pub enum Decode {
     Corrupt(String),
 }
 
-/// Decode map-file bytes into a new map.
+/// Decode map-file bytes into a new map (a distance field the file carries is checked and
+/// dropped).
 pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
+    Ok(decode_map_with_field(bytes)?.0)
+}
+
+/// Decode map-file bytes into a new map and the distance field the file carries.
+pub fn decode_map_with_field(
+    bytes: &[u8],
+) -> Result<(OccupancyMap, Option<DistanceField>), Decode> {
     let bad = |s: &str| Decode::Corrupt(s.to_string());
     if bytes.len() < 16 || bytes[..8] != MAP_MAGIC {
         return Err(bad("not a voxmap map file (bad magic)"));
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != MAP_VERSION {
+    if version != MAP_VERSION && version != MAP_VERSION_PLAIN {
         return Err(Decode::Version(version));
     }
     let hlen = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes")) as usize;
@@ -323,9 +416,35 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
         return Err(bad("header checksum mismatch"));
     }
     let cfg = bincode::config::standard().with_limit::<MAX_HEADER>();
-    let (h, _): (FileHeader, usize) = bincode::serde::decode_from_slice(hb, cfg)
-        .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
-    let body = &bytes[20 + hlen..];
+    let (h, field_header) = if version == MAP_VERSION_PLAIN {
+        let (h, _): (FileHeader, usize) = bincode::serde::decode_from_slice(hb, cfg)
+            .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
+        (h, None)
+    } else {
+        let (h, _): (FileHeaderWithField, usize) = bincode::serde::decode_from_slice(hb, cfg)
+            .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
+        (h.map, Some(h.field))
+    };
+    let mut body = &bytes[20 + hlen..];
+    let mut field_body: &[u8] = &[];
+    if let Some(fh) = &field_header {
+        let split = h
+            .leaf_count
+            .checked_mul(RECORD as u64)
+            .filter(|&n| n <= body.len() as u64)
+            .ok_or_else(|| bad("file shorter than its leaves"))?;
+        (body, field_body) = body.split_at(split as usize);
+        if field_body.len() as u64 != fh.body_len {
+            return Err(Decode::Corrupt(format!(
+                "distance field is {} bytes, header says {}",
+                field_body.len(),
+                fh.body_len
+            )));
+        }
+        if par_crc32(field_body) != fh.body_crc32 {
+            return Err(bad("distance field checksum mismatch"));
+        }
+    }
     // Leaf indices are u32.
     if h.leaf_count > u64::from(u32::MAX) {
         return Err(bad("leaf count out of range"));
@@ -392,7 +511,52 @@ pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
     if out_of_range > 0 {
         return Err(bad("log-odds value outside the clamping range"));
     }
-    Ok(map)
+    let field = match field_header {
+        None => None,
+        Some(fh) => Some(decode_field(&map, &fh, field_body)?),
+    };
+    Ok((map, field))
+}
+
+/// The distance field records of a version 2 file, checked against its map.
+fn decode_field(
+    map: &OccupancyMap,
+    fh: &FieldFileHeader,
+    mut rec: &[u8],
+) -> Result<DistanceField, Decode> {
+    let bad = |s: &str| Decode::Corrupt(format!("distance field: {s}"));
+    if fh.leaf_count > u64::from(u32::MAX) {
+        return Err(bad("leaf count out of range"));
+    }
+    let mut leaves = Vec::with_capacity(fh.leaf_count.min(1 << 20) as usize);
+    for _ in 0..fh.leaf_count {
+        if rec.len() < 76 {
+            return Err(bad("records truncated"));
+        }
+        let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+        let origin = VoxelCoord::new(c(0), c(1), c(2));
+        let mut mask = crate::mask::Mask512::EMPTY;
+        for (w, word) in mask.words.iter_mut().enumerate() {
+            *word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
+        }
+        let n = 3 * mask.count() as usize;
+        let offsets_bytes = rec
+            .get(76..76 + n)
+            .ok_or_else(|| bad("records truncated"))?;
+        let mut offsets = [[0i8; 3]; 512];
+        for (i, o) in mask.iter_ones().zip(offsets_bytes.chunks_exact(3)) {
+            offsets[i] = [o[0] as i8, o[1] as i8, o[2] as i8];
+        }
+        leaves.push((origin, mask, offsets));
+        rec = &rec[76 + n..];
+    }
+    if !rec.is_empty() {
+        return Err(bad("bytes after the last record"));
+    }
+    let window = fh
+        .window
+        .map(|(lo, hi)| (VoxelCoord::from_array(lo), VoxelCoord::from_array(hi)));
+    DistanceField::restore(fh.config, map, window, leaves).map_err(|e| bad(&e))
 }
 
 /// Write snapshot bytes to a file atomically (after checking they open).
@@ -443,15 +607,19 @@ fn read_as_snapshot_with(
         })?;
         return Ok(bytes);
     }
-    let map = decode_map(&bytes).map_err(decode_err(path))?;
+    let (map, carried) = decode_map_with_field(&bytes).map_err(decode_err(path))?;
     drop(bytes);
     let meta = crate::snapshot::Meta {
         with_values: true,
         ..Default::default()
     };
     let plan = crate::snapshot::Plan::new(&map, crate::snapshot::Scope::Whole, meta);
-    let Some(cfg) = field else {
-        return Ok(plan.to_vec());
+    // The field the file carries, unless the caller asks for another.
+    let cfg = match (field, carried) {
+        (None, None) => return Ok(plan.to_vec()),
+        (None, Some(f)) => return Ok(plan.with_field(&f).to_vec()),
+        (Some(cfg), Some(f)) if f.config() == cfg => return Ok(plan.with_field(&f).to_vec()),
+        (Some(cfg), _) => cfg,
     };
     let mut f = crate::field::DistanceField::new(*cfg, map.resolution()).map_err(|source| {
         MapFileError::Field {
@@ -567,7 +735,7 @@ mod tests {
             bincode::serde::decode_from_slice(&bytes[16..16 + hlen], cfg).unwrap();
         let body = &bytes[20 + hlen..];
         edit(&mut h, body);
-        let mut out = encode_head(&h);
+        let mut out = encode_head(&h, MAP_VERSION_PLAIN);
         out.extend_from_slice(body);
         out
     }
@@ -623,6 +791,71 @@ mod tests {
         v[body + VALUES_AT + free] = 127;
         let back = decode_map(&reseal(&v)).ok().unwrap();
         assert_eq!(voxels(&back), voxels(&sample_map()));
+    }
+
+    /// A map of walls (random occupied and free voxels) and its field.
+    fn field_of(map: &OccupancyMap, unknown: crate::field::UnknownPolicy) -> DistanceField {
+        let cfg = FieldConfig {
+            max_distance: 0.3,
+            unknown,
+            window: None,
+        };
+        let mut f = DistanceField::new(cfg, map.resolution()).unwrap();
+        f.rebuild(map, None);
+        f
+    }
+
+    /// Per band leaf: its origin, and (voxel, offset) of each of its band voxels.
+    type Band = Vec<(VoxelCoord, Vec<(usize, [i8; 3])>)>;
+
+    fn band(f: &DistanceField) -> Band {
+        let mut v: Vec<_> = f
+            .leaves()
+            .map(|(o, m, off)| (o, m.iter_ones().map(|i| (i, off[i])).collect()))
+            .collect();
+        v.sort_by_key(|(o, _)| (o.z, o.y, o.x));
+        v
+    }
+
+    #[test]
+    fn the_distance_field_rides_along_and_is_checked_against_its_map() {
+        use crate::field::UnknownPolicy;
+        let map = sample_map();
+        for unknown in [UnknownPolicy::Free, UnknownPolicy::Occupied] {
+            let f = field_of(&map, unknown);
+            assert!(f.band_voxels() > 1000);
+            let bytes = encode_map_parts_with(&map, Some(&f)).into_bytes();
+            assert_eq!(
+                u32::from_le_bytes(bytes[8..12].try_into().unwrap()),
+                MAP_VERSION
+            );
+            let (back, carried) = decode_map_with_field(&bytes).unwrap();
+            assert_eq!(voxels(&back), voxels(&map));
+            let carried = carried.expect("the field");
+            assert_eq!(carried.config(), f.config());
+            assert_eq!(band(&carried), band(&f));
+            // The map alone reads as before; a file without a field stays version 1.
+            assert_eq!(voxels(&decode_map(&bytes).unwrap()), voxels(&map));
+            let plain = encode_map(&map);
+            assert_eq!(u32::from_le_bytes(plain[8..12].try_into().unwrap()), 1);
+            assert!(decode_map_with_field(&plain).unwrap().1.is_none());
+            // Damage behind the field's checksum, a cut, and the field of another map.
+            let mut v = bytes.clone();
+            let n = v.len();
+            v[n - 2] ^= 0x10;
+            assert!(
+                matches!(decode_map_with_field(&v), Err(Decode::Corrupt(m)) if m.contains("distance field checksum"))
+            );
+            assert!(decode_map_with_field(&bytes[..bytes.len() - 5]).is_err());
+            let mut other = sample_map();
+            other.set_value(VoxelCoord::new(200, 200, 0), 100);
+            other.set_value(VoxelCoord::new(0, 0, 0), 100);
+            let wrong = encode_map_parts_with(&other, Some(&f)).into_bytes();
+            assert!(
+                matches!(decode_map_with_field(&wrong), Err(Decode::Corrupt(m)) if m.contains("distance field")),
+                "the field of another map is refused"
+            );
+        }
     }
 
     #[test]

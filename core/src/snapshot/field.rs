@@ -268,7 +268,7 @@ impl<'a> FieldView<'a> {
             Band::None => return Cell::Far,
             Band::All(_) => 3 * m,
             Band::Masked { mask, ranks, .. } => {
-                let (w, b) = (m / 64 & 7, m % 64);
+                let (w, b) = ((m / 64) & 7, m % 64);
                 if mask[w] >> b & 1 == 0 {
                     return Cell::Far;
                 }

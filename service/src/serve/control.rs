@@ -141,8 +141,9 @@ impl Control {
                 };
                 let path = p.into();
                 let job = if kind == ControlKind::Save {
-                    let (integ, map) = (&s.integ, &s.map);
-                    let file = integ.install(|| mapfile::encode_map_parts(map));
+                    let (integ, map, field) = (&s.integ, &s.map, &s.field);
+                    let file =
+                        integ.install(|| mapfile::encode_map_parts_with(map, field.as_ref()));
                     Job::Save { path, file }
                 } else {
                     Job::Load { path }
@@ -197,7 +198,8 @@ impl Control {
 fn finish_file_job(done: Done, s: &mut MapState) -> Answer {
     match done {
         Done::Saved(p, Ok(())) => Answer::ok(format!("saved to {}", p.display()), false),
-        Done::Loaded(p, Ok(m)) => {
+        Done::Loaded(p, Ok(loaded)) => {
+            let (m, carried) = *loaded;
             if !s.integ.fits_resolution(m.resolution()) {
                 return Answer::err(format!(
                     "{} not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
@@ -220,7 +222,7 @@ fn finish_file_job(done: Done, s: &mut MapState) -> Answer {
                 }
             }
             s.map = m;
-            s.rebuild_field();
+            s.take_field(carried);
             Answer::ok(format!("loaded {}", p.display()), true)
         }
         Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e)) => Answer::err(e),

@@ -120,6 +120,23 @@ pub(crate) struct MapState {
 }
 
 impl MapState {
+    /// After a load: the field the file carried when it has this service's settings (no
+    /// rebuild), else one built anew.
+    fn take_field(&mut self, carried: Option<DistanceField>) {
+        match (&self.field, carried) {
+            (Some(ours), Some(f))
+                if f.config() == ours.config() && f.resolution() == self.map.resolution() =>
+            {
+                eprintln!(
+                    "voxmap serve: distance field read with the map ({} voxels in the band)",
+                    f.band_voxels()
+                );
+                self.field = Some(f);
+            }
+            _ => self.rebuild_field(),
+        }
+    }
+
     /// Build the distance field anew for the map as it is (after a load or a clear).
     fn rebuild_field(&mut self) {
         if let Some(f) = &mut self.field {
@@ -190,9 +207,9 @@ pub fn run(a: ServeArgs) -> Result<()> {
             .create()
             .map_err(|e| anyhow!(e).context("creating the control server"))?,
     )?;
-    let map = match &a.load {
-        Some(p) => mapfile::load_map(p)?,
-        None => cfg.new_map()?,
+    let (map, carried) = match &a.load {
+        Some(p) => mapfile::load_map_with_field(p)?,
+        None => (cfg.new_map()?, None),
     };
     let mut s = MapState {
         field: cfg.field(map.resolution())?,
@@ -206,7 +223,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
     };
     s.stats.kernel = s.integ.kernel().name();
     if a.load.is_some() {
-        s.rebuild_field();
+        s.take_field(carried);
     }
     // After the integration pool exists, so only this (I/O) thread runs real-time.
     if cfg.rt_priority > 0 {
@@ -303,7 +320,8 @@ pub fn run(a: ServeArgs) -> Result<()> {
     control.finish(&mut s);
     out.publish(&mut s);
     if let Some(p) = &a.save_on_exit {
-        mapfile::save_map(&s.map, p).with_context(|| format!("saving map to {}", p.display()))?;
+        mapfile::save_map_with_field(&s.map, s.field.as_ref(), p)
+            .with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
     eprintln!("voxmap serve: exiting; {}", s.stats.log_line(&s.map));
