@@ -7,7 +7,7 @@ use nalgebra::Isometry3;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
-use voxmap_client::{FramePublisher, Nearest, SnapshotSubscriber, WorldPoint};
+use voxmap_client::{FramePublisher, MapControl, Nearest, SnapshotSubscriber, WorldPoint};
 use voxmap_core::io::mapfile;
 use voxmap_core::{OccupancyMap, VoxelCoord, VoxelState};
 use voxmap_tests::{
@@ -301,4 +301,54 @@ fn a_service_with_esdf_publishes_the_field_in_its_snapshots() {
         None,
         "unknown space"
     );
+    // Saved with the map, the field comes back with it: from the file, and in a service
+    // that loads it (without building it again).
+    let dir = tmpdir("esdf_save");
+    let saved = dir.join("room.vxm");
+    let control = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    control.save(saved.to_str().unwrap()).unwrap();
+    let info = ok(&["inspect", saved.to_str().unwrap()]);
+    assert!(
+        info.contains("version 2") && info.contains("distance field") && info.contains("to 1 m"),
+        "{info}"
+    );
+    std::fs::write(dir.join("p.txt"), "1.4 0 0\n").unwrap();
+    let line = ok(&[
+        "distance",
+        saved.to_str().unwrap(),
+        "--max-distance",
+        "1.0",
+        "--points",
+        dir.join("p.txt").to_str().unwrap(),
+    ]);
+    let from_file: f64 = line.split_whitespace().nth(3).unwrap().parse().unwrap();
+    assert!((from_file - d).abs() < 1e-6, "{from_file} vs {d}");
+    let prefix2 = unique_prefix("esdf_load");
+    let svc2 = Service::start(
+        &prefix2,
+        &[
+            "--esdf",
+            "--esdf-max-distance",
+            "1.0",
+            "--load",
+            saved.to_str().unwrap(),
+        ],
+    );
+    let mut sub2 = connect_with_retry(|| SnapshotSubscriber::connect(&prefix2, "default"));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        sub2.wait_for_update(Duration::from_millis(100)).unwrap();
+        if let Some(v) = sub2.latest().unwrap() {
+            let f = v.distance_field().expect("the loaded field is published");
+            assert_eq!(f.distance_at(&p), Some(d));
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no snapshot from the loading service"
+        );
+    }
+    drop(sub2);
+    let (_, log) = svc2.signal_and_wait("TERM");
+    assert!(log.contains("distance field read with the map"), "{log}");
 }
