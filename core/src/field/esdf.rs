@@ -9,7 +9,7 @@
 //! not depend on the thread count: tiles run in parallel on the current rayon pool and
 //! their results are stored in tile order.
 
-use super::tile::{self, Scratch, TILE, TILE_LOG2};
+use super::tile::{self, Region, Scratch, TILE, TILE_LOG2};
 use super::FieldConfig;
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
 use crate::grid::Grid;
@@ -267,8 +267,32 @@ impl DistanceField {
                 }
             });
         let mut report = FieldReport::default();
-        let mut dirty: hashbrown::HashSet<VoxelCoord> = hashbrown::HashSet::new();
+        // Per tile to transform again, the box of its voxels that may have changed (in
+        // leaves, tile-local, inclusive).
+        let mut dirty: hashbrown::HashMap<VoxelCoord, ([i32; 3], [i32; 3])> =
+            hashbrown::HashMap::new();
         let tile_of = |v: VoxelCoord| v.shr(TILE_LOG2);
+        // Mark the voxels [lo, hi] (global, inclusive) as to be transformed again.
+        let mut mark = |lo: VoxelCoord, hi: VoxelCoord| {
+            let (a, b) = (tile_of(lo), tile_of(hi));
+            for z in a.z..=b.z {
+                for y in a.y..=b.y {
+                    for x in a.x..=b.x {
+                        let t = VoxelCoord::new(x, y, z);
+                        let o = t.shl(TILE_LOG2).to_array();
+                        let last = TILE as i32 - 1;
+                        let (l, h) = (lo.to_array(), hi.to_array());
+                        let blo = [0, 1, 2].map(|k| (l[k] - o[k]).clamp(0, last) & !7);
+                        let bhi = [0, 1, 2].map(|k| (h[k] - o[k]).clamp(0, last) | 7);
+                        let e = dirty.entry(t).or_insert((blo, bhi));
+                        for k in 0..3 {
+                            e.0[k] = e.0[k].min(blo[k]);
+                            e.1[k] = e.1[k].max(bhi[k]);
+                        }
+                    }
+                }
+            }
+        };
         for &(origin, now, new) in &changes {
             let was = match new {
                 true => absent,
@@ -280,7 +304,7 @@ impl DistanceField {
             };
             if new {
                 report.new_leaves += 1;
-                dirty.insert(tile_of(origin));
+                mark(origin, origin + VoxelCoord::new(7, 7, 7));
             }
             if was != now {
                 report.changed_leaves += 1;
@@ -289,23 +313,18 @@ impl DistanceField {
                     words: std::array::from_fn(|w| was.words[w] ^ now.words[w]),
                 };
                 let (lo, hi) = flipped.extent().expect("masks differ");
-                let a = tile_of(VoxelCoord::new(
-                    origin.x + lo[0] - r,
-                    origin.y + lo[1] - r,
-                    origin.z + lo[2] - r,
-                ));
-                let b = tile_of(VoxelCoord::new(
-                    origin.x + hi[0] + r,
-                    origin.y + hi[1] + r,
-                    origin.z + hi[2] + r,
-                ));
-                for z in a.z..=b.z {
-                    for y in a.y..=b.y {
-                        for x in a.x..=b.x {
-                            dirty.insert(VoxelCoord::new(x, y, z));
-                        }
-                    }
-                }
+                mark(
+                    VoxelCoord::new(
+                        origin.x + lo[0] - r,
+                        origin.y + lo[1] - r,
+                        origin.z + lo[2] - r,
+                    ),
+                    VoxelCoord::new(
+                        origin.x + hi[0] + r,
+                        origin.y + hi[1] + r,
+                        origin.z + hi[2] + r,
+                    ),
+                );
             }
             let li = self.seen.leaf_index_or_insert(origin, None);
             self.seen.leaf_mut(li).marked = now;
@@ -324,23 +343,25 @@ impl DistanceField {
                                 inside(tlo, olo, ohi) && inside(thi, olo, ohi)
                             });
                             if !covered {
-                                dirty.insert(t);
+                                let (tlo, thi) = tile_box(t);
+                                mark(tlo, thi);
                             }
                         }
                     }
                 }
             }
         }
-        let mut tiles: Vec<VoxelCoord> = dirty
+        let mut tiles: Vec<(VoxelCoord, Region)> = dirty
             .into_iter()
-            .filter(|&t| {
+            .filter(|&(t, _)| {
                 self.window.is_none_or(|(wlo, whi)| {
                     let (tlo, thi) = tile_box(t);
                     overlaps(tlo, thi, wlo, whi)
                 })
             })
+            .map(|(t, (lo, hi))| (t, (lo.map(|c| c as usize), hi.map(|c| c as usize + 1))))
             .collect();
-        tiles.sort_unstable_by_key(|t| (t.z, t.y, t.x));
+        tiles.sort_unstable_by_key(|(t, _)| (t.z, t.y, t.x));
         report.tiles = tiles.len() as u64;
         self.transform_tiles(map, &tiles);
         report.time = t0.elapsed();
@@ -348,7 +369,7 @@ impl DistanceField {
     }
 
     /// Transform `tiles` in parallel and store their leaves' bands.
-    fn transform_tiles(&mut self, map: &OccupancyMap, tiles: &[VoxelCoord]) {
+    fn transform_tiles(&mut self, map: &OccupancyMap, tiles: &[(VoxelCoord, Region)]) {
         let threads = rayon::current_num_threads();
         while self.scratch.len() < threads {
             self.scratch.push(Mutex::new(Scratch::default()));
@@ -363,14 +384,16 @@ impl DistanceField {
         let grid = map.grid();
         let results: Vec<Vec<(VoxelCoord, Option<Box<LeafField>>)>> = tiles
             .par_iter()
-            .map(|&t| {
+            .map(|&(t, region)| {
                 let origin = t.shl(TILE_LOG2);
-                // The map's leaves in the tile (in the window): only they get a band.
+                // The map's leaves in the tile's region (in the window): only they get a
+                // band.
                 let per = TILE / 8;
                 let mut leaves = Vec::with_capacity(per * per * per);
-                for z in 0..per {
-                    for y in 0..per {
-                        for x in 0..per {
+                let (lo, hi) = (region.0.map(|c| c / 8), region.1.map(|c| c.div_ceil(8)));
+                for z in lo[2]..hi[2] {
+                    for y in lo[1]..hi[1] {
+                        for x in lo[0]..hi[0] {
                             let o =
                                 origin + VoxelCoord::new(8 * x as i32, 8 * y as i32, 8 * z as i32);
                             let inside_window = window.is_none_or(|(wlo, whi)| {
@@ -387,7 +410,7 @@ impl DistanceField {
                 }
                 let slot = rayon::current_thread_index().unwrap_or(0) % scratch.len();
                 let mut s = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
-                if !tile::transform(&mut s, grid, policy, origin, radius, kernel) {
+                if !tile::transform(&mut s, grid, policy, origin, radius, kernel, region) {
                     return leaves.into_iter().map(|(o, _)| (o, None)).collect();
                 }
                 let far = tile::far_key(radius);

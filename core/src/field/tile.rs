@@ -20,7 +20,7 @@
 //! 28. The passes are plain loops over contiguous rows that the compiler vectorizes; the
 //! caller compiles them a second time for AVX2.
 
-use super::UnknownPolicy;
+use super::{UnknownPolicy, MAX_RADIUS};
 use crate::coord::VoxelCoord;
 use crate::grid::{Grid, Leaf};
 use crate::kernel::Kernel;
@@ -105,9 +105,13 @@ pub(super) struct Scratch {
     pub(super) keys: Vec<u32>,
 }
 
-/// Transform the tile with minimum corner `origin` (a multiple of [`TILE`]): fills
-/// `scratch.keys`. Returns false, leaving the keys unset, when no obstacle lies within the
-/// radius of the tile (every key would be far).
+/// A box of a tile's voxels, `(lo, hi)` per axis x, y, z, hi exclusive.
+pub(super) type Region = ([usize; 3], [usize; 3]);
+
+/// Transform the tile with minimum corner `origin` (a multiple of [`TILE`]) where it is
+/// needed: fills `scratch.keys` for the voxels of `region` (their whole rows along x).
+/// Returns false, leaving the keys unset, when no obstacle lies within the radius of the
+/// tile (every key would be far).
 pub(super) fn transform(
     scratch: &mut Scratch,
     map: &Grid<i8>,
@@ -115,6 +119,7 @@ pub(super) fn transform(
     origin: VoxelCoord,
     radius: u32,
     kernel: Kernel,
+    region: Region,
 ) -> bool {
     let (r, t) = (radius as usize, TILE);
     let n = t + 2 * r;
@@ -130,11 +135,11 @@ pub(super) fn transform(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512 F, DQ and BW
         // (`Kernel::supported`), the features `passes_avx512` enables.
-        Kernel::Avx512 => unsafe { passes_avx512(scratch, n, r) },
+        Kernel::Avx512 => unsafe { passes_avx512(scratch, n, r, region) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
-        Kernel::Avx2 => unsafe { passes_avx2(scratch, n, r) },
-        _ => passes(scratch, n, r),
+        Kernel::Avx2 => unsafe { passes_avx2(scratch, n, r, region) },
+        _ => passes(scratch, n, r, region),
     }
     true
 }
@@ -191,8 +196,9 @@ fn fill_obstacles(
 /// The three passes over a filled scratch (`n = TILE + 2r`). Written as loops over
 /// fixed-length rows with no branches, so that each inlined copy vectorizes.
 #[inline(always)]
-fn passes(s: &mut Scratch, n: usize, r: usize) {
+fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
     let t = TILE;
+    let ([_, y0, z0], [_, y1, z1]) = b;
     let plane = n * n;
     let cap = (r + 1) as u8;
     let far = far_key(r as u32);
@@ -210,16 +216,16 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
     // x and y.
     let run = &mut run[..plane];
     run.fill(cap);
-    for z in 0..r + t {
+    for z in 0..r + z1 {
         step(run, &obs[z * plane..][..plane], cap);
-        if z >= r {
+        if z >= r + z0 {
             below[(z - r) * plane..][..plane].copy_from_slice(run);
         }
     }
     run.fill(cap);
-    for z in (r..n).rev() {
+    for z in (r + z0..n).rev() {
         step(run, &obs[z * plane..][..plane], cap);
-        if z < r + t {
+        if z < r + z1 {
             let zt = z - r;
             let out = &mut keyz[zt * plane..][..plane];
             let down = &below[zt * plane..][..plane];
@@ -228,46 +234,55 @@ fn passes(s: &mut Scratch, n: usize, r: usize) {
     }
     // Rows (along x) of the z pass with any key in the band: the others add nothing.
     live.clear();
-    live.extend(
-        keyz.chunks_exact(n)
-            .map(|row| row.iter().fold(far, |m, &k| m.min(k)) < far),
-    );
-    // Along y: for the tile's (y, z), every x of the region, sixteen x at a time held in
-    // registers over the offsets.
-    for zt in 0..t {
-        for yt in 0..t {
+    live.resize(t * n, false);
+    for (l, row) in live[z0 * n..z1 * n]
+        .iter_mut()
+        .zip(keyz[z0 * plane..z1 * plane].chunks_exact(n))
+    {
+        *l = row.iter().fold(far, |m, &k| m.min(k)) < far;
+    }
+    // Along y: for the tile's (y, z), every x of the region, 32 x at a time held in
+    // registers over the rows with anything in the band (listed once per output row).
+    const LANES: usize = 32;
+    let mut rows = [(0usize, 0u32); 2 * MAX_RADIUS as usize + 1];
+    for zt in z0..z1 {
+        for yt in y0..y1 {
+            let mut m = 0;
+            for k in 0..=2 * r {
+                if live[zt * n + yt + k] {
+                    rows[m] = ((zt * n + yt + k) * n, add_y(k as i32 - r as i32));
+                    m += 1;
+                }
+            }
+            let rows = &rows[..m];
             let out = &mut keyy[(zt * t + yt) * n..][..n];
-            out.fill(far);
-            let rows = (0..=2 * r).filter(|&k| live[zt * n + yt + k]);
             let mut c0 = 0;
-            while c0 + 16 <= n {
-                let mut acc = [far; 16];
-                for k in rows.clone() {
-                    let c = add_y(k as i32 - r as i32);
-                    let src: &[u32; 16] = keyz[(zt * n + yt + k) * n + c0..][..16]
-                        .try_into()
-                        .expect("16");
-                    for i in 0..16 {
+            while c0 + LANES <= n {
+                let mut acc = [far; LANES];
+                for &(at, c) in rows {
+                    let src: &[u32; LANES] = keyz[at + c0..at + c0 + LANES].try_into().expect("32");
+                    for i in 0..LANES {
                         acc[i] = acc[i].min(src[i] + c);
                     }
                 }
-                for i in 0..16 {
-                    out[c0 + i] = acc[i].min(far);
-                }
-                c0 += 16;
+                out[c0..c0 + LANES].copy_from_slice(&acc);
+                c0 += LANES;
             }
-            for k in rows {
-                let c = add_y(k as i32 - r as i32);
-                let src = &keyz[(zt * n + yt + k) * n..][..n];
-                for i in c0..n {
-                    out[i] = out[i].min(src[i] + c).min(far);
+            out[c0..].fill(far);
+            for &(at, c) in rows {
+                let src = &keyz[at + c0..at + n];
+                for (o, &k) in out[c0..].iter_mut().zip(src) {
+                    *o = (*o).min(k + c);
                 }
+            }
+            for o in out.iter_mut() {
+                *o = (*o).min(far);
             }
         }
     }
     // Along x: the tile's voxels, a row of TILE at a time in registers; rows with nothing
     // in the band stay far.
-    for row in 0..t * t {
+    for row in (z0..z1).flat_map(|z| (y0..y1).map(move |y| z * t + y)) {
         let src = &keyy[row * n..][..n];
         let mut acc = [far; TILE];
         if src.iter().fold(far, |m, &k| m.min(k)) < far {
@@ -329,8 +344,8 @@ fn step(run: &mut [u8], o: &[u8], cap: u8) {
 /// The CPU must have AVX2 (`Kernel::Avx2.supported()` checks it).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize) {
-    passes(s, n, r)
+unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize, b: Region) {
+    passes(s, n, r, b)
 }
 
 /// [`passes`] compiled for AVX-512: sixteen keys per instruction.
@@ -339,6 +354,6 @@ unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize) {
 /// The CPU must have AVX-512 F and BW (`Kernel::Avx512.supported()` checks them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw")]
-unsafe fn passes_avx512(s: &mut Scratch, n: usize, r: usize) {
-    passes(s, n, r)
+unsafe fn passes_avx512(s: &mut Scratch, n: usize, r: usize, b: Region) {
+    passes(s, n, r, b)
 }
