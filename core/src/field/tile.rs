@@ -268,6 +268,17 @@ fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
                 out[c0..c0 + LANES].copy_from_slice(&acc);
                 c0 += LANES;
             }
+            while c0 + 8 <= n {
+                let mut acc = [far; 8];
+                for &(at, c) in rows {
+                    let src: &[u32; 8] = keyz[at + c0..at + c0 + 8].try_into().expect("8");
+                    for i in 0..8 {
+                        acc[i] = acc[i].min(src[i] + c);
+                    }
+                }
+                out[c0..c0 + 8].copy_from_slice(&acc);
+                c0 += 8;
+            }
             out[c0..].fill(far);
             for &(at, c) in rows {
                 let src = &keyz[at + c0..at + n];
