@@ -28,6 +28,18 @@ pub struct RenderArgs {
     /// Longest side of the map area, pixels.
     #[arg(long, default_value_t = 1000)]
     pub size: u32,
+    /// With --slice: colour the free voxels by their distance to the nearest obstacle
+    /// (the file's distance field, or one built from a map file with
+    /// --esdf-max-distance and --esdf-unknown).
+    #[arg(long, requires = "slice")]
+    pub distance: bool,
+    /// With --distance, for a map file without a field of these settings: the max
+    /// distance (metres).
+    #[arg(long, default_value_t = 2.0)]
+    pub esdf_max_distance: f64,
+    /// With --distance: what unknown voxels count as, free or occupied.
+    #[arg(long, default_value = "free")]
+    pub esdf_unknown: voxmap_core::field::UnknownPolicy,
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
@@ -40,7 +52,30 @@ pub fn run(a: RenderArgs) -> Result<()> {
         }
         (None, r) => View::Top(r.map(|r| (r[0], r[1]))),
     };
-    let img = render(&loaded.leaves, loaded.resolution, view, a.size)?;
+    let img = if a.distance {
+        let cfg = voxmap_core::field::FieldConfig {
+            max_distance: a.esdf_max_distance,
+            unknown: a.esdf_unknown,
+            window: None,
+        };
+        let bytes = voxmap_core::io::mapfile::read_as_snapshot_with_field(&a.input, &cfg)?;
+        let snap = voxmap_core::snapshot::SnapshotView::open(&bytes)?;
+        let field = snap.distance_field().with_context(|| {
+            format!(
+                "{}: no distance field (give a map file, or a snapshot that carries one)",
+                a.input.display()
+            )
+        })?;
+        render_with(
+            &loaded.leaves,
+            loaded.resolution,
+            view,
+            a.size,
+            Some(&field),
+        )?
+    } else {
+        render(&loaded.leaves, loaded.resolution, view, a.size)?
+    };
     img.write_png(&a.out)?;
     println!(
         "wrote {} ({} x {} px)",
@@ -134,6 +169,17 @@ impl Image {
 
 /// Render leaves at `res` metres per voxel; the map area's longer side is about `size` px.
 pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Result<Image> {
+    render_with(leaves, res, view, size, None)
+}
+
+/// [`render`], a slice's free voxels coloured by `field`'s distance when given.
+pub fn render_with(
+    leaves: &[LeafOccupancy],
+    res: f64,
+    view: View,
+    size: u32,
+    field: Option<&voxmap_core::snapshot::FieldView<'_>>,
+) -> Result<Image> {
     let mut lo = [i32::MAX; 3];
     let mut hi = [i32::MIN; 3];
     for l in leaves {
@@ -157,6 +203,8 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
     // Per cell: highest occupied z (top) or occupancy at the slice layer, and known-ness.
     let mut top = vec![i32::MIN; cw * ch];
     let mut known = vec![false; cw * ch];
+    // Per cell: the smallest distance of its free voxels, with a field.
+    let mut nearest = vec![f64::INFINITY; cw * ch];
     // Heights far outside the map clamp to the index space, where `zhi + 1` cannot overflow.
     let layer = |z: f64| (z / res).floor().clamp(-MAX_VOXEL_INDEX, MAX_VOXEL_INDEX) as i32;
     let (zlo, zhi) = match view {
@@ -177,6 +225,8 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
             known[c] = true;
             if l.occupied.get(i) {
                 top[c] = top[c].max(v[2]);
+            } else if let Some(d) = field.and_then(|f| f.distance(voxel_at(l.origin, i))) {
+                nearest[c] = nearest[c].min(d);
             }
         }
     }
@@ -196,6 +246,11 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
                     height_color((z - zmin) as f64 / (zmax - zmin).max(1) as f64)
                 }
                 (z, _, View::Slice(_)) if z != i32::MIN => SLICE_OCCUPIED,
+                (_, true, _) if nearest[c].is_finite() => {
+                    // Near obstacles red, at the max distance blue (reversed height ramp).
+                    let max = field.map_or(1.0, |f| f.max_distance());
+                    height_color(1.0 - (nearest[c] / max).clamp(0.0, 1.0))
+                }
                 (_, true, _) => FREE,
                 _ => UNKNOWN,
             };
@@ -220,6 +275,12 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
             (FREE, "FREE"),
             (UNKNOWN, "UNKNOWN"),
         ],
+        View::Slice(_) if field.is_some() => vec![
+            (SLICE_OCCUPIED, "OCCUPIED"),
+            (height_color(1.0), "NEAR"),
+            (height_color(0.0), "AT MAX"),
+            (UNKNOWN, "UNKNOWN"),
+        ],
         View::Slice(_) => vec![
             (SLICE_OCCUPIED, "OCCUPIED"),
             (FREE, "FREE"),
@@ -237,7 +298,14 @@ pub fn render(leaves: &[LeafOccupancy], res: f64, view: View, size: u32) -> Resu
             fmt_m(zlo as f64 * res),
             fmt_m((zhi + 1) as f64 * res)
         ),
-        View::Slice(z) => format!("SLICE AT Z {} M", fmt_m(z)),
+        View::Slice(z) => match field {
+            Some(f) => format!(
+                "DISTANCE AT Z {} M, MAX {} M",
+                fmt_m(z),
+                fmt_m(f.max_distance())
+            ),
+            None => format!("SLICE AT Z {} M", fmt_m(z)),
+        },
     };
     let caption = format!(
         "{what} | {} M VOXELS | {} X {} M",
@@ -368,6 +436,33 @@ mod tests {
         let s = render(&room(), 0.1, View::Slice(0.15), 400).unwrap();
         assert_eq!(s.pixel(105, 5), UNKNOWN);
         assert!(render(&[], 0.1, View::Top(None), 400).is_err());
+    }
+
+    #[test]
+    fn a_distance_slice_colours_free_voxels_by_their_distance() {
+        use voxmap_core::field::{DistanceField, FieldConfig};
+        use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
+        use voxmap_core::{OccupancyMap, SensorModel};
+        // The same room as a map: the wall at x = 1 m, free floor elsewhere.
+        let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+        for l in room() {
+            for i in l.known.iter_ones() {
+                let v = voxel_at(l.origin, i);
+                map.set_value(v, if l.occupied.get(i) { 100 } else { -100 });
+            }
+        }
+        let mut f = DistanceField::new(FieldConfig::default(), 0.1).unwrap();
+        f.rebuild(&map, None);
+        let bytes = Plan::new(&map, Scope::Whole, Meta::default())
+            .with_field(&f)
+            .to_vec();
+        let snap = SnapshotView::open(&bytes).unwrap();
+        let field = snap.distance_field().unwrap();
+        let img = render_with(&room(), 0.1, View::Slice(0.05), 400, Some(&field)).unwrap();
+        assert_eq!(img.pixel(105, 5), SLICE_OCCUPIED);
+        // Next to the wall (0.1 m): near the ramp's near end; 2.5 m away: at the max.
+        assert_eq!(img.pixel(115, 5), height_color(1.0 - 0.05));
+        assert_eq!(img.pixel(355, 5), height_color(0.0));
     }
 
     #[test]
