@@ -1,4 +1,5 @@
-//! Arbitrary bytes into `SnapshotView::open` and then every query: must never panic.
+//! Arbitrary bytes into `SnapshotView::open` and then every query, the distance field's
+//! too: must never panic.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -22,5 +23,18 @@ fuzz_target!(|data: &[u8]| {
         let _ = v.is_box_free(&WorldPoint::new(-1e5, -1e5, -1e5), &WorldPoint::new(1e5, 1e5, 1e5), true);
         let _ = v.occupied_voxels().take(10_000).count();
         let _ = (v.bounds(), v.counts());
+        // The distance field section, when the bytes claim one.
+        if let Some(f) = v.distance_field() {
+            let points: Vec<_> = (-16..16)
+                .map(|i| WorldPoint::new(0.13 * f64::from(i), -0.07 * f64::from(i), 0.05 * f64::from(i)))
+                .collect();
+            let (mut d, mut g, mut n) = (Vec::new(), Vec::new(), Vec::new());
+            f.distances_at(&points, &mut d);
+            f.distances_and_gradients_at(&points, &mut g);
+            f.nearest_obstacles(&points, &mut n);
+            for p in &voxels {
+                let _ = f.distance(*p);
+            }
+        }
     }
 });

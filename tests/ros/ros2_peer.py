@@ -371,7 +371,10 @@ def listen(out):
     dp = DomainParticipant(DOMAIN)
     readers = map_readers(dp)
     want = json.loads(Path(out, 'publish.json').read_text())['last_ns']
-    maps = take_maps(readers, want, timeout=30.0)
+    # The map after the load: all three versions since the last frame (the map, the
+    # reset one, the loaded one) carry that frame's stamp, and a late reader may see an
+    # older one first.
+    maps = take_maps(readers, want, timeout=30.0, want=lambda occ: occ.width > 0)
     Path(out, 'listen.json').write_text(json.dumps(write_maps(out, maps, 'late'), indent=1))
 
 

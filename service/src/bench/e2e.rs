@@ -13,7 +13,10 @@ use voxmap_client::{MapControl, SnapshotSubscriber};
 /// normal priority, the sustained rate with the sensor flat out, and the idle CPU.
 /// With `ros2`, instead: normal scheduling only, the service without and with `--ros2`
 /// (its map topics encoded and published every 500 ms), alternated twice.
-pub fn run(seconds: f64, pin_threads: bool, ros2: bool) -> Result<()> {
+/// With `esdf`, instead: normal scheduling only, the service without and with `--esdf`
+/// (the distance field updated after each frame and carried in each snapshot), alternated
+/// twice: the latency from a frame to a readable field.
+pub fn run(seconds: f64, pin_threads: bool, ros2: bool, esdf: bool) -> Result<()> {
     println!("e2e: 65,536-point scans (OS0-64-like), 0.1 m, 30 m max range, service on 2 threads (pinned: {pin_threads}), sensor and planner as processes, {seconds} s per phase");
     if ros2 {
         for with in [false, true, false, true] {
@@ -25,17 +28,31 @@ pub fn run(seconds: f64, pin_threads: bool, ros2: bool) -> Result<()> {
                     "without --ros2"
                 }
             );
-            e2e_run(seconds, 0, pin_threads, with)?;
+            e2e_run(seconds, 0, pin_threads, with, false)?;
+        }
+        return Ok(());
+    }
+    if esdf {
+        for with in [false, true, false, true] {
+            println!(
+                "  service {}",
+                if with {
+                    "with --esdf"
+                } else {
+                    "without --esdf"
+                }
+            );
+            e2e_run(seconds, 0, pin_threads, false, with)?;
         }
         return Ok(());
     }
     for rt in [0, 10] {
-        e2e_run(seconds, rt, pin_threads, false)?;
+        e2e_run(seconds, rt, pin_threads, false, false)?;
     }
     Ok(())
 }
 
-fn e2e_run(seconds: f64, rt: i32, pin_threads: bool, ros2: bool) -> Result<()> {
+fn e2e_run(seconds: f64, rt: i32, pin_threads: bool, ros2: bool, esdf: bool) -> Result<()> {
     let exe = std::env::current_exe()?;
     let prefix = format!("voxmap-e2e-{}-{rt}", std::process::id());
     let (secs, rts) = (seconds.to_string(), rt.to_string());
@@ -55,6 +72,7 @@ fn e2e_run(seconds: f64, rt: i32, pin_threads: bool, ros2: bool) -> Result<()> {
             .args(["--threads", "2", "--rt-priority", &rts])
             .args(["--pin-threads", &pin_threads.to_string()])
             .args(if ros2 { &["--ros2"][..] } else { &[] })
+            .args(if esdf { &["--esdf"][..] } else { &[] })
             // Discovery kept to this host: the benchmark needs no peer.
             .env("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
             .stdout(Stdio::null())

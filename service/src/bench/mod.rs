@@ -62,6 +62,10 @@ pub struct BenchArgs {
     /// scheduling), for what encoding and publishing the ROS 2 map topics costs.
     #[arg(long, requires = "e2e")]
     e2e_ros2: bool,
+    /// With --e2e: compare the service without and with `--esdf` (alternated, normal
+    /// scheduling): the latency from a frame to a readable distance field.
+    #[arg(long, requires = "e2e")]
+    e2e_esdf: bool,
     /// Instead: the distance field benchmark (bulk builds over the workloads' maps and
     /// OctoMap's scan.dat, per-frame updates over the TUM sequence, bytes, queries).
     #[arg(long)]
@@ -193,7 +197,7 @@ fn ms(d: std::time::Duration) -> f64 {
 
 pub fn run(a: BenchArgs) -> Result<()> {
     if let Some(secs) = a.e2e {
-        return e2e::run(secs, a.pin_threads, a.e2e_ros2);
+        return e2e::run(secs, a.pin_threads, a.e2e_ros2, a.e2e_esdf);
     }
     let dir = match &a.workloads {
         Some(d) => d.clone(),
