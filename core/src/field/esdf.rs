@@ -125,9 +125,18 @@ impl DistanceField {
         self.grid.active_count()
     }
 
-    /// Heap bytes held: the band's leaves and the copy of the map's obstacles.
+    /// Heap bytes held: the band's leaves and the copy of the map's obstacles, in the leaf
+    /// pools' whole chunks (of 3272 leaves each; the pages of a chunk's unused leaves are
+    /// reserved, not touched).
     pub fn memory_bytes(&self) -> usize {
         self.grid.memory_bytes() + self.seen.memory_bytes()
+    }
+
+    /// Bytes of the leaves in use: the band's (offsets and masks) and the copy of the map's
+    /// obstacles, without the chunks' unused leaves and the internal nodes.
+    pub fn leaf_bytes(&self) -> usize {
+        self.grid.leaf_count() * std::mem::size_of::<crate::grid::Leaf<[i8; 3]>>()
+            + self.seen.leaf_count() * std::mem::size_of::<crate::grid::Leaf<()>>()
     }
 
     /// The offset from `v` to its nearest obstacle voxel, if one lies within the radius

@@ -180,10 +180,10 @@ fn fill_obstacles(
                     let word = m.words[z as usize];
                     for y in y0..y1 {
                         let row = (word >> (8 * y)) as u8;
-                        let at =
-                            (((o.z + z - g0.z) * n + (o.y + y - g0.y)) * n + o.x - g0.x) as usize;
+                        // The row's first voxel may lie before the region (x0 > 0 then).
+                        let at = ((o.z + z - g0.z) * n + (o.y + y - g0.y)) * n + o.x - g0.x;
                         for x in x0..x1 {
-                            obs[at + x as usize] = (row >> x) & 1;
+                            obs[(at + x) as usize] = (row >> x) & 1;
                         }
                     }
                 }

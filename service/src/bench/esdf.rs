@@ -38,8 +38,8 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
         a.runs
     );
     println!(
-        "{:<22} {:>8} {:>10} {:>9} {:>8} {:>8} {:>6} {:>6} | {:>10} {:>10} {:>6} {:>7} {:>7} | {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "map of", "leaves", "band vox", "build ms", "min", "max", "tiles", "B/bv", "snap B", "+field B", "B/bv", "enc ms", "+field",
+        "{:<22} {:>8} {:>10} {:>9} {:>8} {:>8} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} {:>7} {:>7} | {:>6} {:>6} {:>6} {:>6} {:>6}",
+        "map of", "leaves", "band vox", "build ms", "min", "max", "tiles", "B/bv", "used", "snap B", "+field B", "B/bv", "enc ms", "+field",
         "state", "dist", "d+grad", "near", "ratio"
     );
     let mut maps: Vec<(String, OccupancyMap, WorldPoint)> = Vec::new();
@@ -87,7 +87,7 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
         bulk_row(a, &probe, cfg, name, map, sensor)?;
     }
     println!(
-        "build = the whole field from scratch (as after a load); B/bv = bytes per voxel in the band: the field's memory, then its snapshot section; \
+        "build = the whole field from scratch (as after a load); B/bv = bytes per voxel in the band: the field's memory held (leaf pools in whole chunks), used = of it the leaves in use, then its snapshot section; \
          snap B = the snapshot without, +field B with the field; enc = encode ms without / with; queries: ns per point through the snapshot over 100k points \
          (half within 1 m of an occupied voxel): state_at, distance_at (trilinear), distance_and_gradient_at, nearest_obstacle; ratio = dist / state"
     );
@@ -117,6 +117,7 @@ fn bulk_row(
     let med = median(&mut times);
     let band = field.band_voxels();
     let mem_per = field.memory_bytes() as f64 / band.max(1) as f64;
+    let used_per = field.leaf_bytes() as f64 / band.max(1) as f64;
     let meta = Meta::default();
     let enc = |with: bool| {
         let mut t = Vec::new();
@@ -143,8 +144,8 @@ fn bulk_row(
     let points = query_points(&view);
     let q = query_ns(&view, &points);
     println!(
-        "{:<22} {:>8} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>6} {:>6.2} | {:>10} {:>10} {:>6.2} {:>7.2} {:>7.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>6.2}",
-        name, map.counts().leaves, band, med, times[0], times[times.len() - 1], tiles, mem_per,
+        "{:<22} {:>8} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>6} {:>6.2} {:>6.2} | {:>10} {:>10} {:>6.2} {:>7.2} {:>7.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>6.2}",
+        name, map.counts().leaves, band, med, times[0], times[times.len() - 1], tiles, mem_per, used_per,
         plain.len(), with.len(), section_per, enc_plain, enc_with, q[0], q[1], q[2], q[3], q[1] / q[0]
     );
     let _ = f;
