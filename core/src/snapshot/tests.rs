@@ -824,20 +824,18 @@ fn with_field(map: &OccupancyMap, scope: Scope, unknown: crate::field::UnknownPo
         .to_vec()
 }
 
-/// Bytes of the field section at the end of a snapshot.
+/// Bytes of the field section, which runs from the first 8-byte boundary after the last
+/// other section to the end of a snapshot.
 fn field_section_len(bytes: &[u8]) -> usize {
     let v = SnapshotView::open(bytes).unwrap();
-    let f = v.distance_field().unwrap();
-    let data: usize = bytes.len(); // the section runs to the end
-    let h: layout::Header = *v.header();
-    let end =
-        (h.masks_offset + layout::align8(h.masks_len)).max(if h.flags & layout::FLAG_VALUES != 0 {
-            h.values_offset + 512 * h.leaf_count
-        } else {
-            0
-        });
-    let _ = f;
-    data - layout::align8(end) as usize
+    assert!(v.distance_field().is_some());
+    let h = v.header();
+    let values_end = match h.flags & layout::FLAG_VALUES {
+        0 => 0,
+        _ => h.values_offset + 512 * h.leaf_count,
+    };
+    let end = (h.masks_offset + layout::align8(h.masks_len)).max(values_end);
+    bytes.len() - layout::align8(end) as usize
 }
 
 /// Every voxel of every leaf (and around them): the snapshot's field answers what the

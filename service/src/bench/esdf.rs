@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use voxmap_core::field::{DistanceField, FieldConfig};
 use voxmap_core::io::pcd;
-use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
+use voxmap_core::snapshot::{FieldView, Meta, Plan, Scope, SnapshotView};
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
 
 pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
@@ -43,15 +43,7 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
         "state", "dist", "d+grad", "near", "ratio"
     );
     let mut maps: Vec<(String, OccupancyMap, WorldPoint)> = Vec::new();
-    for f in files {
-        let name = f
-            .file_stem()
-            .unwrap_or_default()
-            .to_string_lossy()
-            .to_string();
-        if a.filter.as_deref().is_some_and(|s| !name.contains(s)) {
-            continue;
-        }
+    for (name, f) in super::selected(files, a.filter.as_deref()) {
         let cloud = pcd::read(f)?;
         let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
         let frame = Frame {
@@ -142,13 +134,12 @@ fn bulk_row(
     let f = view.distance_field().context("no field in the snapshot")?;
     let section_per = (with.len() - plain.len()) as f64 / band.max(1) as f64;
     let points = query_points(&view);
-    let q = query_ns(&view, &points);
+    let q = query_ns(&view, &f, &points);
     println!(
         "{:<22} {:>8} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>6} {:>6.2} {:>6.2} | {:>10} {:>10} {:>6.2} {:>7.2} {:>7.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>6.2}",
         name, map.counts().leaves, band, med, times[0], times[times.len() - 1], tiles, mem_per, used_per,
         plain.len(), with.len(), section_per, enc_plain, enc_with, q[0], q[1], q[2], q[3], q[1] / q[0]
     );
-    let _ = f;
     Ok(())
 }
 
@@ -185,8 +176,7 @@ fn query_points(view: &SnapshotView<'_>) -> Vec<WorldPoint> {
 
 /// ns per point of state_at, distance_at, distance_and_gradient_at, nearest_obstacle:
 /// the median of 5 passes each, alternated.
-fn query_ns(view: &SnapshotView<'_>, points: &[WorldPoint]) -> [f64; 4] {
-    let f = view.distance_field().expect("a field");
+fn query_ns(view: &SnapshotView<'_>, f: &FieldView<'_>, points: &[WorldPoint]) -> [f64; 4] {
     let mut t: [Vec<f64>; 4] = Default::default();
     let mut sink = 0.0;
     for _ in 0..5 {

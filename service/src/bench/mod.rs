@@ -177,6 +177,25 @@ fn list_pcd(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(v)
 }
 
+/// The workload files whose name (file stem) contains `filter`, with their names.
+fn selected<'f>(
+    files: &'f [PathBuf],
+    filter: Option<&'f str>,
+) -> impl Iterator<Item = (String, &'f PathBuf)> + 'f {
+    files
+        .iter()
+        .map(|f| {
+            (
+                f.file_stem()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+                    .to_string(),
+                f,
+            )
+        })
+        .filter(move |(name, _)| filter.is_none_or(|s| name.contains(s)))
+}
+
 fn mode_of(name: &str, a: &BenchArgs) -> Result<RayMode> {
     Ok(match name {
         "exact" => RayMode::Exact,
@@ -227,16 +246,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         );
     }
     let mut snapshots = Vec::new();
-    for f in files {
-        let name = f
-            .file_stem()
-            .unwrap_or_default()
-            .to_string_lossy()
-            .to_string();
-        if a.filter.as_deref().is_some_and(|s| !name.contains(s)) {
-            continue;
-        }
-        let cloud = pcd::read(&f)?;
+    for (name, f) in selected(&files, a.filter.as_deref()) {
+        let cloud = pcd::read(f)?;
         let max_range = range_of(&name).unwrap_or(30.0);
         let mut exact_counts = None;
         // The exact map of this frame, and each mode's agreement with it (the same on any
