@@ -32,6 +32,153 @@ fn open(path: &Path) -> Result<(std::fs::File, u64), BagError> {
     Ok((f, len))
 }
 
+/// The records of the data section (and of its chunks) voxmap reads: schema and channel
+/// names, and each wanted message handed on.
+struct Records<'w, 'm> {
+    wanted: &'w dyn Fn(&str) -> bool,
+    on_message: &'w mut OnMessage<'m>,
+    schemas: HashMap<u16, String>,
+    channels: HashMap<u16, Channel>,
+}
+
+impl Records<'_, '_> {
+    /// Take one record; `Break` once the callback asked to stop.
+    fn take(&mut self, opcode: u8, data: &[u8]) -> Result<ControlFlow<()>, Damage> {
+        if !matches!(opcode, op::SCHEMA | op::CHANNEL | op::MESSAGE) {
+            return Ok(ControlFlow::Continue(()));
+        }
+        if !lengths_fit(opcode, data) {
+            return Err(Damage::Unchecked("a field is longer than its record"));
+        }
+        match mcap::parse_record(opcode, data)? {
+            Record::Schema { header, .. } => {
+                self.schemas.insert(header.id, header.name);
+            }
+            Record::Channel(c) => {
+                let type_name = self.schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                // rosbag2 writes CDR; a channel in any other encoding is not ROS 2 data.
+                let ok = c.message_encoding == "cdr";
+                self.channels.insert(
+                    c.id,
+                    Channel {
+                        wanted: ok && (self.wanted)(&c.topic),
+                        topic: c.topic,
+                        type_name,
+                    },
+                );
+            }
+            Record::Message { header, data } => {
+                let Some(c) = self.channels.get(&header.channel_id) else {
+                    return Err(mcap::McapError::UnknownChannel(
+                        header.sequence,
+                        header.channel_id,
+                    )
+                    .into());
+                };
+                if c.wanted {
+                    return Ok((self.on_message)(c, header.log_time, &data));
+                }
+            }
+            _ => {}
+        }
+        Ok(ControlFlow::Continue(()))
+    }
+}
+
+/// Why a record or chunk is refused, before the file offset is known.
+enum Damage {
+    Mcap(mcap::McapError),
+    Unchecked(&'static str),
+}
+
+impl From<mcap::McapError> for Damage {
+    fn from(e: mcap::McapError) -> Self {
+        Self::Mcap(e)
+    }
+}
+
+/// The records of a chunk: decompressed into `buf` (reused between chunks) if compressed,
+/// checked against the chunk's size and CRC. Chunks are read here rather than by the
+/// `mcap` reader: mcap 0.26 subtracts a record's length from an uncompressed chunk's without
+/// a check (sans_io/linear_reader.rs:745), which panics under overflow checks and, without
+/// them, reads on past the chunk (found by fuzzing, regression tests in `bag`).
+fn chunk_records<'a>(data: &'a [u8], buf: &'a mut Vec<u8>) -> Result<&'a [u8], Damage> {
+    if !lengths_fit(op::CHUNK, data) {
+        return Err(Damage::Unchecked("a field is longer than its record"));
+    }
+    let Record::Chunk { header, .. } = mcap::parse_record(op::CHUNK, data)? else {
+        return Err(Damage::Unchecked("a chunk that does not parse as one"));
+    };
+    // The compressed records follow the fixed fields, the compression string and their
+    // u64 length; `parse_record` has checked that they fit.
+    let start = 28 + 4 + header.compression.len() + 8;
+    let data = usize::try_from(header.compressed_size)
+        .ok()
+        .and_then(|n| data.get(start..start.checked_add(n)?))
+        .ok_or(Damage::Unchecked(
+            "a chunk's records are longer than the chunk",
+        ))?;
+    let size = header.uncompressed_size;
+    let too_large = || Damage::Mcap(mcap::McapError::ChunkTooLarge(size));
+    let limit = usize::try_from(size)
+        .ok()
+        .filter(|&n| n <= RECORD_LIMIT)
+        .ok_or_else(too_large)?;
+    let records: &[u8] = match header.compression.as_str() {
+        "" => data,
+        "zstd" => {
+            buf.clear();
+            buf.reserve_exact(limit);
+            zstd::bulk::Decompressor::new()
+                .and_then(|mut d| d.decompress_to_buffer(data, buf))
+                .map_err(mcap::McapError::from)?;
+            buf
+        }
+        "lz4" => {
+            buf.clear();
+            lz4::Decoder::new(data)
+                .and_then(|d| d.take(size + 1).read_to_end(buf))
+                .map_err(mcap::McapError::from)?;
+            buf
+        }
+        other => return Err(mcap::McapError::UnsupportedCompression(other.into()).into()),
+    };
+    if records.len() as u64 != size {
+        return Err(Damage::Unchecked(
+            "a chunk's records are not its stated size",
+        ));
+    }
+    let saved = header.uncompressed_crc;
+    if saved != 0 {
+        let calculated = crc32fast::hash(records);
+        if calculated != saved {
+            return Err(mcap::McapError::BadChunkCrc { saved, calculated }.into());
+        }
+    }
+    Ok(records)
+}
+
+/// Each record of a chunk's records in turn: opcode and body, each body within the chunk.
+fn each_record(
+    mut rest: &[u8],
+    f: &mut dyn FnMut(u8, &[u8]) -> Result<ControlFlow<()>, Damage>,
+) -> Result<ControlFlow<()>, Damage> {
+    while let Some((&[opcode], tail)) = rest.split_first_chunk::<1>() {
+        let Some((len, tail)) = tail.split_first_chunk::<8>() else {
+            return Err(mcap::McapError::UnexpectedEoc.into());
+        };
+        let body = usize::try_from(u64::from_le_bytes(*len))
+            .ok()
+            .and_then(|n| tail.get(..n))
+            .ok_or(Damage::Unchecked("a record is longer than its chunk"))?;
+        if f(opcode, body)?.is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
+        rest = &tail[body.len()..];
+    }
+    Ok(ControlFlow::Continue(()))
+}
+
 /// Stream every wanted message of the file to `on_message`. Stops at the first damage,
 /// with the offset read up to.
 fn stream(
@@ -41,36 +188,33 @@ fn stream(
 ) -> Result<(), BagError> {
     let (mut file, len) = open(path)?;
     let opts = LinearReaderOptions::default()
-        .with_prevalidate_chunk_crcs(true)
+        .with_emit_chunks(true)
         .with_record_length_limit(RECORD_LIMIT);
     let mut reader = LinearReader::new_with_options(opts);
     let mut fed = 0u64;
-    let mut schemas: HashMap<u16, String> = HashMap::new();
-    let mut channels: HashMap<u16, Channel> = HashMap::new();
-    let damaged = |offset: u64, source| BagError::Mcap {
-        path: path.into(),
-        offset,
-        len,
-        source,
+    let mut records = Records {
+        wanted,
+        on_message,
+        schemas: HashMap::new(),
+        channels: HashMap::new(),
     };
-    loop {
-        // mcap 0.26 subtracts a record's length from an uncompressed chunk's without a
-        // check (sans_io/linear_reader.rs:745): a build with overflow checks panics there
-        // on a record longer than its chunk (found by fuzzing, regression test in `bag`).
-        // A panic inside the reader is damage of the file, not a crash of voxmap.
-        let r = &mut reader;
-        let event = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
-            let r = r;
-            r.next_event()
-        }))
-        .map_err(|_| BagError::McapUnchecked {
+    let mut chunk = Vec::new();
+    let damaged = |offset: u64, d: Damage| match d {
+        Damage::Mcap(source) => BagError::Mcap {
             path: path.into(),
-            offset: fed,
+            offset,
             len,
-            why: "the reader failed on it",
-        })?;
-        let Some(event) = event else { break };
-        match event.map_err(|e| damaged(fed, e))? {
+            source,
+        },
+        Damage::Unchecked(why) => BagError::McapUnchecked {
+            path: path.into(),
+            offset,
+            len,
+            why,
+        },
+    };
+    while let Some(event) = reader.next_event() {
+        let taken = match event.map_err(|e| damaged(fed, e.into()))? {
             LinearReadEvent::ReadRequest(n) => {
                 let buf = reader.insert(n);
                 let k = file.read(buf).map_err(|source| BagError::Io {
@@ -79,57 +223,24 @@ fn stream(
                 })?;
                 fed += k as u64;
                 reader.notify_read(k);
+                continue;
             }
-            LinearReadEvent::Record { opcode, data } => {
-                if !matches!(opcode, op::SCHEMA | op::CHANNEL | op::MESSAGE) {
-                    continue;
-                }
-                if !lengths_fit(opcode, data) {
-                    return Err(BagError::McapUnchecked {
-                        path: path.into(),
-                        offset: fed,
-                        len,
-                        why: "a field is longer than its record",
-                    });
-                }
-                match mcap::parse_record(opcode, data).map_err(|e| damaged(fed, e))? {
-                    Record::Schema { header, .. } => {
-                        schemas.insert(header.id, header.name);
-                    }
-                    Record::Channel(c) => {
-                        let type_name = schemas.get(&c.schema_id).cloned().unwrap_or_default();
-                        // rosbag2 writes CDR; a channel in any other encoding is not ROS 2 data.
-                        let ok = c.message_encoding == "cdr";
-                        channels.insert(
-                            c.id,
-                            Channel {
-                                wanted: ok && wanted(&c.topic),
-                                topic: c.topic,
-                                type_name,
-                            },
-                        );
-                    }
-                    Record::Message { header, data } => {
-                        let Some(c) = channels.get(&header.channel_id) else {
-                            return Err(damaged(
-                                fed,
-                                mcap::McapError::UnknownChannel(header.sequence, header.channel_id),
-                            ));
-                        };
-                        if c.wanted && on_message(c, header.log_time, &data).is_break() {
-                            return Ok(());
-                        }
-                    }
-                    _ => {}
-                }
-            }
+            LinearReadEvent::Record {
+                opcode: op::CHUNK,
+                data,
+            } => chunk_records(data, &mut chunk)
+                .and_then(|r| each_record(r, &mut |op, body| records.take(op, body))),
+            LinearReadEvent::Record { opcode, data } => records.take(opcode, data),
+        };
+        if taken.map_err(|d| damaged(fed, d))?.is_break() {
+            return Ok(());
         }
     }
     Ok(())
 }
 
-/// Whether every length-prefixed field of a Schema or Channel record fits in the record.
-/// mcap 0.26 allocates a string's declared length before it reads it (binrw's
+/// Whether every length-prefixed field of a Schema, Channel or Chunk record fits in the
+/// record. mcap 0.26 allocates a string's declared length before it reads it (binrw's
 /// `reserve_exact`): a 5 KB file could ask for 4 GB (found by fuzzing). Messages are not
 /// checked here: their data is a borrowed slice.
 fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
@@ -163,6 +274,8 @@ fn lengths_fit(opcode: u8, data: &[u8]) -> bool {
             }
             true
         }
+        // start and end time, uncompressed size and CRC, then the compression.
+        op::CHUNK => fields(data, 28, 1).is_some(),
         _ => true,
     }
 }
@@ -246,8 +359,10 @@ fn summary(path: &Path) -> Result<Option<super::Topics>, BagError> {
     if read.is_err() {
         return Ok(None);
     }
+    // Chunks do not belong in the summary: emitted whole and skipped, never entered.
     let opts = LinearReaderOptions::default()
         .with_skip_start_magic(true)
+        .with_emit_chunks(true)
         .with_record_length_limit(RECORD_LIMIT);
     let mut reader = LinearReader::new_with_options(opts);
     let mut fed = 0;

@@ -71,8 +71,8 @@ pub enum BagError {
         len: u64,
         source: ::mcap::McapError,
     },
-    /// Damage the MCAP reader does not check for itself: a field longer than its record
-    /// (refused before the reader sees it), or a panic inside the reader (caught).
+    /// Damage the MCAP reader does not check for itself, found before it sees the bytes: a
+    /// field longer than its record, a record longer than its chunk.
     McapUnchecked {
         path: PathBuf,
         offset: u64,
@@ -425,15 +425,19 @@ mod tests {
         Bag::open(&p)?.read_file(0, &|_| true, &mut |_| ControlFlow::Continue(()))
     }
 
-    /// Found by fuzzing (`ros/fuzz`, target `bag_file`): an uncompressed chunk whose record
-    /// is longer than the chunk. The mcap reader's unchecked subtraction panics there
-    /// under overflow checks; either way reading it is an error, not a crash.
+    /// Found by fuzzing (target `bag_file`, the second by CI's run): an uncompressed chunk
+    /// whose record is longer than the chunk. The mcap reader's unchecked subtraction
+    /// panicked there under overflow checks (the fuzzer aborts on any panic, caught or
+    /// not); voxmap now reads chunks itself, and refuses it.
     #[test]
     fn a_record_longer_than_its_chunk_is_damage() {
-        let e = read_testdata("mcap_chunk_length_overflow.mcap")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("MCAP damaged at byte"), "{e}");
+        for name in [
+            "mcap_chunk_length_overflow.mcap",
+            "mcap_record_longer_than_uncompressed_chunk.mcap",
+        ] {
+            let e = read_testdata(name).unwrap_err().to_string();
+            assert!(e.contains("MCAP damaged at byte"), "{name}: {e}");
+        }
     }
 
     /// Found by fuzzing: a Channel record whose topic string claims 4 GB. Refused before
