@@ -158,11 +158,8 @@ fn chunk_records<'a>(data: &'a [u8], buf: &'a mut Vec<u8>) -> Result<&'a [u8], D
     Ok(records)
 }
 
-/// Each record of a chunk's records in turn: opcode and body, each body within the chunk.
-fn each_record(
-    mut rest: &[u8],
-    f: &mut dyn FnMut(u8, &[u8]) -> Result<ControlFlow<()>, Damage>,
-) -> Result<ControlFlow<()>, Damage> {
+/// Each record of a chunk's records in turn to `records`, each body within the chunk.
+fn each_record(mut rest: &[u8], records: &mut Records) -> Result<ControlFlow<()>, Damage> {
     while let Some((&[opcode], tail)) = rest.split_first_chunk::<1>() {
         let Some((len, tail)) = tail.split_first_chunk::<8>() else {
             return Err(mcap::McapError::UnexpectedEoc.into());
@@ -171,7 +168,7 @@ fn each_record(
             .ok()
             .and_then(|n| tail.get(..n))
             .ok_or(Damage::Unchecked("a record is longer than its chunk"))?;
-        if f(opcode, body)?.is_break() {
+        if records.take(opcode, body)?.is_break() {
             return Ok(ControlFlow::Break(()));
         }
         rest = &tail[body.len()..];
@@ -228,8 +225,7 @@ fn stream(
             LinearReadEvent::Record {
                 opcode: op::CHUNK,
                 data,
-            } => chunk_records(data, &mut chunk)
-                .and_then(|r| each_record(r, &mut |op, body| records.take(op, body))),
+            } => chunk_records(data, &mut chunk).and_then(|r| each_record(r, &mut records)),
             LinearReadEvent::Record { opcode, data } => records.take(opcode, data),
         };
         if taken.map_err(|d| damaged(fed, d))?.is_break() {
