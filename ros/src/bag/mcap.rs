@@ -119,26 +119,27 @@ fn chunk_records<'a>(data: &'a [u8], buf: &'a mut Vec<u8>) -> Result<&'a [u8], D
             "a chunk's records are longer than the chunk",
         ))?;
     let size = header.uncompressed_size;
-    let too_large = || Damage::Mcap(mcap::McapError::ChunkTooLarge(size));
-    let limit = usize::try_from(size)
-        .ok()
-        .filter(|&n| n <= RECORD_LIMIT)
-        .ok_or_else(too_large)?;
+    if size > RECORD_LIMIT as u64 {
+        return Err(mcap::McapError::ChunkTooLarge(size).into());
+    }
+    // Decompressed as a stream, so that the buffer grows with what the data holds, not
+    // with what a lying header claims.
+    let decompress = |d: std::io::Result<Box<dyn Read + '_>>, buf: &mut Vec<u8>| {
+        buf.clear();
+        d.and_then(|d| d.take(size + 1).read_to_end(buf))
+            .map_err(mcap::McapError::from)
+    };
     let records: &[u8] = match header.compression.as_str() {
         "" => data,
         "zstd" => {
-            buf.clear();
-            buf.reserve_exact(limit);
-            zstd::bulk::Decompressor::new()
-                .and_then(|mut d| d.decompress_to_buffer(data, buf))
-                .map_err(mcap::McapError::from)?;
+            decompress(
+                zstd::Decoder::with_buffer(data).map(|d| Box::new(d) as _),
+                buf,
+            )?;
             buf
         }
         "lz4" => {
-            buf.clear();
-            lz4::Decoder::new(data)
-                .and_then(|d| d.take(size + 1).read_to_end(buf))
-                .map_err(mcap::McapError::from)?;
+            decompress(lz4::Decoder::new(data).map(|d| Box::new(d) as _), buf)?;
             buf
         }
         other => return Err(mcap::McapError::UnsupportedCompression(other.into()).into()),

@@ -440,6 +440,102 @@ mod tests {
         }
     }
 
+    /// A one-chunk MCAP file of three messages, written by the `mcap` crate with
+    /// `compression`; returns the file and the offset of its chunk record's body.
+    fn chunked(compression: Option<::mcap::Compression>) -> (Vec<u8>, usize) {
+        let mut out = std::io::Cursor::new(Vec::new());
+        let mut w = ::mcap::WriteOptions::new()
+            .compression(compression)
+            .create(&mut out)
+            .unwrap();
+        let schema = w
+            .add_schema("std_msgs/msg/String", "ros2msg", b"string data")
+            .unwrap();
+        let ch = w
+            .add_channel(schema, "/chatter", "cdr", &Default::default())
+            .unwrap();
+        for i in 0..3u32 {
+            let header = ::mcap::records::MessageHeader {
+                channel_id: ch,
+                sequence: i,
+                log_time: u64::from(i),
+                publish_time: u64::from(i),
+            };
+            w.write_to_known_channel(&header, &[0, 1, 0, 0, 2, 0, 0, 0, b'a' + i as u8, 0])
+                .unwrap();
+        }
+        w.finish().unwrap();
+        drop(w);
+        let bytes = out.into_inner();
+        // Top-level records after the magic: opcode, u64 length, body.
+        let mut at = 8;
+        while bytes[at] != ::mcap::records::op::CHUNK {
+            at += 9 + u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
+        }
+        (bytes, at + 9)
+    }
+
+    fn read_bytes(name: &str, bytes: &[u8]) -> Result<Vec<u8>, BagError> {
+        let d = dir(name);
+        std::fs::create_dir_all(&d).unwrap();
+        let p = d.join("x.mcap");
+        std::fs::write(&p, bytes).unwrap();
+        let mut got = Vec::new();
+        let r = Bag::open(&p).and_then(|b| {
+            b.read_file(0, &|_| true, &mut |m| {
+                got.push(m.data[8]);
+                ControlFlow::Continue(())
+            })
+        });
+        std::fs::remove_dir_all(&d).unwrap();
+        r.map(|()| got)
+    }
+
+    /// Chunks in each compression are read; a chunk whose size, CRC or compression lies is
+    /// damage, found before any of its records is used.
+    #[test]
+    fn chunks_are_checked_before_their_records_are_read() {
+        use ::mcap::Compression::{Lz4, Zstd};
+        for c in [None, Some(Zstd), Some(Lz4)] {
+            let (bytes, chunk) = chunked(c);
+            assert_eq!(read_bytes("chunk_ok", &bytes).unwrap(), b"abc", "{c:?}");
+            // The uncompressed size (body bytes 16..24) claimed 2^29: refused, and without
+            // a buffer of that size (the records are decompressed as a stream).
+            let mut lying = bytes.clone();
+            lying[chunk + 16..chunk + 24].copy_from_slice(&(1u64 << 29).to_le_bytes());
+            let e = read_bytes("chunk_size", &lying).unwrap_err().to_string();
+            assert!(e.contains("MCAP damaged"), "{c:?}: {e}");
+            // The CRC (body bytes 24..28) off by one.
+            let mut crc = bytes.clone();
+            crc[chunk + 24] ^= 1;
+            let e = read_bytes("chunk_crc", &crc).unwrap_err();
+            assert!(
+                matches!(
+                    &e,
+                    BagError::Mcap {
+                        source: ::mcap::McapError::BadChunkCrc { .. },
+                        ..
+                    }
+                ),
+                "{c:?}: {e}"
+            );
+        }
+        // A compression voxmap does not know ("zstd" spelt "zstx").
+        let (mut bytes, chunk) = chunked(Some(Zstd));
+        bytes[chunk + 32 + 3] = b'x';
+        let e = read_bytes("chunk_kind", &bytes).unwrap_err();
+        assert!(
+            matches!(
+                &e,
+                BagError::Mcap {
+                    source: ::mcap::McapError::UnsupportedCompression(_),
+                    ..
+                }
+            ),
+            "{e}"
+        );
+    }
+
     /// Found by fuzzing: a Channel record whose topic string claims 4 GB. Refused before
     /// the mcap crate would reserve that much.
     #[test]
