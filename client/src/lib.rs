@@ -193,11 +193,23 @@ impl MapControl {
         self.timeout = t;
     }
 
-    /// Send a raw request and wait for the answer.
+    /// Send a raw request and wait for the answer. A request that reached no server (the
+    /// service is starting, or restarting after a crash) is sent again until one takes it
+    /// or the timeout passes; one that reached the server is never sent twice.
     pub fn request(&self, req: ControlRequest) -> Result<ControlResponse, ClientError> {
-        let pending = self.client.send_copy(req).map_err(ClientError::Request)?;
-        self.wake.notify().map_err(ClientError::Notify)?;
         let deadline = std::time::Instant::now() + self.timeout;
+        let pending = loop {
+            let pending = self.client.send_copy(req).map_err(ClientError::Request)?;
+            if pending.number_of_server_connections() > 0 {
+                break pending;
+            }
+            if std::time::Instant::now() > deadline {
+                return Err(ClientError::Timeout(self.timeout));
+            }
+            drop(pending);
+            std::thread::sleep(Duration::from_millis(1));
+        };
+        self.wake.notify().map_err(ClientError::Notify)?;
         loop {
             if let Some(r) = pending.receive().map_err(ClientError::Receive)? {
                 return Ok(*r.payload());

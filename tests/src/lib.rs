@@ -44,6 +44,9 @@ pub fn unique_prefix(test: &str) -> String {
 pub struct Service {
     pub child: Child,
     pub prefix: String,
+    /// Reads the service's stderr as it is written: a pipe nobody reads fills at 64 KiB
+    /// and then blocks the service in its next log line (a long run looked like a stall).
+    log: Option<std::thread::JoinHandle<String>>,
 }
 
 impl Service {
@@ -55,7 +58,7 @@ impl Service {
 
     /// `voxmap serve --prefix PREFIX` with exactly `args`, in the environment `env` adds to.
     pub fn spawn(prefix: &str, args: &[&str], env: &[(&str, &str)]) -> Self {
-        let child = Command::new(voxmap_bin())
+        let mut child = Command::new(voxmap_bin())
             .args(["serve", "--prefix", prefix])
             .args(args)
             .envs(env.iter().copied())
@@ -63,9 +66,17 @@ impl Service {
             .stderr(Stdio::piped())
             .spawn()
             .expect("spawn voxmap serve");
+        let mut err = child.stderr.take().expect("piped stderr");
+        let log = std::thread::spawn(move || {
+            use std::io::Read;
+            let mut log = String::new();
+            let _ = err.read_to_string(&mut log);
+            log
+        });
         Service {
             child,
             prefix: prefix.to_string(),
+            log: Some(log),
         }
     }
 
@@ -76,13 +87,9 @@ impl Service {
             .args([&format!("-{sig}"), &self.child.id().to_string()])
             .status()
             .expect("kill");
-        let mut err = String::new();
-        if let Some(mut e) = self.child.stderr.take() {
-            use std::io::Read;
-            let _ = e.read_to_string(&mut err);
-        }
         let st = self.child.wait().expect("wait");
-        (st, err)
+        let err = self.log.take().map(|l| l.join().unwrap_or_default());
+        (st, err.unwrap_or_default())
     }
 }
 
