@@ -276,8 +276,13 @@ fn kill_9_during_a_save_leaves_the_old_file_or_the_new() {
         dir.join("map.vxm"),
     );
     let old = large_map(0.1, 2);
-    // VOXMAP_SAVE_KILL_FRAMES scans make the new map (6: about 50 MB; 14: about 100 MB).
-    let new = large_map(0.03, trials("VOXMAP_SAVE_KILL_FRAMES", 6));
+    // The new map: six scans of the room at VOXMAP_SAVE_KILL_RESOLUTION (0.03 m: about
+    // 52 MB; 0.024 m: about 100 MB). More scans add little: six see the whole room.
+    let resolution = std::env::var("VOXMAP_SAVE_KILL_RESOLUTION")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.03);
+    let new = large_map(resolution, 6);
     mapfile::save_map(&old, &old_path).unwrap();
     mapfile::save_map(&new, &new_path).unwrap();
     let (old_voxels, new_voxels) = (voxels(&old), voxels(&new));

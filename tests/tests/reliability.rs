@@ -258,3 +258,59 @@ fn a_request_sent_before_the_service_starts_is_answered() {
     let _svc = starter.join().unwrap();
     assert_eq!(s.frames_received, 0);
 }
+
+/// Who may connect: iceoryx2 (built without its `dev_permissions` feature) creates the
+/// service's shared memory, event sockets and node files for their owner alone, so only
+/// processes of the service's user can publish frames, read snapshots or send requests
+/// (iceoryx2's global node counter is the one file open to all). A dependency that turned
+/// on world access would fail here.
+#[test]
+fn shared_memory_and_sockets_are_for_the_owner_alone() {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    let prefix = unique_prefix("modes");
+    let _svc = Service::start(&prefix, &[]);
+    let c = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    c.stats().unwrap();
+    let me = std::fs::metadata("/proc/self").unwrap().uid();
+    let mut checked = 0;
+    let mut stack = vec![
+        std::path::PathBuf::from("/dev/shm"),
+        std::path::PathBuf::from("/tmp/iceoryx2"),
+    ];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap().flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let Ok(m) = e.metadata() else { continue }; // removed meanwhile
+            if m.uid() != me || !(dir.starts_with("/tmp/iceoryx2") || name.starts_with("iox2_")) {
+                continue;
+            }
+            let mode = m.mode() & 0o777;
+            if m.is_dir() {
+                // Directories: others may at most look in; nobody but the owner writes.
+                assert_eq!(
+                    mode & 0o022,
+                    0,
+                    "{} is writable by others: {mode:o}",
+                    e.path().display()
+                );
+                stack.push(e.path());
+            } else if name.ends_with(".global_mgmt") {
+                // The one exception, by iceoryx2's design: a 16-byte node counter shared
+                // by every user of the machine (`node.<version>.global_mgmt`), world
+                // writable so that node ids stay unique across users. It holds no data.
+                assert!(m.len() <= 64, "{name}: {} bytes", m.len());
+            } else {
+                assert_eq!(
+                    mode & 0o077,
+                    0,
+                    "{} is open to others: {mode:o}",
+                    e.path().display()
+                );
+                assert!(m.is_file() || m.file_type().is_socket());
+            }
+            checked += 1;
+        }
+    }
+    // The service's frames, snapshots, control and events, at the least.
+    assert!(checked >= 8, "only {checked} iceoryx2 files found");
+}

@@ -90,8 +90,9 @@ fn soak_memory_descriptors_and_latency_stay_flat() {
         .stdout(Stdio::piped())
         .spawn()
         .expect("sim-planner");
-    // A slow planner: holds each snapshot it takes for 5 s, two at a time (as many as a
-    // planner may hold).
+    // A slow planner: holds each snapshot it takes for 5 s, until it takes the next, so
+    // that every receive happens while it holds an older one: as much as a planner may
+    // hold (two samples, qos::SNAPSHOT_BORROWED, one of them for the receive).
     let slow = {
         let (p, stop) = (prefix.clone(), stop.clone());
         std::thread::spawn(move || {
@@ -102,7 +103,7 @@ fn soak_memory_descriptors_and_latency_stay_flat() {
                 if let Some(h) = sub.latest_held().expect("slow planner") {
                     taken += 1;
                     held.push_back(h);
-                    if held.len() > 2 {
+                    if held.len() > 1 {
                         held.pop_front();
                     }
                 }
