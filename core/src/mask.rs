@@ -38,6 +38,14 @@ impl Mask512 {
         self.words.iter().map(|w| w.count_ones()).sum()
     }
 
+    /// The bits set below bit `i`: the place of bit `i` among the set bits.
+    #[inline]
+    pub fn rank(&self, i: usize) -> u32 {
+        let (w, b) = (i >> 6 & 7, i & 63);
+        let below: u32 = self.words[..w].iter().map(|x| x.count_ones()).sum();
+        below + (self.words[w] & ((1u64 << b) - 1)).count_ones()
+    }
+
     pub fn is_empty(&self) -> bool {
         self.words.iter().all(|&w| w == 0)
     }

@@ -12,10 +12,10 @@
 use super::tile::{self, Region, Scratch, TILE, TILE_LOG2};
 use super::FieldConfig;
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
-use crate::grid::Grid;
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
-use crate::tree::LEAF_VOXELS;
+use crate::tree::{leaf_offset, leaf_origin, LEAF_VOXELS};
+use hashbrown::HashMap;
 use rayon::prelude::*;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -31,10 +31,79 @@ pub struct FieldReport {
     pub time: Duration,
 }
 
-/// One leaf's share of the field: which voxels are in the band, and their offsets.
-struct LeafField {
-    band: Mask512,
-    offsets: [[i8; 3]; LEAF_VOXELS],
+/// One map leaf's share of the band: which of its voxels lie in it and, packed in voxel
+/// order, their offsets to the nearest obstacle (the `k`-th voxel of the mask has the
+/// `k`-th offset). A leaf pays for the voxels of its band alone, not for all 512.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LeafBand {
+    mask: Mask512,
+    offsets: Box<[[i8; 3]]>,
+}
+
+impl LeafBand {
+    /// A band of the voxels of `mask` with `offsets` in voxel order; `None` unless there
+    /// is exactly one offset per voxel.
+    pub fn new(mask: Mask512, offsets: Vec<[i8; 3]>) -> Option<Self> {
+        (mask.count() as usize == offsets.len()).then(|| Self {
+            mask,
+            offsets: offsets.into_boxed_slice(),
+        })
+    }
+
+    /// The in-leaf voxels (`x | y << 3 | z << 6`) in the band.
+    pub fn mask(&self) -> &Mask512 {
+        &self.mask
+    }
+
+    /// The offsets of the mask's voxels, in voxel order.
+    pub fn offsets(&self) -> &[[i8; 3]] {
+        &self.offsets
+    }
+
+    /// The offset of in-leaf voxel `i`, if it lies in the band.
+    #[inline]
+    pub fn get(&self, i: usize) -> Option<[i8; 3]> {
+        let i = i & (LEAF_VOXELS - 1);
+        if !self.mask.get(i) {
+            return None;
+        }
+        self.offsets.get(self.mask.rank(i) as usize).copied()
+    }
+
+    /// (in-leaf voxel, offset) of each voxel of the band, in voxel order.
+    pub fn iter(&self) -> impl Iterator<Item = (usize, [i8; 3])> + '_ {
+        self.mask.iter_ones().zip(self.offsets.iter().copied())
+    }
+
+    /// The leaf's obstacles: its voxels at offset zero.
+    fn obstacles(&self) -> Mask512 {
+        let mut m = Mask512::EMPTY;
+        for (i, o) in self.iter() {
+            if o == [0; 3] {
+                m.set(i);
+            }
+        }
+        m
+    }
+
+    /// Heap bytes: the band's box and its offsets' allocation.
+    fn heap_bytes(&self) -> usize {
+        allocation(std::mem::size_of::<Self>()) + allocation(3 * self.offsets.len())
+    }
+}
+
+/// What the allocator takes for `n` bytes: glibc's malloc rounds a request plus its
+/// 8-byte header up to 16 bytes, at least 32.
+fn allocation(n: usize) -> usize {
+    if n == 0 {
+        return 0;
+    }
+    (n + 8).div_ceil(16).max(2) * 16
+}
+
+/// Bytes of a hash map's table: each slot's entry and control byte.
+fn table_bytes<K, V>(m: &HashMap<K, V>) -> usize {
+    m.capacity() * (std::mem::size_of::<(K, V)>() + 1)
 }
 
 /// A distance field over an [`OccupancyMap`] (see the module doc of [`crate::field`]).
@@ -54,10 +123,15 @@ pub struct DistanceField {
     cfg: FieldConfig,
     radius: u32,
     resolution: f64,
-    /// Offsets of the voxels in the band (active), per map leaf with any.
-    grid: Grid<[i8; 3]>,
-    /// Every map leaf the field has seen; `marked`: its obstacles when last transformed.
-    seen: Grid<()>,
+    /// Every map leaf the field has seen, by origin, with its band where it has one. The
+    /// band's voxels at offset zero are the leaf's obstacles when it was last
+    /// transformed: what the next update compares the map with.
+    leaves: HashMap<VoxelCoord, Option<Box<LeafBand>>>,
+    /// The obstacles of seen leaves outside the window (which hold no band), where they
+    /// have any.
+    outside: HashMap<VoxelCoord, Mask512>,
+    /// Voxels in the band.
+    band_count: u64,
     /// The voxels covered (inclusive), when a window is set and placed.
     window: Option<(VoxelCoord, VoxelCoord)>,
     /// Per pool thread: the transform's buffers.
@@ -84,8 +158,9 @@ impl DistanceField {
             cfg,
             radius,
             resolution,
-            grid: Grid::new(),
-            seen: Grid::new(),
+            leaves: HashMap::new(),
+            outside: HashMap::new(),
+            band_count: 0,
             window: None,
             scratch: Vec::new(),
             kernel: crate::kernel::Kernel::process(),
@@ -122,21 +197,26 @@ impl DistanceField {
 
     /// Voxels in the band.
     pub fn band_voxels(&self) -> u64 {
-        self.grid.active_count()
+        self.band_count
     }
 
-    /// Heap bytes held: the band's leaves and the copy of the map's obstacles, in the leaf
-    /// pools' whole chunks (of 3272 leaves each; the pages of a chunk's unused leaves are
-    /// reserved, not touched).
+    /// Heap bytes held: the tables of the leaves seen (with their spare slots) and of the
+    /// obstacles outside the window, and each band's allocations as the allocator rounds
+    /// them. The transform's per-thread buffers are not counted.
     pub fn memory_bytes(&self) -> usize {
-        self.grid.memory_bytes() + self.seen.memory_bytes()
+        table_bytes(&self.leaves)
+            + table_bytes(&self.outside)
+            + (self.leaves.values().flatten())
+                .map(|b| b.heap_bytes())
+                .sum::<usize>()
     }
 
-    /// Bytes of the leaves in use: the band's (offsets and masks) and the copy of the map's
-    /// obstacles, without the chunks' unused leaves and the internal nodes.
+    /// Bytes of the bands themselves: a 64-byte mask and 3 bytes per voxel, per leaf with
+    /// a band.
     pub fn leaf_bytes(&self) -> usize {
-        self.grid.leaf_count() * std::mem::size_of::<crate::grid::Leaf<[i8; 3]>>()
-            + self.seen.leaf_count() * std::mem::size_of::<crate::grid::Leaf<()>>()
+        (self.leaves.values().flatten())
+            .map(|b| 64 + 3 * b.offsets.len())
+            .sum()
     }
 
     /// The offset from `v` to its nearest obstacle voxel, if one lies within the radius
@@ -146,7 +226,7 @@ impl DistanceField {
         if !self.covers(v) {
             return None;
         }
-        self.grid.get(v)
+        self.leaf(leaf_origin(v))?.get(leaf_offset(v))
     }
 
     /// The distance (metres) from `v`'s centre to its nearest obstacle's, if below
@@ -156,18 +236,23 @@ impl DistanceField {
             .map(|o| f64::from(super::offset_len2(o)).sqrt() * self.resolution)
     }
 
-    /// Every leaf with voxels in the band, as (origin, band mask, offsets), in no
-    /// particular order.
-    pub fn leaves(&self) -> impl Iterator<Item = (VoxelCoord, &Mask512, &[[i8; 3]; 512])> + '_ {
-        (self.grid.leaves())
-            .filter(|(_, l)| !l.active.is_empty())
-            .map(|(o, l)| (o, &l.active, &l.values))
+    /// Every leaf with voxels in the band, by origin, in no particular order.
+    pub fn leaves(&self) -> impl Iterator<Item = (VoxelCoord, &LeafBand)> + '_ {
+        (self.leaves.iter()).filter_map(|(o, b)| Some((*o, &**b.as_ref()?)))
     }
 
     /// The band of the leaf at `origin`, if it has one.
-    pub fn leaf(&self, origin: VoxelCoord) -> Option<(&Mask512, &[[i8; 3]; 512])> {
-        let l = self.grid.leaf(self.grid.leaf_index(origin)?);
-        (!l.active.is_empty()).then_some((&l.active, &l.values))
+    pub fn leaf(&self, origin: VoxelCoord) -> Option<&LeafBand> {
+        self.leaves.get(&origin)?.as_deref()
+    }
+
+    /// Store `band` as the band of the map leaf at `origin` (none: it has no voxel in it).
+    fn set_band(&mut self, origin: VoxelCoord, band: Option<LeafBand>) {
+        let new = band.map(Box::new);
+        self.band_count += new.as_ref().map_or(0, |b| b.offsets.len() as u64);
+        if let Some(Some(old)) = self.leaves.insert(origin, new) {
+            self.band_count -= old.offsets.len() as u64;
+        }
     }
 
     /// A field read back from a file (see `io::mapfile`) for `map`, covering `window`:
@@ -177,17 +262,12 @@ impl DistanceField {
         cfg: FieldConfig,
         map: &OccupancyMap,
         window: Option<(VoxelCoord, VoxelCoord)>,
-        leaves: Vec<(VoxelCoord, Mask512, [[i8; 3]; LEAF_VOXELS])>,
+        leaves: Vec<(VoxelCoord, LeafBand)>,
     ) -> Result<Self, String> {
         let mut f = Self::new(cfg, map.resolution()).map_err(|e| e.to_string())?;
         f.window = window;
         let (policy, r2) = (cfg.unknown, (f.radius * f.radius) as i32);
-        let absent = tile::absent_obstacles(policy);
-        let obstacles_at = |o: VoxelCoord| match map.grid().leaf_index(o) {
-            Some(i) => tile::obstacles(map.grid().leaf(i), policy),
-            None => absent,
-        };
-        for (o, band, offsets) in leaves {
+        for (o, band) in leaves {
             if o.to_array()
                 .iter()
                 .any(|c| c & 7 != 0 || c.unsigned_abs() >= 1 << 30)
@@ -196,43 +276,51 @@ impl DistanceField {
                     "leaf origin {o:?} not leaf-aligned or out of range"
                 ));
             }
-            let obstacles = obstacles_at(o);
-            for i in band.iter_ones() {
-                let len2 = super::offset_len2(offsets[i]);
-                if len2 >= r2 {
-                    return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
-                }
-                if (len2 == 0) != obstacles.get(i) {
-                    return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
-                }
+            if map.grid().leaf_index(o).is_none() {
+                return Err(format!("leaf {o:?} is not a leaf of the map"));
             }
-            let li = f.grid.leaf_index_or_insert(o, None);
-            let leaf = f.grid.leaf_mut(li);
-            if !leaf.active.is_empty() {
+            if !f.overlaps_window(o) {
+                return Err(format!("leaf {o:?} lies outside the field's window"));
+            }
+            if band.offsets().iter().any(|&o| super::offset_len2(o) >= r2) {
+                return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
+            }
+            if f.leaves.contains_key(&o) {
                 return Err(format!("leaf {o:?} stored twice"));
             }
-            leaf.active = band;
-            leaf.values = offsets;
+            f.set_band(o, Some(band));
         }
-        // Every obstacle of the map's leaves that the field covers is in it, at offset 0.
+        // The band's voxels at offset zero are exactly the map's obstacles, in every leaf
+        // the window reaches; the others' obstacles are kept apart.
         for (o, leaf) in map.grid().leaves() {
             let obstacles = tile::obstacles(leaf, policy);
-            let li = f.seen.leaf_index_or_insert(o, None);
-            f.seen.leaf_mut(li).marked = obstacles;
-            for i in obstacles.iter_ones() {
-                let v = crate::tree::voxel_at(o, i);
-                if f.covers(v) && f.grid.get(v) != Some([0; 3]) {
-                    return Err(format!("the map's obstacle at {v:?} is missing"));
+            let inside = f.overlaps_window(o);
+            let stored = f.leaves.entry(o).or_insert(None);
+            if !inside {
+                if !obstacles.is_empty() {
+                    f.outside.insert(o, obstacles);
                 }
+                continue;
+            }
+            let band_obstacles = stored.as_ref().map_or(Mask512::EMPTY, |b| b.obstacles());
+            if band_obstacles != obstacles {
+                return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
             }
         }
         Ok(f)
     }
 
+    /// Whether the leaf at `origin` reaches into the window (or there is none).
+    fn overlaps_window(&self, origin: VoxelCoord) -> bool {
+        self.window
+            .is_none_or(|(lo, hi)| overlaps(origin, origin + VoxelCoord::new(7, 7, 7), lo, hi))
+    }
+
     /// Forget everything (after the map was cleared).
     pub fn clear(&mut self) {
-        self.grid = Grid::new();
-        self.seen = Grid::new();
+        self.leaves = HashMap::new();
+        self.outside = HashMap::new();
+        self.band_count = 0;
     }
 
     /// Build the field of the whole map from scratch (after a load), around `sensor` when
@@ -260,20 +348,29 @@ impl DistanceField {
         if let (Some(half), Some(p)) = (self.cfg.window, sensor) {
             self.window = window_around(map, &p, half);
         }
-        // Which map leaves changed, read in parallel against the copy.
+        // The bands the window left, their obstacles kept apart.
+        if self.window != old_window {
+            if let Some((wlo, whi)) = self.window {
+                self.drop_outside(wlo, whi);
+            }
+        }
+        // Which map leaves changed, read in parallel: against the band's obstacles (its
+        // voxels at offset zero), or those kept for a leaf outside the window.
         let (lo, hi) = touched.unwrap_or((
             VoxelCoord::new(i32::MIN, i32::MIN, i32::MIN),
             VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
         ));
-        let seen = &self.seen;
+        let (leaves, outside) = (&self.leaves, &self.outside);
         let absent = tile::absent_obstacles(policy);
-        let changes: Vec<(VoxelCoord, Mask512, bool)> =
+        let changes: Vec<(VoxelCoord, Mask512, Option<Mask512>)> =
             map.grid().filter_map_leaves_in_box(lo, hi, |origin, leaf| {
                 let now = tile::obstacles(leaf, policy);
-                match seen.leaf_index(origin) {
-                    None => Some((origin, now, true)),
-                    Some(i) => (seen.leaf(i).marked != now).then_some((origin, now, false)),
-                }
+                let was = match leaves.get(&origin) {
+                    None => return Some((origin, now, None)),
+                    Some(Some(band)) => band.obstacles(),
+                    Some(None) => outside.get(&origin).copied().unwrap_or(Mask512::EMPTY),
+                };
+                (was != now).then_some((origin, now, Some(was)))
             });
         let mut report = FieldReport::default();
         // Per tile to transform again, the box of its voxels that may have changed (in
@@ -302,16 +399,9 @@ impl DistanceField {
                 }
             }
         };
-        for &(origin, now, new) in &changes {
-            let was = match new {
-                true => absent,
-                false => {
-                    self.seen
-                        .leaf(self.seen.leaf_index(origin).expect("seen"))
-                        .marked
-                }
-            };
-            if new {
+        for &(origin, now, seen) in &changes {
+            let was = seen.unwrap_or(absent);
+            if seen.is_none() {
                 report.new_leaves += 1;
                 mark(origin, origin + VoxelCoord::new(7, 7, 7));
             }
@@ -335,13 +425,19 @@ impl DistanceField {
                     ),
                 );
             }
-            let li = self.seen.leaf_index_or_insert(origin, None);
-            self.seen.leaf_mut(li).marked = now;
+            // A leaf in the window gets its obstacles with its band (its tile is
+            // transformed); one outside keeps them apart.
+            self.leaves.entry(origin).or_insert(None);
+            if !self.overlaps_window(origin) {
+                match now.is_empty() {
+                    true => self.outside.remove(&origin),
+                    false => self.outside.insert(origin, now),
+                };
+            }
         }
-        // A window that moved: drop what it left, transform what it newly covers.
+        // A window that moved: transform what it newly covers.
         if self.window != old_window {
             if let Some((wlo, whi)) = self.window {
-                self.drop_outside(wlo, whi);
                 let (a, b) = (tile_of(wlo), tile_of(whi));
                 for z in a.z..=b.z {
                     for y in a.y..=b.y {
@@ -391,7 +487,7 @@ impl DistanceField {
             self.window,
         );
         let grid = map.grid();
-        let results: Vec<Vec<(VoxelCoord, Option<Box<LeafField>>)>> = tiles
+        let results: Vec<Vec<(VoxelCoord, Option<LeafBand>)>> = tiles
             .par_iter()
             .map(|&(t, region)| {
                 let origin = t.shl(TILE_LOG2);
@@ -426,55 +522,50 @@ impl DistanceField {
                 leaves
                     .into_iter()
                     .map(|(o, [lx, ly, lz])| {
-                        let mut band = Mask512::EMPTY;
-                        let mut offsets = [[0i8; 3]; LEAF_VOXELS];
+                        let mut mask = Mask512::EMPTY;
+                        let mut offsets = Vec::new();
                         for z in 0..8 {
                             for y in 0..8 {
                                 let row = ((8 * lz + z) * TILE + 8 * ly + y) * TILE + 8 * lx;
                                 for x in 0..8 {
                                     let key = s.keys[row + x];
                                     if key < far {
-                                        let i = x | y << 3 | z << 6;
-                                        band.set(i);
-                                        offsets[i] = tile::decode(key);
+                                        mask.set(x | y << 3 | z << 6);
+                                        offsets.push(tile::decode(key));
                                     }
                                 }
                             }
                         }
-                        let leaf =
-                            (!band.is_empty()).then(|| Box::new(LeafField { band, offsets }));
-                        (o, leaf)
+                        let band = (!mask.is_empty()).then(|| LeafBand {
+                            mask,
+                            offsets: offsets.into_boxed_slice(),
+                        });
+                        (o, band)
                     })
                     .collect()
             })
             .collect();
-        for (origin, leaf) in results.into_iter().flatten() {
-            match leaf {
-                Some(l) => {
-                    let i = self.grid.leaf_index_or_insert(origin, None);
-                    let g = self.grid.leaf_mut(i);
-                    g.active = l.band;
-                    g.values = l.offsets;
-                }
-                None => {
-                    if let Some(i) = self.grid.leaf_index(origin) {
-                        self.grid.leaf_mut(i).active = Mask512::EMPTY;
-                    }
-                }
-            }
+        // A leaf in the window holds its obstacles in its band (none without one).
+        for (origin, band) in results.into_iter().flatten() {
+            self.set_band(origin, band);
+            self.outside.remove(&origin);
         }
     }
 
-    /// Empty the band of every leaf outside the window.
+    /// Drop the band of every leaf outside the window, keeping its obstacles apart.
     fn drop_outside(&mut self, lo: VoxelCoord, hi: VoxelCoord) {
-        let out: Vec<u32> = (self.grid.leaves())
-            .filter(|(o, l)| {
-                !l.active.is_empty() && !overlaps(*o, *o + VoxelCoord::new(7, 7, 7), lo, hi)
-            })
-            .filter_map(|(o, _)| self.grid.leaf_index(o))
+        let out: Vec<VoxelCoord> = (self.leaves())
+            .filter(|(o, _)| !overlaps(*o, *o + VoxelCoord::new(7, 7, 7), lo, hi))
+            .map(|(o, _)| o)
             .collect();
-        for i in out {
-            self.grid.leaf_mut(i).active = Mask512::EMPTY;
+        for o in out {
+            if let Some(band) = self.leaves.get_mut(&o).and_then(Option::take) {
+                self.band_count -= band.offsets.len() as u64;
+                let obstacles = band.obstacles();
+                if !obstacles.is_empty() {
+                    self.outside.insert(o, obstacles);
+                }
+            }
         }
     }
 }

@@ -25,7 +25,7 @@ mod tile;
 mod tests;
 
 #[cfg(feature = "map")]
-pub use esdf::{DistanceField, FieldReport};
+pub use esdf::{DistanceField, FieldReport, LeafBand};
 
 /// Largest band radius in voxels: offsets are stored as `i8`, and the transform's keys
 /// hold a squared distance below `2 * 63²` in 13 bits.

@@ -163,11 +163,11 @@ fn pose(rng: &mut Rng) -> Isometry3<f64> {
 /// The band as a map from voxel to offset.
 fn band(field: &DistanceField) -> HashMap<VoxelCoord, [i8; 3]> {
     let mut out = HashMap::new();
-    for (o, mask, offsets) in field.leaves() {
-        for i in mask.iter_ones() {
+    for (o, band) in field.leaves() {
+        for (i, offset) in band.iter() {
             let v = crate::tree::voxel_at(o, i);
             if field.covers(v) {
-                out.insert(v, offsets[i]);
+                out.insert(v, offset);
             }
         }
     }
@@ -239,12 +239,12 @@ fn a_window_moves_with_the_sensor_and_holds_the_rebuilt_field_inside() {
     .unwrap();
     let mut field = DistanceField::new(cfg, 0.1).unwrap();
     let mut rng = Rng(3);
-    for k in 0..5 {
+    let mut frame_at = |x: f64, map: &mut OccupancyMap, field: &mut DistanceField| {
         let points = scan(&mut rng, 3000);
-        let p = Isometry3::translation(0.7 * k as f64, 0.0, 0.0);
+        let p = Isometry3::translation(x, 0.0, 0.0);
         let report = integ
             .integrate(
-                &mut map,
+                map,
                 &Frame {
                     pose: p,
                     points: &points,
@@ -252,31 +252,69 @@ fn a_window_moves_with_the_sensor_and_holds_the_rebuilt_field_inside() {
             )
             .unwrap();
         let sensor = WorldPoint::from(p.translation.vector);
-        integ.install(|| field.update(&map, report.bounds, Some(sensor)));
+        integ.install(|| field.update(map, report.bounds, Some(sensor)));
+    };
+    let holds_the_rebuilt_field = |map: &OccupancyMap, field: &DistanceField| {
+        let mut whole = DistanceField::new(
+            FieldConfig {
+                window: None,
+                ..cfg
+            },
+            0.1,
+        )
+        .unwrap();
+        whole.rebuild(map, None);
+        let inside: HashMap<_, _> = band(&whole)
+            .into_iter()
+            .filter(|(v, _)| field.covers(*v))
+            .collect();
+        assert!(!inside.is_empty());
+        assert_eq!(band(field), inside);
+        let stored: u64 = field.leaves().map(|(_, b)| b.offsets().len() as u64).sum();
+        assert_eq!(field.band_voxels(), stored);
+    };
+    for k in 0..5 {
+        frame_at(0.7 * k as f64, &mut map, &mut field);
     }
     let (lo, hi) = field.window().expect("placed");
     assert_eq!(lo, VoxelCoord::new(13, -15, -10));
     assert_eq!(hi, VoxelCoord::new(43, 15, 10));
-    let mut whole = DistanceField::new(
-        FieldConfig {
-            window: None,
-            ..cfg
-        },
-        0.1,
-    )
-    .unwrap();
-    whole.rebuild(&map, None);
-    let inside: HashMap<_, _> = band(&whole)
-        .into_iter()
-        .filter(|(v, _)| field.covers(*v))
-        .collect();
-    assert!(!inside.is_empty());
-    assert_eq!(band(&field), inside);
+    holds_the_rebuilt_field(&map, &field);
     assert_eq!(
         field.nearest(VoxelCoord::new(0, 0, 0)),
         None,
         "outside the window"
     );
+    // Back over ground whose obstacles the frames changed while the window was away: the
+    // obstacles kept for leaves outside it tell which.
+    for x in [2.1, 1.0, 0.0] {
+        frame_at(x, &mut map, &mut field);
+    }
+    holds_the_rebuilt_field(&map, &field);
+    assert!(field.covers(VoxelCoord::new(0, 0, 0)));
+}
+
+#[test]
+fn a_leaf_answers_each_voxel_from_its_packed_offsets() {
+    let map = random_map(5, -12, 12, 0.02);
+    let mut field = DistanceField::new(
+        FieldConfig {
+            max_distance: 0.4,
+            ..FieldConfig::default()
+        },
+        0.1,
+    )
+    .unwrap();
+    field.rebuild(&map, None);
+    let mut partial = 0;
+    for (_, band) in field.leaves() {
+        let by_voxel: HashMap<usize, [i8; 3]> = band.iter().collect();
+        partial += usize::from(by_voxel.len() < 512);
+        for i in 0..512 {
+            assert_eq!(band.get(i), by_voxel.get(&i).copied(), "voxel {i}");
+        }
+    }
+    assert!(partial > 0, "no leaf only partly in the band");
 }
 
 #[test]
@@ -301,4 +339,90 @@ fn bad_configurations_are_refused() {
             .radius(),
         20
     );
+}
+
+#[test]
+fn obstacles_that_change_outside_the_window_reach_into_it() {
+    let cfg = FieldConfig {
+        max_distance: 0.8,
+        unknown: UnknownPolicy::Free,
+        window: Some([1.0, 1.0, 1.0]),
+    };
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    for x in -24..32 {
+        for y in -4..4 {
+            map.set_value(VoxelCoord::new(x, y, 0), -10);
+        }
+    }
+    let edge = VoxelCoord::new(10, 0, 0);
+    let (a, b) = (VoxelCoord::new(16, 0, 0), VoxelCoord::new(17, 1, 0));
+    map.set_value(a, 100);
+    let mut field = DistanceField::new(cfg, 0.1).unwrap();
+    let at = |x: f64| Some(WorldPoint::new(x, 0.0, 0.0));
+    field.update(&map, None, at(0.0));
+    assert_eq!(
+        field.window(),
+        Some((VoxelCoord::new(-10, -10, -10), VoxelCoord::new(10, 10, 10)))
+    );
+    assert!(!field.covers(a), "the obstacle lies outside the window");
+    assert_eq!(field.nearest(edge), Some([6, 0, 0]));
+    let only = |v: VoxelCoord| Some((v, v));
+    // The obstacle goes, another comes, both outside the window; then the window takes
+    // them in and leaves them again.
+    map.set_value(a, -10);
+    field.update(&map, only(a), at(0.0));
+    assert_eq!(field.nearest(edge), None);
+    map.set_value(b, 100);
+    field.update(&map, only(b), at(0.0));
+    assert_eq!(field.nearest(edge), Some([7, 1, 0]));
+    field.update(&map, None, at(1.5));
+    assert_eq!(field.nearest(b), Some([0, 0, 0]));
+    map.set_value(b, -10);
+    field.update(&map, only(b), at(0.0));
+    assert_eq!(field.nearest(edge), None);
+    map.set_value(a, 100);
+    field.update(&map, only(a), at(0.0));
+    assert_eq!(field.nearest(edge), Some([6, 0, 0]));
+    let mut whole = DistanceField::new(
+        FieldConfig {
+            window: None,
+            ..cfg
+        },
+        0.1,
+    )
+    .unwrap();
+    whole.rebuild(&map, None);
+    let inside: HashMap<_, _> = band(&whole)
+        .into_iter()
+        .filter(|(v, _)| field.covers(*v))
+        .collect();
+    assert_eq!(band(&field), inside);
+}
+
+#[test]
+fn a_leaf_the_window_leaves_keeps_its_obstacles_for_the_next_update() {
+    let cfg = FieldConfig {
+        max_distance: 0.8,
+        unknown: UnknownPolicy::Free,
+        window: Some([4.0, 4.0, 4.0]),
+    };
+    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+    for x in -56..64 {
+        map.set_value(VoxelCoord::new(x, 0, 0), -10);
+    }
+    let (edge, b) = (VoxelCoord::new(-32, 0, 0), VoxelCoord::new(-36, 0, 0));
+    map.set_value(b, 100);
+    let mut field = DistanceField::new(cfg, 0.1).unwrap();
+    field.update(&map, None, Some(WorldPoint::new(0.0, 0.0, 0.0)));
+    assert_eq!(field.nearest(edge), Some([-4, 0, 0]));
+    // The window moves so that `b`'s leaf falls out of it while the tile of `edge` stays
+    // covered (no transform for the move alone), and `b` goes in the same frame.
+    map.set_value(b, -10);
+    field.update(&map, Some((b, b)), Some(WorldPoint::new(0.8, 0.0, 0.0)));
+    assert_eq!(
+        field.window().map(|w| w.0),
+        Some(VoxelCoord::new(-32, -40, -40))
+    );
+    assert!(!field.covers(b));
+    assert_eq!(field.nearest(edge), None);
 }

@@ -15,7 +15,7 @@
 //! completely and verified before a map is built, so a bad file changes nothing.
 
 use crate::coord::VoxelCoord;
-use crate::field::{DistanceField, FieldConfig};
+use crate::field::{DistanceField, FieldConfig, LeafBand};
 use crate::grid::LEAF_VOXELS;
 use crate::map::OccupancyMap;
 use crate::model::SensorModel;
@@ -277,17 +277,17 @@ pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) 
         };
     };
     let mut leaves: Vec<_> = f.leaves().collect();
-    leaves.sort_unstable_by_key(|(o, _, _)| (o.z, o.y, o.x));
+    leaves.sort_unstable_by_key(|(o, _)| (o.z, o.y, o.x));
     let mut records = Vec::new();
-    for (o, mask, offsets) in &leaves {
+    for (o, band) in &leaves {
         for c in o.to_array() {
             records.extend_from_slice(&c.to_le_bytes());
         }
-        for w in mask.words {
+        for w in band.mask().words {
             records.extend_from_slice(&w.to_le_bytes());
         }
-        for i in mask.iter_ones() {
-            records.extend(offsets[i].map(|c| c as u8));
+        for o in band.offsets() {
+            records.extend(o.map(|c| c as u8));
         }
     }
     let header = FileHeaderWithField {
@@ -543,11 +543,11 @@ fn decode_field(
         let offsets_bytes = rec
             .get(76..76 + n)
             .ok_or_else(|| bad("records truncated"))?;
-        let mut offsets = [[0i8; 3]; 512];
-        for (i, o) in mask.iter_ones().zip(offsets_bytes.chunks_exact(3)) {
-            offsets[i] = [o[0] as i8, o[1] as i8, o[2] as i8];
-        }
-        leaves.push((origin, mask, offsets));
+        let offsets = (offsets_bytes.chunks_exact(3))
+            .map(|o| [o[0] as i8, o[1] as i8, o[2] as i8])
+            .collect();
+        let band = LeafBand::new(mask, offsets).ok_or_else(|| bad("records truncated"))?;
+        leaves.push((origin, band));
         rec = &rec[76 + n..];
     }
     if !rec.is_empty() {
@@ -809,10 +809,7 @@ mod tests {
     type Band = Vec<(VoxelCoord, Vec<(usize, [i8; 3])>)>;
 
     fn band(f: &DistanceField) -> Band {
-        let mut v: Vec<_> = f
-            .leaves()
-            .map(|(o, m, off)| (o, m.iter_ones().map(|i| (i, off[i])).collect()))
-            .collect();
+        let mut v: Vec<_> = f.leaves().map(|(o, b)| (o, b.iter().collect())).collect();
         v.sort_by_key(|(o, _)| (o.z, o.y, o.x));
         v
     }

@@ -461,7 +461,7 @@ impl<'a> Plan<'a> {
                 let mut data = Vec::new();
                 let mut band = 0u64;
                 for p in piece {
-                    let Some((mask, offsets)) = field.leaf(p.origin) else {
+                    let Some(leaf) = field.leaf(p.origin) else {
                         entries.push(FieldEntry {
                             data: 0,
                             kind: FIELD_NONE,
@@ -469,6 +469,7 @@ impl<'a> Plan<'a> {
                         continue;
                     };
                     let at = data.len() as u32;
+                    let (mask, offsets) = (leaf.mask(), leaf.offsets());
                     let count = mask.count();
                     band += u64::from(count);
                     // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
@@ -492,7 +493,7 @@ impl<'a> Plan<'a> {
                         data.extend(
                             morton
                                 .filter(|&i| mask.get(i))
-                                .flat_map(|i| offsets[i].map(|c| c as u8)),
+                                .flat_map(|i| offsets[mask.rank(i) as usize].map(|c| c as u8)),
                         );
                     }
                 }

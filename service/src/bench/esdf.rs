@@ -79,7 +79,7 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
         bulk_row(a, &probe, cfg, name, map, sensor)?;
     }
     println!(
-        "build = the whole field from scratch (as after a load); B/bv = bytes per voxel in the band: the field's memory held (leaf pools in whole chunks), used = of it the leaves in use, then its snapshot section; \
+        "build = the whole field from scratch (as after a load); B/bv = bytes per voxel in the band: the field's heap (tables and allocations as malloc rounds them), used = of it the bands' masks and offsets, then its snapshot section; \
          snap B = the snapshot without, +field B with the field; enc = encode ms without / with; queries: ns per point through the snapshot over 100k points \
          (half within 1 m of an occupied voxel): state_at, distance_at (trilinear), distance_and_gradient_at, nearest_obstacle; ratio = dist / state"
     );
