@@ -143,6 +143,24 @@ enum Band<'a> {
     },
 }
 
+/// In-leaf offset steps from a voxel to the corners of the cube it spans (x fastest),
+/// for a voxel not on the leaf's upper faces.
+const CORNER_STEP: [usize; 8] = [0, 1, 8, 9, 64, 65, 72, 73];
+
+/// `roots()[n]`: the square root of `n`, for each squared length an offset in a band can
+/// have (below `MAX_RADIUS²`): a table read in place of eight square roots a query.
+fn roots() -> &'static [f64] {
+    static ROOTS: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
+    ROOTS.get_or_init(|| {
+        (0..MAX_RADIUS * MAX_RADIUS)
+            .map(|n| f64::from(n).sqrt())
+            .collect()
+    })
+}
+
+/// A squared offset length beyond any radius: a voxel outside the band.
+const FAR_LEN2: i32 = 4 * (MAX_RADIUS * MAX_RADIUS) as i32;
+
 /// One voxel of the field.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Cell {
@@ -223,7 +241,12 @@ impl<'a> FieldView<'a> {
     #[inline]
     fn covers(&self, v: VoxelCoord) -> bool {
         let (lo, hi) = (self.lo, self.hi);
-        lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z
+        (lo.x <= v.x)
+            & (v.x <= hi.x)
+            & (lo.y <= v.y)
+            & (v.y <= hi.y)
+            & (lo.z <= v.z)
+            & (v.z <= hi.z)
     }
 
     /// The band of leaf `index` (a leaf the snapshot holds), read once for its voxels.
@@ -310,7 +333,11 @@ impl<'a> FieldView<'a> {
         match c {
             Cell::Unknown => None,
             Cell::Far => Some(self.max),
-            Cell::Near(o) => Some((f64::from(offset_len2(o)).sqrt() * self.res).min(self.max)),
+            Cell::Near(o) => Some(
+                roots()
+                    .get(offset_len2(o) as usize)
+                    .map_or(self.max, |r| (r * self.res).min(self.max)),
+            ),
         }
     }
 
@@ -333,25 +360,61 @@ impl<'a> FieldView<'a> {
         let b = VoxelCoord::new(f[0] as i32, f[1] as i32, f[2] as i32);
         let top = b + VoxelCoord::new(1, 1, 1);
         let mut d = [0.0; 8];
-        if self.covers(b) && self.covers(top) {
-            // Each leaf the eight lie in is looked up and read once: one leaf for most
-            // points, up to eight at a leaf's corner.
-            let mut leaves: [(VoxelCoord, Option<Band<'a>>); 8] = [(top, None); 8];
-            let mut n = 0;
+        let inside = self.covers(b) & self.covers(top);
+        if inside & (b.x & 7 != 7) & (b.y & 7 != 7) & (b.z & 7 != 7) {
+            // All eight in one leaf (most points): one lookup, one read of its entry, and
+            // the squared lengths of their offsets read without a branch per kind.
+            let Some(l) = self.view.find_leaf(b) else {
+                return self.metres(self.absent()).map(|x| ([x; 8], t));
+            };
+            let i0 = leaf_offset(b);
+            let mut len2 = [FAR_LEN2; 8];
+            match self.band_of(l.index) {
+                Band::None => {}
+                Band::All(offsets) => {
+                    for (k, l2) in len2.iter_mut().enumerate() {
+                        let m = usize::from(MORTON[i0 + CORNER_STEP[k]]) & (LEAF_VOXELS - 1);
+                        if let Some(o) = offsets.get(3 * m..3 * m + 3) {
+                            *l2 = offset_len2([o[0] as i8, o[1] as i8, o[2] as i8]);
+                        }
+                    }
+                }
+                Band::Masked {
+                    mask,
+                    ranks,
+                    offsets,
+                } => {
+                    for (k, l2) in len2.iter_mut().enumerate() {
+                        let m = usize::from(MORTON[i0 + CORNER_STEP[k]]);
+                        let (w, bit) = ((m / 64) & 7, m % 64);
+                        if mask[w] >> bit & 1 != 0 {
+                            let at =
+                                (ranks[w] + (mask[w] & ((1u64 << bit) - 1)).count_ones()) as usize;
+                            if let Some(o) = offsets.get(3 * at..3 * at + 3) {
+                                *l2 = offset_len2([o[0] as i8, o[1] as i8, o[2] as i8]);
+                            }
+                        }
+                    }
+                }
+            }
+            let roots = roots();
+            for (out, l2) in d.iter_mut().zip(len2) {
+                *out = roots
+                    .get(l2 as usize)
+                    .map_or(self.max, |r| (r * self.res).min(self.max));
+            }
+        } else if inside {
+            // `b` on a leaf's upper face: the eight span 2, 4 or 8 leaves, each looked up
+            // and read once, found by which axes the corner steps into the next leaf.
+            let next = [b.x & 7 == 7, b.y & 7 == 7, b.z & 7 == 7].map(usize::from);
+            let mut bands: [Option<Option<Band<'a>>>; 8] = [None; 8];
             for (k, out) in d.iter_mut().enumerate() {
                 let v = b + VoxelCoord::new((k & 1) as i32, (k >> 1 & 1) as i32, (k >> 2) as i32);
-                let o = crate::tree::leaf_origin(v);
-                let at = match leaves[..n].iter().position(|(lo, _)| *lo == o) {
-                    Some(at) => at,
-                    None => {
-                        leaves[n] = (o, self.view.find_leaf(v).map(|l| self.band_of(l.index)));
-                        n += 1;
-                        n - 1
-                    }
-                };
-                let band = &leaves[at].1;
+                let leaf = (k & next[0]) | (k & next[1] << 1) | (k & next[2] << 2);
+                let band = *bands[leaf]
+                    .get_or_insert_with(|| self.view.find_leaf(v).map(|l| self.band_of(l.index)));
                 let c = match band {
-                    Some(band) => Self::cell_in(band, leaf_offset(v)),
+                    Some(band) => Self::cell_in(&band, leaf_offset(v)),
                     None => self.absent(),
                 };
                 *out = self.metres(c)?;

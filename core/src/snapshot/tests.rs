@@ -895,6 +895,40 @@ fn field_section_answers_like_the_field() {
             checked > 10_000 && interpolated > checked / 2,
             "{interpolated} of {checked}"
         );
+        // Between centres: the trilinear blend of the eight voxels' distances, whether
+        // they lie in one leaf or straddle two to eight.
+        let origins: Vec<VoxelCoord> = map.grid().leaves().map(|(o, _)| o).collect();
+        let mut rng = Rng(5);
+        let (mut straddling, mut blended) = (0, 0);
+        for _ in 0..20_000 {
+            let o = origins[rng.i(0, origins.len() as i32 - 1) as usize];
+            let u = [0, 1, 2].map(|k| f64::from(o.to_array()[k]) + 8.0 * rng.f());
+            let p = WorldPoint::new(0.1 * u[0], 0.1 * u[1], 0.1 * u[2]);
+            let g = [0, 1, 2].map(|k| u[k] - 0.5);
+            let b = VoxelCoord::new(
+                g[0].floor() as i32,
+                g[1].floor() as i32,
+                g[2].floor() as i32,
+            );
+            let t = [0, 1, 2].map(|k| g[k] - g[k].floor());
+            let corner = |k: i32| f.distance(b + VoxelCoord::new(k & 1, k >> 1 & 1, k >> 2));
+            let want = (0..8).try_fold(0.0, |acc, k| {
+                let w = [0, 1, 2].map(|a| if k >> a & 1 == 1 { t[a] } else { 1.0 - t[a] });
+                Some(acc + corner(k)? * w[0] * w[1] * w[2])
+            });
+            let got = f.distance_at(&p);
+            match (got, want) {
+                (Some(g), Some(w)) => assert!((g - w).abs() < 1e-9, "{p:?}: {g} vs {w}"),
+                (None, None) => {}
+                _ => panic!("{p:?}: {got:?} vs {want:?}"),
+            }
+            blended += usize::from(got.is_some());
+            straddling += usize::from(b.to_array().iter().any(|c| c & 7 == 7));
+        }
+        assert!(
+            blended > 10_000 && straddling > 3_000,
+            "{blended}, {straddling}"
+        );
         // Outside every leaf: unknown under `free`, an obstacle under `occupied`.
         let far = VoxelCoord::new(5000, 5000, 5000);
         let want = (unknown == UnknownPolicy::Occupied).then_some(0.0);
