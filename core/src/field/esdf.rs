@@ -37,6 +37,9 @@ pub struct FieldReport {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct LeafBand {
     mask: Mask512,
+    /// The voxels at offset zero: the leaf's obstacles when it was transformed, which the
+    /// next update compares the map's with (a copy, for a 64-byte compare per leaf).
+    obstacles: Mask512,
     offsets: Box<[[i8; 3]]>,
 }
 
@@ -44,8 +47,18 @@ impl LeafBand {
     /// A band of the voxels of `mask` with `offsets` in voxel order; `None` unless there
     /// is exactly one offset per voxel.
     pub fn new(mask: Mask512, offsets: Vec<[i8; 3]>) -> Option<Self> {
-        (mask.count() as usize == offsets.len()).then(|| Self {
+        if mask.count() as usize != offsets.len() {
+            return None;
+        }
+        let mut obstacles = Mask512::EMPTY;
+        for (i, o) in mask.iter_ones().zip(&offsets) {
+            if *o == [0; 3] {
+                obstacles.set(i);
+            }
+        }
+        Some(Self {
             mask,
+            obstacles,
             offsets: offsets.into_boxed_slice(),
         })
     }
@@ -73,17 +86,6 @@ impl LeafBand {
     /// (in-leaf voxel, offset) of each voxel of the band, in voxel order.
     pub fn iter(&self) -> impl Iterator<Item = (usize, [i8; 3])> + '_ {
         self.mask.iter_ones().zip(self.offsets.iter().copied())
-    }
-
-    /// The leaf's obstacles: its voxels at offset zero.
-    fn obstacles(&self) -> Mask512 {
-        let mut m = Mask512::EMPTY;
-        for (i, o) in self.iter() {
-            if o == [0; 3] {
-                m.set(i);
-            }
-        }
-        m
     }
 
     /// Heap bytes: the band's box and its offsets' allocation.
@@ -211,11 +213,11 @@ impl DistanceField {
                 .sum::<usize>()
     }
 
-    /// Bytes of the bands themselves: a 64-byte mask and 3 bytes per voxel, per leaf with
-    /// a band.
+    /// Bytes of the bands themselves: two 64-byte masks (the band's and the obstacles')
+    /// and 3 bytes per voxel, per leaf with a band.
     pub fn leaf_bytes(&self) -> usize {
         (self.leaves.values().flatten())
-            .map(|b| 64 + 3 * b.offsets.len())
+            .map(|b| 128 + 3 * b.offsets.len())
             .sum()
     }
 
@@ -302,7 +304,7 @@ impl DistanceField {
                 }
                 continue;
             }
-            let band_obstacles = stored.as_ref().map_or(Mask512::EMPTY, |b| b.obstacles());
+            let band_obstacles = stored.as_ref().map_or(Mask512::EMPTY, |b| b.obstacles);
             if band_obstacles != obstacles {
                 return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
             }
@@ -367,7 +369,7 @@ impl DistanceField {
                 let now = tile::obstacles(leaf, policy);
                 let was = match leaves.get(&origin) {
                     None => return Some((origin, now, None)),
-                    Some(Some(band)) => band.obstacles(),
+                    Some(Some(band)) => band.obstacles,
                     Some(None) => outside.get(&origin).copied().unwrap_or(Mask512::EMPTY),
                 };
                 (was != now).then_some((origin, now, Some(was)))
@@ -522,23 +524,30 @@ impl DistanceField {
                 leaves
                     .into_iter()
                     .map(|(o, [lx, ly, lz])| {
-                        let mut mask = Mask512::EMPTY;
-                        let mut offsets = Vec::new();
+                        let (mut mask, mut obstacles) = (Mask512::EMPTY, Mask512::EMPTY);
+                        let mut offsets = [[0i8; 3]; LEAF_VOXELS];
+                        let mut n = 0;
                         for z in 0..8 {
                             for y in 0..8 {
                                 let row = ((8 * lz + z) * TILE + 8 * ly + y) * TILE + 8 * lx;
                                 for x in 0..8 {
                                     let key = s.keys[row + x];
                                     if key < far {
+                                        let o = tile::decode(key);
                                         mask.set(x | y << 3 | z << 6);
-                                        offsets.push(tile::decode(key));
+                                        if o == [0; 3] {
+                                            obstacles.set(x | y << 3 | z << 6);
+                                        }
+                                        offsets[n] = o;
+                                        n += 1;
                                     }
                                 }
                             }
                         }
                         let band = (!mask.is_empty()).then(|| LeafBand {
                             mask,
-                            offsets: offsets.into_boxed_slice(),
+                            obstacles,
+                            offsets: offsets[..n].into(),
                         });
                         (o, band)
                     })
@@ -561,7 +570,7 @@ impl DistanceField {
         for o in out {
             if let Some(band) = self.leaves.get_mut(&o).and_then(Option::take) {
                 self.band_count -= band.offsets.len() as u64;
-                let obstacles = band.obstacles();
+                let obstacles = band.obstacles;
                 if !obstacles.is_empty() {
                     self.outside.insert(o, obstacles);
                 }
