@@ -115,40 +115,46 @@ fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
 fn bundle(rays: &mut Vec<Ray>, origin: [f64; 3], threshold: u32) {
     let runs = partitioned(rays, origin, 1, |i, k, r| (k, i, r.end));
     let keep: Vec<AtomicBool> = (0..rays.len()).map(|_| AtomicBool::new(true)).collect();
-    let means: HashMap<u32, [f64; 3]> = (0..PARTITIONS)
+    // Per partition, the bundled groups as (first ray, mean end).
+    let means: Vec<Vec<(u32, [f64; 3])>> = (0..PARTITIONS)
         .into_par_iter()
         .map(|p| {
-            // key -> (first ray, count, sum of ends)
-            let mut groups: HashMap<u64, (u32, u32, [f64; 3])> = HashMap::new();
+            let n = runs.iter().map(|r| r[p].len()).sum();
+            // Each group once in the table; its rays' group indices remembered, so the
+            // second pass reads them in order rather than hashing again.
+            let mut index: HashMap<u64, u32> = HashMap::with_capacity(n);
+            let mut groups: Vec<(u32, u32, [f64; 3])> = Vec::new(); // first ray, count, sum
+            let mut of_ray = Vec::with_capacity(n);
             for &(k, i, end) in in_partition(&runs, p) {
-                let g = groups.entry(k).or_insert((i, 0, [0.0; 3]));
-                g.1 += 1;
-                (0..3).for_each(|a| g.2[a] += end[a]);
+                let g = *index.entry(k).or_insert_with(|| {
+                    groups.push((i, 0, [0.0; 3]));
+                    groups.len() as u32 - 1
+                });
+                let group = &mut groups[g as usize];
+                group.1 += 1;
+                (0..3).for_each(|a| group.2[a] += end[a]);
+                of_ray.push(g);
             }
-            for &(k, i, _) in in_partition(&runs, p) {
-                let (first, n, _) = groups[&k];
+            for (&(_, i, _), &g) in in_partition(&runs, p).zip(&of_ray) {
+                let (first, n, _) = groups[g as usize];
                 if n > threshold && i != first {
                     keep[i as usize].store(false, Ordering::Relaxed);
                 }
             }
-            groups
-                .into_values()
+            (groups.into_iter())
                 .filter(|&(_, n, _)| n > threshold)
                 .map(|(first, n, sum)| (first, sum.map(|c| c / f64::from(n))))
-                .collect::<Vec<_>>()
+                .collect()
         })
-        .flatten_iter()
-        .collect::<Vec<_>>()
-        .into_iter()
         .collect();
+    // A bundle's first ray becomes the ray to the mean.
+    for (first, end) in means.into_iter().flatten() {
+        let r = &mut rays[first as usize];
+        let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
+        *r = Ray::new(end, direction_key(d), r.hit);
+    }
     let keep: Vec<bool> = keep.into_iter().map(AtomicBool::into_inner).collect();
-    compact(rays, &keep, |i, r| match means.get(&(i as u32)) {
-        Some(&end) => {
-            let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
-            Ray::new(end, direction_key(d), r.hit)
-        }
-        None => *r,
-    });
+    compact(rays, &keep, |_, r| *r);
 }
 
 /// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
