@@ -185,9 +185,12 @@ fn stream(
     on_message: &mut OnMessage<'_>,
 ) -> Result<(), BagError> {
     let (mut file, len) = open(path)?;
+    // No record is longer than the file: the reader reserves a record's stated length
+    // before it reads it, which a small file with a lying length otherwise inflates to
+    // the limit.
     let opts = LinearReaderOptions::default()
         .with_emit_chunks(true)
-        .with_record_length_limit(RECORD_LIMIT);
+        .with_record_length_limit(RECORD_LIMIT.min(usize::try_from(len).unwrap_or(usize::MAX)));
     let mut reader = LinearReader::new_with_options(opts);
     let mut fed = 0u64;
     let mut records = Records {
@@ -360,7 +363,7 @@ fn summary(path: &Path) -> Result<Option<super::Topics>, BagError> {
     let opts = LinearReaderOptions::default()
         .with_skip_start_magic(true)
         .with_emit_chunks(true)
-        .with_record_length_limit(RECORD_LIMIT);
+        .with_record_length_limit(RECORD_LIMIT.min(section.len()));
     let mut reader = LinearReader::new_with_options(opts);
     let mut fed = 0;
     let mut schemas: HashMap<u16, String> = HashMap::new();
