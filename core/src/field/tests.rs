@@ -254,32 +254,13 @@ fn a_window_moves_with_the_sensor_and_holds_the_rebuilt_field_inside() {
         let sensor = WorldPoint::from(p.translation.vector);
         integ.install(|| field.update(map, report.bounds, Some(sensor)));
     };
-    let holds_the_rebuilt_field = |map: &OccupancyMap, field: &DistanceField| {
-        let mut whole = DistanceField::new(
-            FieldConfig {
-                window: None,
-                ..cfg
-            },
-            0.1,
-        )
-        .unwrap();
-        whole.rebuild(map, None);
-        let inside: HashMap<_, _> = band(&whole)
-            .into_iter()
-            .filter(|(v, _)| field.covers(*v))
-            .collect();
-        assert!(!inside.is_empty());
-        assert_eq!(band(field), inside);
-        let stored: u64 = field.leaves().map(|(_, b)| b.offsets().len() as u64).sum();
-        assert_eq!(field.band_voxels(), stored);
-    };
     for k in 0..5 {
         frame_at(0.7 * k as f64, &mut map, &mut field);
     }
     let (lo, hi) = field.window().expect("placed");
     assert_eq!(lo, VoxelCoord::new(13, -15, -10));
     assert_eq!(hi, VoxelCoord::new(43, 15, 10));
-    holds_the_rebuilt_field(&map, &field);
+    assert_holds_the_rebuilt_field(&map, &field);
     assert_eq!(
         field.nearest(VoxelCoord::new(0, 0, 0)),
         None,
@@ -290,8 +271,27 @@ fn a_window_moves_with_the_sensor_and_holds_the_rebuilt_field_inside() {
     for x in [2.1, 1.0, 0.0] {
         frame_at(x, &mut map, &mut field);
     }
-    holds_the_rebuilt_field(&map, &field);
+    assert_holds_the_rebuilt_field(&map, &field);
     assert!(field.covers(VoxelCoord::new(0, 0, 0)));
+}
+
+/// A windowed field holds, inside its window, exactly the field rebuilt over the whole map,
+/// and counts the band voxels it stores.
+fn assert_holds_the_rebuilt_field(map: &OccupancyMap, field: &DistanceField) {
+    let cfg = FieldConfig {
+        window: None,
+        ..*field.config()
+    };
+    let mut whole = DistanceField::new(cfg, map.resolution()).unwrap();
+    whole.rebuild(map, None);
+    let inside: HashMap<_, _> = band(&whole)
+        .into_iter()
+        .filter(|(v, _)| field.covers(*v))
+        .collect();
+    assert!(!inside.is_empty());
+    assert_eq!(band(field), inside);
+    let stored: u64 = field.leaves().map(|(_, b)| b.offsets().len() as u64).sum();
+    assert_eq!(field.band_voxels(), stored);
 }
 
 #[test]
@@ -383,20 +383,7 @@ fn obstacles_that_change_outside_the_window_reach_into_it() {
     map.set_value(a, 100);
     field.update(&map, only(a), at(0.0));
     assert_eq!(field.nearest(edge), Some([6, 0, 0]));
-    let mut whole = DistanceField::new(
-        FieldConfig {
-            window: None,
-            ..cfg
-        },
-        0.1,
-    )
-    .unwrap();
-    whole.rebuild(&map, None);
-    let inside: HashMap<_, _> = band(&whole)
-        .into_iter()
-        .filter(|(v, _)| field.covers(*v))
-        .collect();
-    assert_eq!(band(&field), inside);
+    assert_holds_the_rebuilt_field(&map, &field);
 }
 
 #[test]
