@@ -314,8 +314,7 @@ impl DistanceField {
 
     /// Whether the leaf at `origin` reaches into the window (or there is none).
     fn overlaps_window(&self, origin: VoxelCoord) -> bool {
-        self.window
-            .is_none_or(|(lo, hi)| overlaps(origin, origin + VoxelCoord::new(7, 7, 7), lo, hi))
+        leaf_in_window(self.window, origin)
     }
 
     /// Forget everything (after the map was cleared).
@@ -352,9 +351,7 @@ impl DistanceField {
         }
         // The bands the window left, their obstacles kept apart.
         if self.window != old_window {
-            if let Some((wlo, whi)) = self.window {
-                self.drop_outside(wlo, whi);
-            }
+            self.drop_outside();
         }
         // Which map leaves changed, read in parallel: against the band's obstacles (its
         // voxels at offset zero), or those kept for a leaf outside the window.
@@ -503,10 +500,7 @@ impl DistanceField {
                         for x in lo[0]..hi[0] {
                             let o =
                                 origin + VoxelCoord::new(8 * x as i32, 8 * y as i32, 8 * z as i32);
-                            let inside_window = window.is_none_or(|(wlo, whi)| {
-                                overlaps(o, o + VoxelCoord::new(7, 7, 7), wlo, whi)
-                            });
-                            if inside_window && grid.leaf_index(o).is_some() {
+                            if leaf_in_window(window, o) && grid.leaf_index(o).is_some() {
                                 leaves.push((o, [x, y, z]));
                             }
                         }
@@ -524,7 +518,7 @@ impl DistanceField {
                 leaves
                     .into_iter()
                     .map(|(o, [lx, ly, lz])| {
-                        let (mut mask, mut obstacles) = (Mask512::EMPTY, Mask512::EMPTY);
+                        let mut mask = Mask512::EMPTY;
                         let mut offsets = [[0i8; 3]; LEAF_VOXELS];
                         let mut n = 0;
                         for z in 0..8 {
@@ -533,22 +527,16 @@ impl DistanceField {
                                 for x in 0..8 {
                                     let key = s.keys[row + x];
                                     if key < far {
-                                        let o = tile::decode(key);
                                         mask.set(x | y << 3 | z << 6);
-                                        if o == [0; 3] {
-                                            obstacles.set(x | y << 3 | z << 6);
-                                        }
-                                        offsets[n] = o;
+                                        offsets[n] = tile::decode(key);
                                         n += 1;
                                     }
                                 }
                             }
                         }
-                        let band = (!mask.is_empty()).then(|| LeafBand {
-                            mask,
-                            obstacles,
-                            offsets: offsets[..n].into(),
-                        });
+                        let band = (!mask.is_empty())
+                            .then(|| LeafBand::new(mask, offsets[..n].to_vec()))
+                            .flatten();
                         (o, band)
                     })
                     .collect()
@@ -562,9 +550,9 @@ impl DistanceField {
     }
 
     /// Drop the band of every leaf outside the window, keeping its obstacles apart.
-    fn drop_outside(&mut self, lo: VoxelCoord, hi: VoxelCoord) {
+    fn drop_outside(&mut self) {
         let out: Vec<VoxelCoord> = (self.leaves())
-            .filter(|(o, _)| !overlaps(*o, *o + VoxelCoord::new(7, 7, 7), lo, hi))
+            .filter(|(o, _)| !self.overlaps_window(*o))
             .map(|(o, _)| o)
             .collect();
         for o in out {
@@ -597,6 +585,11 @@ fn window_around(
         p.z + half[2],
     ))?;
     Some((lo, hi))
+}
+
+/// Whether the leaf at `origin` reaches into `window` (or there is none).
+fn leaf_in_window(window: Option<(VoxelCoord, VoxelCoord)>, origin: VoxelCoord) -> bool {
+    window.is_none_or(|(lo, hi)| overlaps(origin, origin + VoxelCoord::new(7, 7, 7), lo, hi))
 }
 
 /// Inclusive voxel box of a tile.

@@ -333,12 +333,14 @@ impl<'a> FieldView<'a> {
         match c {
             Cell::Unknown => None,
             Cell::Far => Some(self.max),
-            Cell::Near(o) => Some(
-                roots()
-                    .get(offset_len2(o) as usize)
-                    .map_or(self.max, |r| (r * self.res).min(self.max)),
-            ),
+            Cell::Near(o) => Some(self.metres_of(offset_len2(o))),
         }
+    }
+
+    /// Metres of an offset of squared length `len2` (voxels²), capped at the max distance.
+    #[inline]
+    fn metres_of(&self, len2: i32) -> f64 {
+        (roots().get(len2 as usize)).map_or(self.max, |r| (r * self.res).min(self.max))
     }
 
     /// The distance from voxel `v`'s centre to the nearest obstacle's (metres), capped at
@@ -397,11 +399,8 @@ impl<'a> FieldView<'a> {
                     }
                 }
             }
-            let roots = roots();
             for (out, l2) in d.iter_mut().zip(len2) {
-                *out = roots
-                    .get(l2 as usize)
-                    .map_or(self.max, |r| (r * self.res).min(self.max));
+                *out = self.metres_of(l2);
             }
         } else if inside {
             // `b` on a leaf's upper face: the eight span 2, 4 or 8 leaves, each looked up
