@@ -217,6 +217,8 @@ pub struct Integrator {
     rays: Vec<Ray>,
     /// Per chunk of `rays`: how many lie on either side of the sensor (see [`Sides`]).
     sides: Vec<[u32; 2]>,
+    /// What the trade-off modes reuse from frame to frame.
+    thin: thin::Buffers,
     /// Per pool thread: dense marks for frames with a small box.
     dense: Vec<std::sync::Mutex<walk::dense::DenseBits>>,
     /// Frames integrated, to tell this frame's dense marks from stale ones.
@@ -287,6 +289,7 @@ impl Integrator {
             marks: FrameMarks::default(),
             rays: Vec::new(),
             sides: Vec::new(),
+            thin: Default::default(),
             frames: 0,
             walk: Walk::Auto,
             kernel,
@@ -339,11 +342,12 @@ impl Integrator {
         let mode = self.cfg.mode;
         self.frames += 1;
         let frame_no = self.frames;
-        let (pool, marks, rays, sides, dense, walk, kernel) = (
+        let (pool, marks, rays, sides, thin, dense, walk, kernel) = (
             &self.pool,
             &mut self.marks,
             &mut self.rays,
             &mut self.sides,
+            &mut self.thin,
             &self.dense,
             self.walk,
             self.kernel,
@@ -366,6 +370,7 @@ impl Integrator {
                 range_units,
                 mode,
                 kernel,
+                thin,
             );
             let Extent {
                 lo,

@@ -7,35 +7,71 @@
 //! marks the cells of its own run of rays in a bit set over the frame's box, then drops
 //! the rays whose cell an earlier run saw ([`firsts_dense`]); larger frames take a hash set
 //! in scan order.
+//!
+//! Bundle groups the rays by end voxel: over a small frame's box with a counting sort by
+//! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
+//! Both sum a group's ends in scan order, so the mean is the same on any thread count.
 
-use super::prepare::{direction_key, Extent, Ray};
+use super::prepare::{direction_key, Extent, ExtentSum, Ray};
 use super::RayMode;
 use hashbrown::{HashMap, HashSet};
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 /// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
 /// bits, 4 MiB per thread (and bit indices below 2^31).
 pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
 
+/// The buffers the trade-off modes reuse from frame to frame: as large as a frame's rays,
+/// which in fresh memory would cost a page fault every 4 KiB, every frame.
+#[derive(Default)]
+pub(in crate::integrate) struct Buffers {
+    /// The rays kept, swapped with the frame's.
+    spare: Vec<Ray>,
+    /// Each ray's cell bit ([`CellBox::bit`]).
+    bits: Vec<u32>,
+    /// [`bundle_dense`]'s (cell bit, ray) in cell order.
+    sorted: Vec<AtomicU64>,
+    /// Whether each ray is kept.
+    keep: Vec<AtomicBool>,
+}
+
+/// `v` as long as `n`, writing only what it did not hold.
+fn sized<T>(v: &mut Vec<T>, n: usize, new: impl FnMut() -> T) {
+    v.truncate(n);
+    v.resize_with(n, new);
+}
+
 /// Drop (or merge) the rays that `mode` trades for speed; `extent` bounds the rays' ends.
-pub(super) fn thin_out(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode, extent: &Extent) {
-    let dense = match mode {
-        RayMode::Subsample { factor } => CellBox::new(extent, factor),
-        RayMode::UniqueEnd => CellBox::new(extent, 1),
-        _ => None,
+/// Returns the extent of the rays kept. `mode` is not `Exact`.
+pub(super) fn thin_out(
+    rays: &mut Vec<Ray>,
+    origin: [f64; 3],
+    mode: RayMode,
+    extent: &Extent,
+    bufs: &mut Buffers,
+) -> Extent {
+    sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
+    let factor = match mode {
+        RayMode::Subsample { factor } => factor,
+        RayMode::UniqueEnd => 1,
+        RayMode::Bundle { threshold } => {
+            match CellBox::new(extent, 1) {
+                Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
+                None => bundle(rays, origin, threshold, &bufs.keep),
+            }
+            return compact(rays, origin, bufs, |r| *r);
+        }
+        RayMode::Exact => unreachable!("exact rays are not thinned"),
     };
-    let keep = match (mode, dense) {
-        (_, Some(cells)) => firsts_dense(rays, &cells),
-        (RayMode::Subsample { factor }, None) => firsts_hashed(rays, origin, factor),
-        (RayMode::UniqueEnd, None) => firsts_hashed(rays, origin, 1),
-        (RayMode::Bundle { threshold }, _) => return bundle(rays, origin, threshold),
-        (RayMode::Exact, _) => return,
-    };
+    match CellBox::new(extent, factor) {
+        Some(cells) => firsts_dense(rays, &cells, bufs),
+        None => firsts_hashed(rays, origin, factor, &bufs.keep),
+    }
     if mode == RayMode::UniqueEnd {
-        compact(rays, &keep, |_, r| to_centre(r));
+        compact(rays, origin, bufs, to_centre)
     } else {
-        compact(rays, &keep, |_, r| *r);
+        compact(rays, origin, bufs, |r| *r)
     }
 }
 
@@ -94,27 +130,22 @@ fn in_partition<T>(runs: &[Vec<Vec<T>>], p: usize) -> impl Iterator<Item = &T> +
 /// [`firsts_dense`] for boxes too large for bit sets: each cell goes to one of
 /// [`PARTITIONS`] by a hash of its key; each partition, on a thread of its own, takes its
 /// rays in scan order into a hash set of its own and keeps those it had not seen.
-fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32) -> Vec<bool> {
+fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32, keep: &[AtomicBool]) {
     let runs = partitioned(rays, origin, factor, |i, k, _| (k, i));
-    let keep: Vec<AtomicBool> = (0..rays.len()).map(|_| AtomicBool::new(false)).collect();
     (0..PARTITIONS).into_par_iter().for_each(|p| {
         let mut seen = HashSet::with_capacity(runs.iter().map(|r| r[p].len()).sum());
         for &(k, i) in in_partition(&runs, p) {
-            if seen.insert(k) {
-                keep[i as usize].store(true, Ordering::Relaxed);
-            }
+            keep[i as usize].store(seen.insert(k), Ordering::Relaxed);
         }
     });
-    keep.into_iter().map(AtomicBool::into_inner).collect()
 }
 
 /// Bundle: the rays ending in one voxel (and alike in hitting) form a group; a group of
 /// more than `threshold` becomes one ray to the mean of their ends, in the place of its
 /// first ray; smaller groups keep their rays. Grouped by partition as [`firsts_hashed`]:
 /// a group's ends are summed in scan order, so the mean is the same on any thread count.
-fn bundle(rays: &mut Vec<Ray>, origin: [f64; 3], threshold: u32) {
+fn bundle(rays: &mut [Ray], origin: [f64; 3], threshold: u32, keep: &[AtomicBool]) {
     let runs = partitioned(rays, origin, 1, |i, k, r| (k, i, r.end));
-    let keep: Vec<AtomicBool> = (0..rays.len()).map(|_| AtomicBool::new(true)).collect();
     // Per partition, the bundled groups as (first ray, mean end).
     let means: Vec<Vec<(u32, [f64; 3])>> = (0..PARTITIONS)
         .into_par_iter()
@@ -137,9 +168,7 @@ fn bundle(rays: &mut Vec<Ray>, origin: [f64; 3], threshold: u32) {
             }
             for (&(_, i, _), &g) in in_partition(&runs, p).zip(&of_ray) {
                 let (first, n, _) = groups[g as usize];
-                if n > threshold && i != first {
-                    keep[i as usize].store(false, Ordering::Relaxed);
-                }
+                keep[i as usize].store(n <= threshold || i == first, Ordering::Relaxed);
             }
             (groups.into_iter())
                 .filter(|&(_, n, _)| n > threshold)
@@ -147,14 +176,135 @@ fn bundle(rays: &mut Vec<Ray>, origin: [f64; 3], threshold: u32) {
                 .collect()
         })
         .collect();
-    // A bundle's first ray becomes the ray to the mean.
-    for (first, end) in means.into_iter().flatten() {
+    set_means(rays, origin, means.into_iter().flatten());
+}
+
+/// Low bits of a cell's bit that [`bundle_dense`] groups by within a bucket: a bucket's
+/// tables (4096 cells' counts, first rays and sums, 128 KiB) stay in the L2 cache.
+const BUCKET_BITS: u32 = 12;
+
+/// [`bundle`] over a frame's box of cells ([`CellBox`], hit or not): the rays are sorted
+/// by cell with one counting pass (buckets of the cells' high bits, stable, so a bucket
+/// holds its rays in scan order), then each bucket groups its rays in a small table of
+/// its own. A group's ends are summed in scan order, as [`bundle`] sums them.
+fn bundle_dense(
+    rays: &mut [Ray],
+    origin: [f64; 3],
+    threshold: u32,
+    cells: &CellBox,
+    bufs: &mut Buffers,
+) {
+    let n = rays.len();
+    let (runs, per) = scan_runs(n);
+    let buckets = cells.bits().div_ceil(1 << BUCKET_BITS);
+    sized(&mut bufs.bits, n, || 0);
+    // Each run's bucket counts, then where each run's part of each bucket starts.
+    let mut counts: Vec<Vec<u32>> = (bufs.bits.par_chunks_mut(per))
+        .zip(rays.par_chunks(per))
+        .map(|(bits, rays)| {
+            let mut c = vec![0u32; buckets];
+            for (b, r) in bits.iter_mut().zip(rays) {
+                *b = cells.bit(r) as u32;
+                c[(*b >> BUCKET_BITS) as usize] += 1;
+            }
+            c
+        })
+        .collect();
+    let mut starts = Vec::with_capacity(buckets + 1);
+    let mut at = 0u32;
+    for b in 0..buckets {
+        starts.push(at);
+        for c in counts.iter_mut() {
+            let k = c[b];
+            c[b] = at;
+            at += k;
+        }
+    }
+    starts.push(at);
+    // Stable scatter: (cell bit, ray) in bucket order; distinct runs write distinct places.
+    sized(&mut bufs.sorted, n, || AtomicU64::new(0));
+    let sorted = &bufs.sorted;
+    (bufs.bits.par_chunks(per))
+        .zip(counts.par_iter_mut())
+        .enumerate()
+        .for_each(|(j, (bits, at))| {
+            for (i, &b) in bits.iter().enumerate() {
+                let slot = &mut at[(b >> BUCKET_BITS) as usize];
+                let item = u64::from(b) << 32 | (j * per + i) as u64;
+                sorted[*slot as usize].store(item, Ordering::Relaxed);
+                *slot += 1;
+            }
+        });
+    // Per task, the bundled groups as (first ray, mean end). The tasks' buckets hold
+    // about as many rays each: a structured scene puts most rays in a few buckets.
+    // Each task zeroes its tables (128 KiB): a small frame takes fewer.
+    let tasks = (runs * 16).min(n / 4096 + 1).min(buckets);
+    let bounds: Vec<usize> = (0..=tasks)
+        .map(|t| {
+            starts
+                .partition_point(|&s| (s as usize) < t * n / tasks)
+                .min(buckets)
+        })
+        .collect();
+    let (rays_read, keep) = (&*rays, &bufs.keep);
+    let means: Vec<Vec<(u32, [f64; 3])>> = (0..tasks)
+        .into_par_iter()
+        .map(|t| {
+            const LOW: u64 = (1 << BUCKET_BITS) - 1;
+            let low = |x: u64| ((x >> 32) & LOW) as usize;
+            // Per cell of the bucket (its low bits): rays, the first, the sum of the ends.
+            let mut count = vec![0u32; 1 << BUCKET_BITS];
+            let mut first = vec![0u32; 1 << BUCKET_BITS];
+            let mut sum = vec![[0.0f64; 3]; 1 << BUCKET_BITS];
+            let mut out = Vec::new();
+            for b in bounds[t]..bounds[t + 1] {
+                let items = &sorted[starts[b] as usize..starts[b + 1] as usize];
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
+                    let c = &mut count[low(x)];
+                    if *c == 0 {
+                        first[low(x)] = x as u32;
+                    }
+                    *c += 1;
+                }
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
+                    let (l, i) = (low(x), x as u32);
+                    let bundled = count[l] > threshold;
+                    keep[i as usize].store(!bundled || i == first[l], Ordering::Relaxed);
+                    if bundled {
+                        let e = rays_read[i as usize].end;
+                        (0..3).for_each(|a| sum[l][a] += e[a]);
+                    }
+                }
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
+                    let l = low(x);
+                    if count[l] > threshold {
+                        let k = f64::from(count[l]);
+                        out.push((first[l], sum[l].map(|c| c / k)));
+                        sum[l] = [0.0; 3];
+                    }
+                    count[l] = 0;
+                }
+            }
+            out
+        })
+        .collect();
+    set_means(rays, origin, means.into_iter().flatten());
+}
+
+/// The runs of rays in scan order that [`firsts_dense`] and [`bundle_dense`] cut a
+/// frame's `n` rays into, one per thread (fewer for few rays): how many and how long.
+fn scan_runs(n: usize) -> (usize, usize) {
+    let runs = rayon::current_num_threads().min(n / 4096).max(1);
+    (runs, n.div_ceil(runs).max(1))
+}
+
+/// A bundle's first ray becomes the ray to the mean.
+fn set_means(rays: &mut [Ray], origin: [f64; 3], means: impl Iterator<Item = (u32, [f64; 3])>) {
+    for (first, end) in means {
         let r = &mut rays[first as usize];
         let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
         *r = Ray::new(end, direction_key(d), r.hit);
     }
-    let keep: Vec<bool> = keep.into_iter().map(AtomicBool::into_inner).collect();
-    compact(rays, &keep, |_, r| *r);
 }
 
 /// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
@@ -198,18 +348,17 @@ impl CellBox {
     }
 }
 
-/// Whether each ray is the first of its cell in scan order. The rays are cut into one run
-/// per thread; each run keeps its own firsts, marking them in a bit set of its own, and
-/// the sets of the runs before it, OR-ed, then drop those an earlier run saw. The first
-/// pass notes each ray's bit, so the second reads 4 bytes a ray instead of the ray.
-fn firsts_dense(rays: &[Ray], cells: &CellBox) -> Vec<bool> {
+/// Whether each ray is the first of its cell in scan order, into `bufs.keep`. The rays
+/// are cut into one run per thread; each run keeps its own firsts, marking them in a bit
+/// set of its own, and the sets of the runs before it, OR-ed, then drop those an earlier
+/// run saw. The first pass notes each ray's bit, so the second reads 4 bytes a ray
+/// instead of the ray.
+fn firsts_dense(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) {
     const FIRST: u32 = 1 << 31;
-    let runs = rayon::current_num_threads().min(rays.len() / 4096).max(1);
-    let per = rays.len().div_ceil(runs).max(1);
+    let (_, per) = scan_runs(rays.len());
     let words = cells.bits().div_ceil(64);
-    let mut noted = vec![0u32; rays.len()];
-    let mut seen: Vec<Vec<u64>> = noted
-        .par_chunks_mut(per)
+    sized(&mut bufs.bits, rays.len(), || 0);
+    let mut seen: Vec<Vec<u64>> = (bufs.bits.par_chunks_mut(per))
         .zip(rays.par_chunks(per))
         .map(|(noted, rays)| {
             let mut set = vec![0u64; words];
@@ -230,47 +379,59 @@ fn firsts_dense(rays: &[Ray], cells: &CellBox) -> Vec<bool> {
             .zip(before[j - 1].par_iter())
             .for_each(|(w, p)| *w |= p);
     }
-    let mut keep = vec![false; rays.len()];
-    keep.par_chunks_mut(per)
-        .zip(noted.par_chunks(per))
+    (bufs.keep.par_chunks(per))
+        .zip(bufs.bits.par_chunks(per))
         .enumerate()
         .for_each(|(j, (keep, noted))| {
-            for (k, &n) in keep.iter_mut().zip(noted) {
+            for (k, &n) in keep.iter().zip(noted) {
                 let b = (n & !FIRST) as usize;
                 let earlier = j > 0 && seen[j - 1][b / 64] & (1u64 << (b % 64)) != 0;
-                *k = n & FIRST != 0 && !earlier;
+                k.store(n & FIRST != 0 && !earlier, Ordering::Relaxed);
             }
         });
-    keep
 }
 
-/// Keep the rays marked in `keep`, in order, each as `map(index, ray)` makes it.
-fn compact(rays: &mut Vec<Ray>, keep: &[bool], map: impl Fn(usize, &Ray) -> Ray + Sync) {
+/// Keep the rays marked in `bufs.keep`, in order, each as `map` makes it; returns their
+/// extent, summed on the way.
+fn compact(
+    rays: &mut Vec<Ray>,
+    origin: [f64; 3],
+    bufs: &mut Buffers,
+    map: impl Fn(&Ray) -> Ray + Sync,
+) -> Extent {
     const CHUNK: usize = 16 * 1024;
+    let keep = &bufs.keep[..rays.len()];
     let counts: Vec<usize> = keep
         .par_chunks(CHUNK)
-        .map(|k| k.iter().filter(|&&k| k).count())
+        .map(|k| k.iter().filter(|k| k.load(Ordering::Relaxed)).count())
         .collect();
     let total = counts.iter().sum();
-    let mut out = vec![Ray::new([0.0; 3], 0, false); total];
+    sized(&mut bufs.spare, total, || Ray::new([0.0; 3], 0, false));
     let mut slices = Vec::with_capacity(counts.len());
-    let mut rest = out.as_mut_slice();
+    let mut rest = bufs.spare.as_mut_slice();
     for &n in &counts {
         let (a, b) = rest.split_at_mut(n);
         slices.push(a);
         rest = b;
     }
-    slices
+    let sum = slices
         .into_par_iter()
         .zip(keep.par_chunks(CHUNK).zip(rays.par_chunks(CHUNK)))
-        .enumerate()
-        .for_each(|(j, (dst, (keep, src)))| {
-            let kept = src.iter().enumerate().zip(keep).filter(|(_, &k)| k);
-            for (d, ((i, r), _)) in dst.iter_mut().zip(kept) {
-                *d = map(j * CHUNK + i, r);
+        .map(|(dst, (keep, src))| {
+            let mut sum = ExtentSum::new(origin);
+            let kept = src
+                .iter()
+                .zip(keep)
+                .filter(|(_, k)| k.load(Ordering::Relaxed));
+            for (d, (r, _)) in dst.iter_mut().zip(kept) {
+                *d = map(r);
+                sum.add(d);
             }
-        });
-    *rays = out;
+            sum
+        })
+        .reduce(|| ExtentSum::new(origin), ExtentSum::join);
+    std::mem::swap(rays, &mut bufs.spare);
+    sum.extent()
 }
 
 /// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
@@ -346,6 +507,7 @@ mod tests {
             .collect();
         rays.push(Ray::new(origin, 0, true));
         let extent = bounds(&rays, origin);
+        let mut bufs = Buffers::default();
         for mode in [
             RayMode::UniqueEnd,
             RayMode::Subsample { factor: 1 },
@@ -364,9 +526,15 @@ mod tests {
                     .build()
                     .unwrap();
                 let mut got = rays.clone();
-                pool.install(|| thin_out(&mut got, origin, mode, &extent));
+                // Buffers left by the modes and thread counts before.
+                let kept = pool.install(|| thin_out(&mut got, origin, mode, &extent, &mut bufs));
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
+                let b = bounds(&got, origin);
+                assert_eq!(
+                    (kept.lo, kept.hi, kept.cut_rays, kept.steps),
+                    (b.lo, b.hi, b.cut_rays, b.steps)
+                );
             }
         }
         // A box too large for bit sets takes the partitioned hash sets: the same rays.
@@ -385,12 +553,14 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let keep = pool.install(|| firsts_hashed(&rays, origin, factor));
+                let mut bufs = Buffers::default();
+                sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
+                pool.install(|| firsts_hashed(&rays, origin, factor, &bufs.keep));
                 let mut got = rays.clone();
                 if mode == RayMode::UniqueEnd {
-                    compact(&mut got, &keep, |_, r| to_centre(r));
+                    compact(&mut got, origin, &mut bufs, to_centre);
                 } else {
-                    compact(&mut got, &keep, |_, r| *r);
+                    compact(&mut got, origin, &mut bufs, |r| *r);
                 }
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(
@@ -400,7 +570,13 @@ mod tests {
             }
         }
         let mut got = rays.clone();
-        thin_out(&mut got, origin, RayMode::Subsample { factor: 64 }, &extent);
+        thin_out(
+            &mut got,
+            origin,
+            RayMode::Subsample { factor: 64 },
+            &extent,
+            &mut Buffers::default(),
+        );
         assert_eq!(got.len(), want.len());
     }
 
@@ -436,7 +612,7 @@ mod tests {
                     .build()
                     .unwrap()
             };
-            pool(1).install(|| thin_out(&mut one, origin, mode, &extent));
+            pool(1).install(|| thin_out(&mut one, origin, mode, &extent, &mut Buffers::default()));
             let (w, g) = (sorted(&want), sorted(&one));
             assert_eq!(w.len(), g.len(), "threshold {threshold}");
             for (a, b) in w.iter().zip(&g) {
@@ -460,11 +636,27 @@ mod tests {
             }
             for n in [2, 3, 5] {
                 let mut got = rays.clone();
-                pool(n).install(|| thin_out(&mut got, origin, mode, &extent));
+                pool(n)
+                    .install(|| thin_out(&mut got, origin, mode, &extent, &mut Buffers::default()));
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&one),
                     "threshold {threshold} on {n} threads"
+                );
+            }
+            // The partitioned hash tables, which boxes too large for the counting sort
+            // take, bundle exactly the same rays.
+            assert!(CellBox::new(&extent, 1).is_some());
+            for n in [1, 3] {
+                let mut got = rays.clone();
+                let mut bufs = Buffers::default();
+                sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
+                pool(n).install(|| bundle(&mut got, origin, threshold, &bufs.keep));
+                compact(&mut got, origin, &mut bufs, |r| *r);
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
+                assert!(
+                    ends(&got) == ends(&one),
+                    "hashed, threshold {threshold} on {n} threads"
                 );
             }
         }

@@ -4,7 +4,7 @@
 //! them ([`super::thin`]); the sparse walk gets them sorted by direction
 //! ([`order_by_direction`]).
 
-use super::thin::thin_out;
+use super::thin::{thin_out, Buffers};
 use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
 use crate::kernel::Kernel;
@@ -102,6 +102,7 @@ pub(super) fn prepare_rays(
     range_units: f64,
     mode: RayMode,
     kernel: Kernel,
+    thin: &mut Buffers,
 ) -> (u64, Extent) {
     let maker = RayMaker::new(frame, tf, origin, range_units, kernel);
     // One pass writes the rays and sums up their extent: a frame's rays (16 MB for 500k
@@ -141,9 +142,9 @@ pub(super) fn prepare_rays(
     if skipped > 0 {
         rays.retain(|r| r.key != SKIPPED);
     }
-    thin_out(rays, origin, mode, &sums.extent());
+    let extent = thin_out(rays, origin, mode, &sums.extent(), thin);
     halves.lay_out_all(rays, sides);
-    (skipped, bounds(rays, origin))
+    (skipped, extent)
 }
 
 /// The two sides of a plane through the sensor, across one of its axes: the one that
@@ -352,7 +353,8 @@ impl RayMaker {
     }
 }
 
-/// [`Extent`] of `rays`, in one pass.
+/// [`Extent`] of `rays`, in one pass (the thinning sums it while compacting).
+#[cfg(test)]
 pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
         .map(|c| ExtentSum::of(origin, c))
