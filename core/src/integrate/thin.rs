@@ -22,10 +22,6 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 /// bits, 4 MiB per thread (and bit indices below 2^31).
 pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
 
-/// Most cells (times two) a frame's box may have for [`sort_by_cell`]: its cell bits fit
-/// in 32 bits, and each thread's bucket counts in 1 MiB.
-const SORTED_CELL_BITS: u64 = 1 << 30;
-
 /// The buffers the trade-off modes reuse from frame to frame: as large as a frame's rays,
 /// which in fresh memory would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
@@ -60,7 +56,7 @@ pub(super) fn thin_out(
         RayMode::Subsample { factor } => factor,
         RayMode::UniqueEnd => 1,
         RayMode::Bundle { threshold } => {
-            match CellBox::new(extent, 1, SORTED_CELL_BITS) {
+            match CellBox::new(extent, 1) {
                 Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
                 None => bundle(rays, origin, threshold, &bufs.keep),
             }
@@ -68,12 +64,9 @@ pub(super) fn thin_out(
         }
         RayMode::Exact => unreachable!("exact rays are not thinned"),
     };
-    if let Some(cells) = CellBox::new(extent, factor, DENSE_CELL_BITS) {
-        firsts_dense(rays, &cells, bufs);
-    } else if let Some(cells) = CellBox::new(extent, factor, SORTED_CELL_BITS) {
-        firsts_sorted(rays, &cells, bufs);
-    } else {
-        firsts_hashed(rays, origin, factor, &bufs.keep);
+    match CellBox::new(extent, factor) {
+        Some(cells) => firsts_dense(rays, &cells, bufs),
+        None => firsts_hashed(rays, origin, factor, &bufs.keep),
     }
     if mode == RayMode::UniqueEnd {
         compact(rays, origin, bufs, to_centre)
@@ -190,27 +183,17 @@ fn bundle(rays: &mut [Ray], origin: [f64; 3], threshold: u32, keep: &[AtomicBool
 /// tables (4096 cells' counts, first rays and sums, 128 KiB) stay in the L2 cache.
 const BUCKET_BITS: u32 = 12;
 
-/// A frame's rays sorted by cell ([`sort_by_cell`]): bucket `b`'s items are
-/// `bufs.sorted[starts[b]..starts[b + 1]]`, each `cell bit << 32 | ray`, in scan order;
-/// task `t` takes buckets `tasks[t]..tasks[t + 1]`, about as many rays for each task.
-struct ByCell {
-    starts: Vec<u32>,
-    tasks: Vec<usize>,
-}
-
-impl ByCell {
-    /// Bucket `b`'s items.
-    fn items<'a>(&self, sorted: &'a [AtomicU64], b: usize) -> impl Iterator<Item = u64> + 'a {
-        let range = self.starts[b] as usize..self.starts[b + 1] as usize;
-        sorted[range].iter().map(|x| x.load(Ordering::Relaxed))
-    }
-}
-
-/// Sort the rays by cell into `bufs.sorted` with one counting pass: buckets of the cells'
-/// high bits, stable, so that a bucket holds its rays in scan order and a cell's first
-/// ray comes first. Each bucket's cells (their low [`BUCKET_BITS`]) then fit a small
-/// table of a task's own.
-fn sort_by_cell(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) -> ByCell {
+/// [`bundle`] over a frame's box of cells ([`CellBox`], hit or not): the rays are sorted
+/// by cell with one counting pass (buckets of the cells' high bits, stable, so a bucket
+/// holds its rays in scan order), then each bucket groups its rays in a small table of
+/// its own. A group's ends are summed in scan order, as [`bundle`] sums them.
+fn bundle_dense(
+    rays: &mut [Ray],
+    origin: [f64; 3],
+    threshold: u32,
+    cells: &CellBox,
+    bufs: &mut Buffers,
+) {
     let n = rays.len();
     let (runs, per) = scan_runs(n);
     let buckets = cells.bits().div_ceil(1 << BUCKET_BITS);
@@ -238,7 +221,7 @@ fn sort_by_cell(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) -> ByCell {
         }
     }
     starts.push(at);
-    // Stable scatter: distinct runs write distinct places.
+    // Stable scatter: (cell bit, ray) in bucket order; distinct runs write distinct places.
     sized(&mut bufs.sorted, n, || AtomicU64::new(0));
     let sorted = &bufs.sorted;
     (bufs.bits.par_chunks(per))
@@ -252,73 +235,38 @@ fn sort_by_cell(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) -> ByCell {
                 *slot += 1;
             }
         });
-    // A structured scene puts most rays in a few buckets, so the tasks are cut by rays.
-    // Each task zeroes its tables (up to 128 KiB): a small frame takes fewer.
+    // Per task, the bundled groups as (first ray, mean end). The tasks' buckets hold
+    // about as many rays each: a structured scene puts most rays in a few buckets.
+    // Each task zeroes its tables (128 KiB): a small frame takes fewer.
     let tasks = (runs * 16).min(n / 4096 + 1).min(buckets);
-    let tasks = (0..=tasks)
+    let bounds: Vec<usize> = (0..=tasks)
         .map(|t| {
             starts
                 .partition_point(|&s| (s as usize) < t * n / tasks)
                 .min(buckets)
         })
         .collect();
-    ByCell { starts, tasks }
-}
-
-/// The low [`BUCKET_BITS`] of an item's cell bit: its place in its bucket's table.
-#[inline]
-fn low(item: u64) -> usize {
-    ((item >> 32) & ((1 << BUCKET_BITS) - 1)) as usize
-}
-
-/// [`firsts_dense`] for boxes too large for bit sets but small enough for
-/// [`sort_by_cell`]: in each bucket, in scan order, the rays of a cell not seen before.
-fn firsts_sorted(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) {
-    let by = sort_by_cell(rays, cells, bufs);
-    let (sorted, keep) = (&bufs.sorted, &bufs.keep);
-    (0..by.tasks.len() - 1).into_par_iter().for_each(|t| {
-        let mut seen = vec![false; 1 << BUCKET_BITS];
-        for b in by.tasks[t]..by.tasks[t + 1] {
-            for x in by.items(sorted, b) {
-                let s = &mut seen[low(x)];
-                keep[x as u32 as usize].store(!*s, Ordering::Relaxed);
-                *s = true;
-            }
-            by.items(sorted, b).for_each(|x| seen[low(x)] = false);
-        }
-    });
-}
-
-/// [`bundle`] over a frame's box of cells ([`CellBox`], hit or not), sorted by cell
-/// ([`sort_by_cell`]): each bucket groups its rays in small tables of its own, and a
-/// group's ends are summed in scan order, as [`bundle`] sums them.
-fn bundle_dense(
-    rays: &mut [Ray],
-    origin: [f64; 3],
-    threshold: u32,
-    cells: &CellBox,
-    bufs: &mut Buffers,
-) {
-    let by = sort_by_cell(rays, cells, bufs);
-    let sorted = &bufs.sorted;
     let (rays_read, keep) = (&*rays, &bufs.keep);
-    let means: Vec<Vec<(u32, [f64; 3])>> = (0..by.tasks.len() - 1)
+    let means: Vec<Vec<(u32, [f64; 3])>> = (0..tasks)
         .into_par_iter()
         .map(|t| {
+            const LOW: u64 = (1 << BUCKET_BITS) - 1;
+            let low = |x: u64| ((x >> 32) & LOW) as usize;
             // Per cell of the bucket (its low bits): rays, the first, the sum of the ends.
             let mut count = vec![0u32; 1 << BUCKET_BITS];
             let mut first = vec![0u32; 1 << BUCKET_BITS];
             let mut sum = vec![[0.0f64; 3]; 1 << BUCKET_BITS];
             let mut out = Vec::new();
-            for b in by.tasks[t]..by.tasks[t + 1] {
-                for x in by.items(sorted, b) {
+            for b in bounds[t]..bounds[t + 1] {
+                let items = &sorted[starts[b] as usize..starts[b + 1] as usize];
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let c = &mut count[low(x)];
                     if *c == 0 {
                         first[low(x)] = x as u32;
                     }
                     *c += 1;
                 }
-                for x in by.items(sorted, b) {
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let (l, i) = (low(x), x as u32);
                     let bundled = count[l] > threshold;
                     keep[i as usize].store(!bundled || i == first[l], Ordering::Relaxed);
@@ -327,7 +275,7 @@ fn bundle_dense(
                         (0..3).for_each(|a| sum[l][a] += e[a]);
                     }
                 }
-                for x in by.items(sorted, b) {
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let l = low(x);
                     if count[l] > threshold {
                         let k = f64::from(count[l]);
@@ -343,7 +291,7 @@ fn bundle_dense(
     set_means(rays, origin, means.into_iter().flatten());
 }
 
-/// The runs of rays in scan order that [`firsts_dense`] and [`sort_by_cell`] cut a
+/// The runs of rays in scan order that [`firsts_dense`] and [`bundle_dense`] cut a
 /// frame's `n` rays into, one per thread (fewer for few rays): how many and how long.
 fn scan_runs(n: usize) -> (usize, usize) {
     let runs = rayon::current_num_threads().min(n / 4096).max(1);
@@ -367,8 +315,8 @@ struct CellBox {
 }
 
 impl CellBox {
-    /// `None` when the box has more than `limit` / 2 cells.
-    fn new(extent: &Extent, factor: u32, limit: u64) -> Option<Self> {
+    /// `None` when the box has more than [`DENSE_CELL_BITS`] / 2 cells.
+    fn new(extent: &Extent, factor: u32) -> Option<Self> {
         let f = i64::from(factor);
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
         let lo = lo.map(|c| i64::from(c) * f);
@@ -376,7 +324,7 @@ impl CellBox {
         let cells = dims[0]
             .checked_mul(dims[1])
             .and_then(|c| c.checked_mul(dims[2]))?;
-        (cells.checked_mul(2)? <= limit).then_some(CellBox {
+        (cells.checked_mul(2)? <= DENSE_CELL_BITS).then_some(CellBox {
             factor: f64::from(factor),
             lo,
             dims,
@@ -543,11 +491,11 @@ mod tests {
     use crate::integrate::prepare::bounds;
     use crate::test_rng::Rng;
 
-    /// The bit-set, sorted and hashed paths keep exactly the rays, in the order and with
-    /// the ends, that the hash set in scan order keeps, on any number of threads; rays on
-    /// the box's faces and repeated cells included.
+    /// The bit-set path keeps exactly the rays, in the order and with the ends, that the
+    /// hash set in scan order keeps, on any number of threads; rays on the box's faces and
+    /// repeated cells included.
     #[test]
-    fn firsts_keep_what_the_scan_order_hash_keeps_on_every_path() {
+    fn dense_firsts_keep_what_the_scan_order_hash_keeps() {
         let mut rng = Rng(11);
         let origin = [3.5, -2.25, 0.5];
         let mut rays: Vec<Ray> = (0..60_000)
@@ -559,24 +507,16 @@ mod tests {
             .collect();
         rays.push(Ray::new(origin, 0, true));
         let extent = bounds(&rays, origin);
-        // Which path thin_out takes for each factor of this box: bit sets up to 16, the
-        // sort at 64 (the hashed path below, forced).
-        let fits = |factor, limit| CellBox::new(&extent, factor, limit).is_some();
-        assert!(fits(16, DENSE_CELL_BITS));
-        assert!(!fits(64, DENSE_CELL_BITS) && fits(64, SORTED_CELL_BITS));
-        let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
         let mut bufs = Buffers::default();
         for mode in [
             RayMode::UniqueEnd,
             RayMode::Subsample { factor: 1 },
             RayMode::Subsample { factor: 4 },
-            RayMode::Subsample { factor: 16 },
-            RayMode::Subsample { factor: 64 },
         ] {
             let mut want = rays.clone();
             thin_hashed(&mut want, origin, mode);
             assert!(
-                want.len() < rays.len() * 9 / 10 && want.len() > 1000,
+                want.len() < rays.len() / 2 && want.len() > 1000,
                 "{mode:?}: {}",
                 want.len()
             );
@@ -588,6 +528,7 @@ mod tests {
                 let mut got = rays.clone();
                 // Buffers left by the modes and thread counts before.
                 let kept = pool.install(|| thin_out(&mut got, origin, mode, &extent, &mut bufs));
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
                 let b = bounds(&got, origin);
                 assert_eq!(
@@ -596,42 +537,47 @@ mod tests {
                 );
             }
         }
-        // The sorted and hashed paths taken where the bit sets would fit: the same rays.
+        // A box too large for bit sets takes the partitioned hash sets: the same rays.
+        assert!(CellBox::new(&extent, 64).is_none());
+        assert!(CellBox::new(&extent, 1).is_some());
+        let mut want = rays.clone();
+        thin_hashed(&mut want, origin, RayMode::Subsample { factor: 64 });
         for (mode, factor) in [
             (RayMode::Subsample { factor: 4 }, 4),
             (RayMode::UniqueEnd, 1),
         ] {
-            let mut want = rays.clone();
-            thin_hashed(&mut want, origin, mode);
-            let cells = CellBox::new(&extent, factor, SORTED_CELL_BITS).unwrap();
+            let mut w = rays.clone();
+            thin_hashed(&mut w, origin, mode);
             for threads in [1, 3] {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                for sorted in [false, true] {
-                    let mut bufs = Buffers::default();
-                    sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
-                    pool.install(|| {
-                        if sorted {
-                            firsts_sorted(&rays, &cells, &mut bufs)
-                        } else {
-                            firsts_hashed(&rays, origin, factor, &bufs.keep)
-                        }
-                    });
-                    let mut got = rays.clone();
-                    if mode == RayMode::UniqueEnd {
-                        compact(&mut got, origin, &mut bufs, to_centre);
-                    } else {
-                        compact(&mut got, origin, &mut bufs, |r| *r);
-                    }
-                    assert!(
-                        ends(&got) == ends(&want),
-                        "{mode:?} (sorted: {sorted}) on {threads} threads"
-                    );
+                let mut bufs = Buffers::default();
+                sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
+                pool.install(|| firsts_hashed(&rays, origin, factor, &bufs.keep));
+                let mut got = rays.clone();
+                if mode == RayMode::UniqueEnd {
+                    compact(&mut got, origin, &mut bufs, to_centre);
+                } else {
+                    compact(&mut got, origin, &mut bufs, |r| *r);
                 }
+                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
+                assert!(
+                    ends(&got) == ends(&w),
+                    "{mode:?} hashed on {threads} threads"
+                );
             }
         }
+        let mut got = rays.clone();
+        thin_out(
+            &mut got,
+            origin,
+            RayMode::Subsample { factor: 64 },
+            &extent,
+            &mut Buffers::default(),
+        );
+        assert_eq!(got.len(), want.len());
     }
 
     /// Bundles: the same groups and means as the sort-based reference (which sums a group
@@ -700,7 +646,7 @@ mod tests {
             }
             // The partitioned hash tables, which boxes too large for the counting sort
             // take, bundle exactly the same rays.
-            assert!(CellBox::new(&extent, 1, SORTED_CELL_BITS).is_some());
+            assert!(CellBox::new(&extent, 1).is_some());
             for n in [1, 3] {
                 let mut got = rays.clone();
                 let mut bufs = Buffers::default();
