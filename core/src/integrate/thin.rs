@@ -237,8 +237,7 @@ fn bundle_dense(
         });
     // Per task, the bundled groups as (first ray, mean end). The tasks' buckets hold
     // about as many rays each: a structured scene puts most rays in a few buckets.
-    // Each task zeroes its tables (128 KiB): a small frame takes fewer.
-    let tasks = (runs * 16).min(n / 4096 + 1).min(buckets);
+    let tasks = (runs * 16).min(buckets);
     let bounds: Vec<usize> = (0..=tasks)
         .map(|t| {
             starts
@@ -247,15 +246,21 @@ fn bundle_dense(
         })
         .collect();
     let (rays_read, keep) = (&*rays, &bufs.keep);
+    // Per cell of a bucket (its low bits): rays, the first, the sum of the ends; zeroed
+    // once per worker (128 KiB), each bucket leaving them as it found them.
+    let tables = || {
+        let cells = 1 << BUCKET_BITS;
+        (
+            vec![0u32; cells],
+            vec![0u32; cells],
+            vec![[0.0f64; 3]; cells],
+        )
+    };
     let means: Vec<Vec<(u32, [f64; 3])>> = (0..tasks)
         .into_par_iter()
-        .map(|t| {
+        .map_init(tables, |(count, first, sum), t| {
             const LOW: u64 = (1 << BUCKET_BITS) - 1;
             let low = |x: u64| ((x >> 32) & LOW) as usize;
-            // Per cell of the bucket (its low bits): rays, the first, the sum of the ends.
-            let mut count = vec![0u32; 1 << BUCKET_BITS];
-            let mut first = vec![0u32; 1 << BUCKET_BITS];
-            let mut sum = vec![[0.0f64; 3]; 1 << BUCKET_BITS];
             let mut out = Vec::new();
             for b in bounds[t]..bounds[t + 1] {
                 let items = &sorted[starts[b] as usize..starts[b + 1] as usize];
