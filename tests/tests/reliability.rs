@@ -11,7 +11,7 @@ use voxmap_client::{FrameHeader, FramePublisher, MapControl, FRAME_VERSION, MAX_
 use voxmap_core::io::mapfile;
 use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
 use voxmap_tests::{
-    connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, Service, TestRng,
+    connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, voxmap_bin, Service, TestRng,
 };
 
 const DEFAULT_FRAMES: u64 = 20_000;
@@ -243,6 +243,9 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
 /// waiting out its timeout for a server that never saw it.
 #[test]
 fn a_request_sent_before_the_service_starts_is_answered() {
+    // Built first: a binary older than the sources is rebuilt on first use, which can take
+    // longer than the request's timeout.
+    voxmap_bin();
     let prefix = unique_prefix("early");
     // The control service exists from the client's side only: no server has it yet.
     let mut c = MapControl::connect(&prefix, "default").unwrap();
