@@ -29,6 +29,7 @@ pub mod field;
 pub mod kernel;
 pub mod mask;
 pub mod model;
+mod prefetch;
 pub mod raycast;
 pub mod snapshot;
 pub mod tree;

@@ -270,6 +270,8 @@ fn bundle_dense(
                         first[low(x)] = x as u32;
                     }
                     *c += 1;
+                    // The next pass reads the end of each ray it bundles.
+                    crate::prefetch::prefetch(rays_read, x as u32 as usize);
                 }
                 for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let (l, i) = (low(x), x as u32);
