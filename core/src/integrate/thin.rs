@@ -12,7 +12,7 @@
 //! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
 //! Both sum a group's ends in scan order, so the mean is the same on any thread count.
 
-use super::prepare::{direction_key, Extent, ExtentSum, Ray};
+use super::prepare::{direction_key, Extent, Ray};
 use super::RayMode;
 use hashbrown::{HashMap, HashSet};
 use rayon::prelude::*;
@@ -22,12 +22,10 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 /// bits, 4 MiB per thread (and bit indices below 2^31).
 pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
 
-/// The buffers the trade-off modes reuse from frame to frame: as large as a frame's rays,
-/// which in fresh memory would cost a page fault every 4 KiB, every frame.
+/// The buffers the trade-off modes reuse from frame to frame: in fresh memory a frame's
+/// would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
 pub(in crate::integrate) struct Buffers {
-    /// The rays kept, swapped with the frame's.
-    spare: Vec<Ray>,
     /// Each ray's cell bit ([`CellBox::bit`]).
     bits: Vec<u32>,
     /// [`bundle_dense`]'s (cell bit, ray) in cell order.
@@ -42,15 +40,33 @@ fn sized<T>(v: &mut Vec<T>, n: usize, new: impl FnMut() -> T) {
     v.resize_with(n, new);
 }
 
-/// Drop (or merge) the rays that `mode` trades for speed; `extent` bounds the rays' ends.
-/// Returns the extent of the rays kept. `mode` is not `Exact`.
-pub(super) fn thin_out(
-    rays: &mut Vec<Ray>,
+/// Which rays a trade-off mode keeps, and as what. The layout by sides reads it as it
+/// lays the rays out, so dropping rays costs no pass of its own.
+pub(in crate::integrate) struct Kept<'a> {
+    keep: &'a [AtomicBool],
+    /// Unique-end: each ray kept goes to the centre of its end voxel.
+    centre: bool,
+}
+
+impl Kept<'_> {
+    /// Ray `i`, `r`, as kept, or `None`.
+    #[inline]
+    pub(in crate::integrate) fn ray(&self, i: usize, r: &Ray) -> Option<Ray> {
+        let keep = self.keep[i].load(Ordering::Relaxed);
+        keep.then(|| if self.centre { to_centre(r) } else { *r })
+    }
+}
+
+/// Choose (or merge) the rays that `mode` trades for speed; `extent` bounds the rays'
+/// ends. A bundle's mean is written into its first ray; the rays dropped are those the
+/// returned [`Kept`] does not keep. `mode` is not `Exact`.
+pub(super) fn thin_out<'b>(
+    rays: &mut [Ray],
     origin: [f64; 3],
     mode: RayMode,
     extent: &Extent,
-    bufs: &mut Buffers,
-) -> Extent {
+    bufs: &'b mut Buffers,
+) -> Kept<'b> {
     sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
     let factor = match mode {
         RayMode::Subsample { factor } => factor,
@@ -60,7 +76,10 @@ pub(super) fn thin_out(
                 Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
                 None => bundle(rays, origin, threshold, &bufs.keep),
             }
-            return compact(rays, origin, bufs, |r| *r);
+            return Kept {
+                keep: &bufs.keep,
+                centre: false,
+            };
         }
         RayMode::Exact => unreachable!("exact rays are not thinned"),
     };
@@ -68,10 +87,9 @@ pub(super) fn thin_out(
         Some(cells) => firsts_dense(rays, &cells, bufs),
         None => firsts_hashed(rays, origin, factor, &bufs.keep),
     }
-    if mode == RayMode::UniqueEnd {
-        compact(rays, origin, bufs, to_centre)
-    } else {
-        compact(rays, origin, bufs, |r| *r)
+    Kept {
+        keep: &bufs.keep,
+        centre: mode == RayMode::UniqueEnd,
     }
 }
 
@@ -398,49 +416,6 @@ fn firsts_dense(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) {
         });
 }
 
-/// Keep the rays marked in `bufs.keep`, in order, each as `map` makes it; returns their
-/// extent, summed on the way.
-fn compact(
-    rays: &mut Vec<Ray>,
-    origin: [f64; 3],
-    bufs: &mut Buffers,
-    map: impl Fn(&Ray) -> Ray + Sync,
-) -> Extent {
-    const CHUNK: usize = 16 * 1024;
-    let keep = &bufs.keep[..rays.len()];
-    let counts: Vec<usize> = keep
-        .par_chunks(CHUNK)
-        .map(|k| k.iter().filter(|k| k.load(Ordering::Relaxed)).count())
-        .collect();
-    let total = counts.iter().sum();
-    sized(&mut bufs.spare, total, || Ray::new([0.0; 3], 0, false));
-    let mut slices = Vec::with_capacity(counts.len());
-    let mut rest = bufs.spare.as_mut_slice();
-    for &n in &counts {
-        let (a, b) = rest.split_at_mut(n);
-        slices.push(a);
-        rest = b;
-    }
-    let sum = slices
-        .into_par_iter()
-        .zip(keep.par_chunks(CHUNK).zip(rays.par_chunks(CHUNK)))
-        .map(|(dst, (keep, src))| {
-            let mut sum = ExtentSum::new(origin);
-            let kept = src
-                .iter()
-                .zip(keep)
-                .filter(|(_, k)| k.load(Ordering::Relaxed));
-            for (d, (r, _)) in dst.iter_mut().zip(kept) {
-                *d = map(r);
-                sum.add(d);
-            }
-            sum
-        })
-        .reduce(|| ExtentSum::new(origin), ExtentSum::join);
-    std::mem::swap(rays, &mut bufs.spare);
-    sum.extent()
-}
-
 /// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
 /// reference the faster paths are tested against.
 #[cfg(test)]
@@ -532,16 +507,10 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let mut got = rays.clone();
                 // Buffers left by the modes and thread counts before.
-                let kept = pool.install(|| thin_out(&mut got, origin, mode, &extent, &mut bufs));
+                let got = pool.install(|| thinned(&rays, origin, mode, &extent, &mut bufs));
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
-                let b = bounds(&got, origin);
-                assert_eq!(
-                    (kept.lo, kept.hi, kept.cut_rays, kept.steps),
-                    (b.lo, b.hi, b.cut_rays, b.steps)
-                );
             }
         }
         // A box too large for bit sets takes the partitioned hash sets: the same rays.
@@ -563,12 +532,13 @@ mod tests {
                 let mut bufs = Buffers::default();
                 sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
                 pool.install(|| firsts_hashed(&rays, origin, factor, &bufs.keep));
-                let mut got = rays.clone();
-                if mode == RayMode::UniqueEnd {
-                    compact(&mut got, origin, &mut bufs, to_centre);
-                } else {
-                    compact(&mut got, origin, &mut bufs, |r| *r);
-                }
+                let kept = Kept {
+                    keep: &bufs.keep,
+                    centre: mode == RayMode::UniqueEnd,
+                };
+                let got: Vec<Ray> = (rays.iter().enumerate())
+                    .filter_map(|(i, r)| kept.ray(i, r))
+                    .collect();
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&w),
@@ -576,15 +546,64 @@ mod tests {
                 );
             }
         }
-        let mut got = rays.clone();
-        thin_out(
-            &mut got,
-            origin,
-            RayMode::Subsample { factor: 64 },
-            &extent,
-            &mut Buffers::default(),
-        );
+        let mode = RayMode::Subsample { factor: 64 };
+        let got = thinned(&rays, origin, mode, &extent, &mut Buffers::default());
         assert_eq!(got.len(), want.len());
+    }
+
+    /// The rays `thin_out` keeps, in scan order, as it keeps them.
+    fn thinned(
+        rays: &[Ray],
+        origin: [f64; 3],
+        mode: RayMode,
+        extent: &Extent,
+        bufs: &mut Buffers,
+    ) -> Vec<Ray> {
+        let mut rays = rays.to_vec();
+        let kept = thin_out(&mut rays, origin, mode, extent, bufs);
+        (rays.iter().enumerate())
+            .filter_map(|(i, r)| kept.ray(i, r))
+            .collect()
+    }
+
+    /// The layout by sides drops the rays a mode drops as it lays out the others, and sums
+    /// their extent: the same rays and extent as the rays kept, on either side.
+    #[test]
+    fn the_layout_keeps_what_the_mode_keeps() {
+        use crate::integrate::prepare::{Sides, RAY_CHUNK};
+        let mut rng = Rng(13);
+        let origin = [0.5, 1.5, -0.5];
+        let rays: Vec<Ray> = (0..20_000)
+            .map(|i| {
+                let end = [0, 1, 2].map(|a| origin[a] + (rng.f() * 16.0 - 8.0).round() / 2.0);
+                Ray::new(end, 0, i % 4 != 0)
+            })
+            .collect();
+        let extent = bounds(&rays, origin);
+        let sort = |mut v: Vec<([f64; 3], bool)>| {
+            v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            v
+        };
+        for mode in [RayMode::UniqueEnd, RayMode::Bundle { threshold: 2 }] {
+            let want = thinned(&rays, origin, mode, &extent, &mut Buffers::default());
+            assert!(want.len() < rays.len() / 2, "{mode:?}");
+            for axis in [None, Some([0.6, 0.8, 0.0])] {
+                let (mut got, mut bufs, mut sides) = (rays.clone(), Buffers::default(), vec![]);
+                let kept = thin_out(&mut got, origin, mode, &extent, &mut bufs);
+                let halves = Sides { origin, axis };
+                let sum = halves.lay_out_kept(&mut got, &mut sides, |i, r| kept.ray(i, r));
+                let laid: Vec<Ray> = (got.chunks(RAY_CHUNK).zip(&sides))
+                    .flat_map(|(c, &[front, back])| {
+                        let (f, b) = (front as usize, back as usize);
+                        c[..f].iter().chain(&c[c.len() - b..]).copied()
+                    })
+                    .collect();
+                let pairs = |v: &[Ray]| sort(v.iter().map(|r| (r.end, r.hit)).collect());
+                assert!(pairs(&laid) == pairs(&want), "{mode:?}, axis {axis:?}");
+                let (e, b) = (sum.extent(), bounds(&want, origin));
+                assert_eq!((e.lo, e.hi, e.cut_rays), (b.lo, b.hi, b.cut_rays));
+            }
+        }
     }
 
     /// Bundles: the same groups and means as the sort-based reference (which sums a group
@@ -612,14 +631,14 @@ mod tests {
             let mode = RayMode::Bundle { threshold };
             let mut want = rays.clone();
             thin_hashed(&mut want, origin, mode);
-            let mut one = rays.clone();
             let pool = |n| {
                 rayon::ThreadPoolBuilder::new()
                     .num_threads(n)
                     .build()
                     .unwrap()
             };
-            pool(1).install(|| thin_out(&mut one, origin, mode, &extent, &mut Buffers::default()));
+            let one =
+                pool(1).install(|| thinned(&rays, origin, mode, &extent, &mut Buffers::default()));
             let (w, g) = (sorted(&want), sorted(&one));
             assert_eq!(w.len(), g.len(), "threshold {threshold}");
             for (a, b) in w.iter().zip(&g) {
@@ -642,9 +661,8 @@ mod tests {
                 );
             }
             for n in [2, 3, 5] {
-                let mut got = rays.clone();
-                pool(n)
-                    .install(|| thin_out(&mut got, origin, mode, &extent, &mut Buffers::default()));
+                let got = pool(n)
+                    .install(|| thinned(&rays, origin, mode, &extent, &mut Buffers::default()));
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&one),
@@ -659,7 +677,13 @@ mod tests {
                 let mut bufs = Buffers::default();
                 sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
                 pool(n).install(|| bundle(&mut got, origin, threshold, &bufs.keep));
-                compact(&mut got, origin, &mut bufs, |r| *r);
+                let kept = Kept {
+                    keep: &bufs.keep,
+                    centre: false,
+                };
+                let got: Vec<Ray> = (got.iter().enumerate())
+                    .filter_map(|(i, r)| kept.ray(i, r))
+                    .collect();
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&one),

@@ -142,9 +142,9 @@ pub(super) fn prepare_rays(
     if skipped > 0 {
         rays.retain(|r| r.key != SKIPPED);
     }
-    let extent = thin_out(rays, origin, mode, &sums.extent(), thin);
-    halves.lay_out_all(rays, sides);
-    (skipped, extent)
+    let kept = thin_out(rays, origin, mode, &sums.extent(), thin);
+    let sum = halves.lay_out_kept(rays, sides, |i, r| kept.ray(i, r));
+    (skipped, sum.extent())
 }
 
 /// The two sides of a plane through the sensor, across one of its axes: the one that
@@ -241,20 +241,33 @@ impl Sides {
         [front as u32, (out.len() - back) as u32]
     }
 
-    /// Lay out rays without gaps in place; `sides` gets each chunk's counts.
-    pub(in crate::integrate) fn lay_out_all(&self, rays: &mut [Ray], sides: &mut Vec<[u32; 2]>) {
+    /// Lay out in place, chunk by chunk, the rays `kept` keeps (given each ray's index
+    /// and the ray, it returns the ray as kept, or `None`); the others leave gaps. `sides`
+    /// gets each chunk's counts; returns the extent of the rays kept.
+    pub(in crate::integrate) fn lay_out_kept(
+        &self,
+        rays: &mut [Ray],
+        sides: &mut Vec<[u32; 2]>,
+        kept: impl Fn(usize, &Ray) -> Option<Ray> + Sync,
+    ) -> ExtentSum {
         sides.clear();
-        if self.axis.is_none() {
-            // All in front, in place.
-            sides.extend(rays.chunks(RAY_CHUNK).map(|c| [c.len() as u32, 0]));
-            return;
-        }
         sides.resize(rays.len().div_ceil(RAY_CHUNK), [0; 2]);
         rays.par_chunks_mut(RAY_CHUNK)
             .zip(sides.par_iter_mut())
-            .for_each_init(Vec::new, |made, (chunk, side)| {
-                *side = self.lay_out_in_place(chunk, made);
-            });
+            .enumerate()
+            .map_init(Vec::new, |scratch, (c, (chunk, side))| {
+                scratch.clear();
+                let at = c * RAY_CHUNK;
+                scratch.extend(
+                    chunk
+                        .iter()
+                        .enumerate()
+                        .filter_map(|(i, r)| kept(at + i, r)),
+                );
+                *side = self.lay_out(scratch, chunk);
+                ExtentSum::of(self.origin, scratch)
+            })
+            .reduce(|| ExtentSum::new(self.origin), ExtentSum::join)
     }
 
     /// [`Sides::lay_out`] of `chunk` into itself, through `scratch`.
