@@ -366,7 +366,7 @@ impl RayMaker {
     }
 }
 
-/// [`Extent`] of `rays`, in one pass (the thinning sums it while compacting).
+/// [`Extent`] of `rays`, in one pass (the layout of thinned rays sums it on the way).
 #[cfg(test)]
 pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
