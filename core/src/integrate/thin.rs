@@ -68,28 +68,27 @@ pub(super) fn thin_out<'b>(
     bufs: &'b mut Buffers,
 ) -> Kept<'b> {
     sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
-    let factor = match mode {
-        RayMode::Subsample { factor } => factor,
-        RayMode::UniqueEnd => 1,
-        RayMode::Bundle { threshold } => {
-            match CellBox::new(extent, 1) {
-                Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
-                None => bundle(rays, origin, threshold, &bufs.keep),
-            }
-            return Kept {
-                keep: &bufs.keep,
-                centre: false,
-            };
-        }
+    match mode {
+        RayMode::Bundle { threshold } => match CellBox::new(extent, 1) {
+            Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
+            None => bundle(rays, origin, threshold, &bufs.keep),
+        },
+        RayMode::Subsample { factor } => firsts(rays, origin, factor, extent, bufs),
+        RayMode::UniqueEnd => firsts(rays, origin, 1, extent, bufs),
         RayMode::Exact => unreachable!("exact rays are not thinned"),
-    };
-    match CellBox::new(extent, factor) {
-        Some(cells) => firsts_dense(rays, &cells, bufs),
-        None => firsts_hashed(rays, origin, factor, &bufs.keep),
     }
     Kept {
         keep: &bufs.keep,
         centre: mode == RayMode::UniqueEnd,
+    }
+}
+
+/// Whether each ray is the first of its cell (`factor` per voxel edge) in scan order, into
+/// `bufs.keep`: by bit sets over a small frame's box, by hash partitions over a larger one.
+fn firsts(rays: &[Ray], origin: [f64; 3], factor: u32, extent: &Extent, bufs: &mut Buffers) {
+    match CellBox::new(extent, factor) {
+        Some(cells) => firsts_dense(rays, &cells, bufs),
+        None => firsts_hashed(rays, origin, factor, &bufs.keep),
     }
 }
 
@@ -532,13 +531,8 @@ mod tests {
                 let mut bufs = Buffers::default();
                 sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
                 pool.install(|| firsts_hashed(&rays, origin, factor, &bufs.keep));
-                let kept = Kept {
-                    keep: &bufs.keep,
-                    centre: mode == RayMode::UniqueEnd,
-                };
-                let got: Vec<Ray> = (rays.iter().enumerate())
-                    .filter_map(|(i, r)| kept.ray(i, r))
-                    .collect();
+                let centre = mode == RayMode::UniqueEnd;
+                let got = kept_rays(&rays, &bufs.keep, centre);
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&w),
@@ -561,6 +555,12 @@ mod tests {
     ) -> Vec<Ray> {
         let mut rays = rays.to_vec();
         let kept = thin_out(&mut rays, origin, mode, extent, bufs);
+        kept_rays(&rays, kept.keep, kept.centre)
+    }
+
+    /// The rays `keep` marks, in scan order, as kept (`centre`: unique-end's).
+    fn kept_rays(rays: &[Ray], keep: &[AtomicBool], centre: bool) -> Vec<Ray> {
+        let kept = Kept { keep, centre };
         (rays.iter().enumerate())
             .filter_map(|(i, r)| kept.ray(i, r))
             .collect()
@@ -677,13 +677,7 @@ mod tests {
                 let mut bufs = Buffers::default();
                 sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
                 pool(n).install(|| bundle(&mut got, origin, threshold, &bufs.keep));
-                let kept = Kept {
-                    keep: &bufs.keep,
-                    centre: false,
-                };
-                let got: Vec<Ray> = (got.iter().enumerate())
-                    .filter_map(|(i, r)| kept.ray(i, r))
-                    .collect();
+                let got = kept_rays(&got, &bufs.keep, false);
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
                 assert!(
                     ends(&got) == ends(&one),
