@@ -1,9 +1,11 @@
 //! The distance field section of a snapshot, read in place: [`FieldView`].
 //!
-//! Each leaf of the snapshot has a [`FieldEntry`]: none of its voxels in the band, all of
-//! them (512 offsets), or a mask and the offsets of the voxels it sets. An offset is the
-//! step from a voxel to its nearest obstacle voxel, so a query reads three bytes and takes
-//! one square root; the leaf is found by the same block lookup as a state query.
+//! Each leaf of the snapshot has a [`FieldEntry`]: none of its voxels in the band, or its
+//! data on a line of its own: 512 quantised distances, then the offsets of all its voxels
+//! or a mask and the offsets of the voxels it sets. An offset is the step from a voxel to
+//! its nearest obstacle voxel (exact distances and `nearest_obstacle` read it); the
+//! interpolating queries read the one-byte distances, whose eight corners mostly share a
+//! cache line. The leaf is found by the same block lookup as a state query.
 
 use super::layout::*;
 use super::view::SnapshotView;
@@ -22,10 +24,11 @@ pub(super) struct FieldParts<'a> {
 }
 
 impl<'a> FieldParts<'a> {
-    /// Check a field section (`body` runs from its start to the snapshot's end) for a
-    /// snapshot of `leaves` leaves at `resolution`.
+    /// Check a field section (`body` runs from its start, at `at` in the snapshot, to the
+    /// snapshot's end) for a snapshot of `leaves` leaves at `resolution`.
     pub(super) fn open(
         body: &'a [u8],
+        at: u64,
         leaves: u64,
         resolution: f64,
     ) -> Result<Self, SnapshotError> {
@@ -44,35 +47,44 @@ impl<'a> FieldParts<'a> {
         if UnknownPolicy::from_code(h.unknown).is_none() {
             return Err(bad("field unknown policy"));
         }
-        if h.reserved != [0; 3] || h.reserved2 != 0 {
+        if h.steps != field_steps(h.radius) {
+            return Err(bad("field steps"));
+        }
+        if h.reserved != [0; 2] || h.reserved2 != 0 {
             return Err(bad("field reserved bytes"));
         }
         if (0..3).any(|k| h.window_lo[k] > h.window_hi[k]) {
             return Err(bad("field window"));
         }
-        if h.data_len > u64::from(u32::MAX) {
+        if h.data_len % FIELD_LINE != 0 || h.data_len / FIELD_LINE > u64::from(u32::MAX) {
             return Err(bad("field data_len"));
         }
-        let entries_len = leaves * FIELD_ENTRY_SIZE as u64;
-        let len = FIELD_HEADER_SIZE as u64 + entries_len + align8(h.data_len);
-        if len != body.len() as u64 {
+        let entries_end = FIELD_HEADER_SIZE as u64 + leaves * FIELD_ENTRY_SIZE as u64;
+        let data_at = field_data_at(at, leaves) - at;
+        if data_at.checked_add(h.data_len) != Some(body.len() as u64) {
             return Err(SnapshotError::SectionOutOfBounds("field"));
         }
+        if body[entries_end as usize..data_at as usize]
+            .iter()
+            .any(|&b| b != 0)
+        {
+            return Err(bad("field padding"));
+        }
         let entries: &[[u8; FIELD_ENTRY_SIZE]] =
-            bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..][..entries_len as usize]);
-        let data = &body[FIELD_HEADER_SIZE + entries_len as usize..][..h.data_len as usize];
+            bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..entries_end as usize]);
+        let data = &body[data_at as usize..];
         let mut band = 0u64;
         for e in entries {
             let e: FieldEntry = bytemuck::pod_read_unaligned(e);
-            let at = u64::from(e.data);
+            let start = u64::from(e.line) * FIELD_LINE;
             let need = match e.kind {
                 FIELD_NONE => 0,
                 FIELD_ALL => {
                     band += LEAF_VOXELS as u64;
-                    3 * LEAF_VOXELS as u64
+                    (FIELD_DISTS + 3 * LEAF_VOXELS) as u64
                 }
                 FIELD_MASKED => {
-                    let count = mask_at(data, e.data)
+                    let count = mask_at(data, start + FIELD_DISTS as u64)
                         .ok_or(SnapshotError::BadIndex(
                             "field leaf data outside the section",
                         ))?
@@ -80,11 +92,11 @@ impl<'a> FieldParts<'a> {
                         .map(|w| u64::from(w.count_ones()))
                         .sum::<u64>();
                     band += count;
-                    64 + 3 * count
+                    (FIELD_DISTS + 64) as u64 + 3 * count
                 }
                 _ => return Err(SnapshotError::BadIndex("field leaf kind")),
             };
-            if at + need > h.data_len {
+            if start + need > h.data_len {
                 return Err(SnapshotError::BadIndex(
                     "field leaf data outside the section",
                 ));
@@ -101,10 +113,11 @@ impl<'a> FieldParts<'a> {
     }
 }
 
-/// The mask of a masked leaf's data at `at`.
+/// The 64-byte mask at `at` in the data.
 #[inline]
-fn mask_at(data: &[u8], at: u32) -> Option<[u64; 8]> {
-    let b = data.get(at as usize..at as usize + 64)?;
+fn mask_at(data: &[u8], at: u64) -> Option<[u64; 8]> {
+    let at = usize::try_from(at).ok()?;
+    let b = data.get(at..at.checked_add(64)?)?;
     Some(std::array::from_fn(|w| {
         u64::from_le_bytes(b[8 * w..8 * w + 8].try_into().unwrap_or([0; 8]))
     }))
@@ -127,7 +140,7 @@ pub enum Nearest {
     },
 }
 
-/// One leaf's share of the field, read from its entry.
+/// One leaf's offsets, read from its entry (the exact queries' view of a leaf).
 #[derive(Clone, Copy, Debug)]
 enum Band<'a> {
     /// No voxel within the max distance.
@@ -143,23 +156,20 @@ enum Band<'a> {
     },
 }
 
+/// A leaf's quantised distances as the interpolating queries see it.
+#[derive(Clone, Copy, Debug)]
+enum Dists<'a> {
+    /// No leaf there: unknown space.
+    Absent,
+    /// No voxel of the leaf within the max distance.
+    Far,
+    /// One byte per voxel, Morton order.
+    Near(&'a [u8; FIELD_DISTS]),
+}
+
 /// In-leaf offset steps from a voxel to the corners of the cube it spans (x fastest),
 /// for a voxel not on the leaf's upper faces.
 const CORNER_STEP: [usize; 8] = [0, 1, 8, 9, 64, 65, 72, 73];
-
-/// `roots()[n]`: the square root of `n`, for each squared length an offset in a band can
-/// have (below `MAX_RADIUS²`): a table read in place of eight square roots a query.
-fn roots() -> &'static [f64] {
-    static ROOTS: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
-    ROOTS.get_or_init(|| {
-        (0..MAX_RADIUS * MAX_RADIUS)
-            .map(|n| f64::from(n).sqrt())
-            .collect()
-    })
-}
-
-/// A squared offset length beyond any radius: a voxel outside the band.
-const FAR_LEN2: i32 = 4 * (MAX_RADIUS * MAX_RADIUS) as i32;
 
 /// One voxel of the field.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -197,6 +207,8 @@ pub struct FieldView<'a> {
     policy: UnknownPolicy,
     res: f64,
     max: f64,
+    /// Metres per step of the quantised distances.
+    unit: f64,
 }
 
 impl<'a> FieldView<'a> {
@@ -210,6 +222,7 @@ impl<'a> FieldView<'a> {
             policy: UnknownPolicy::from_code(h.unknown).unwrap_or_default(),
             res: view.resolution(),
             max: h.max_distance,
+            unit: view.resolution() / f64::from(h.steps.max(1)),
         }
     }
 
@@ -221,6 +234,13 @@ impl<'a> FieldView<'a> {
     /// The band's radius in voxels.
     pub fn radius(&self) -> u32 {
         self.parts.header.radius
+    }
+
+    /// The step of the distances [`Self::distance_at`] and its kin interpolate (metres):
+    /// each voxel's distance is kept to the nearest step, within half a step of its exact
+    /// [`Self::distance`].
+    pub fn step(&self) -> f64 {
+        self.unit
     }
 
     /// What unknown voxels count as.
@@ -249,20 +269,28 @@ impl<'a> FieldView<'a> {
             & (v.z <= hi.z)
     }
 
-    /// The band of leaf `index` (a leaf the snapshot holds), read once for its voxels.
+    /// The entry of leaf `index` (a leaf the snapshot holds) and where its data start.
+    #[inline]
+    fn entry(&self, index: u64) -> Option<(u32, usize)> {
+        let e = self.parts.entries.get(index as usize)?;
+        let e: FieldEntry = bytemuck::pod_read_unaligned(e);
+        Some((e.kind, (u64::from(e.line) * FIELD_LINE) as usize))
+    }
+
+    /// The offsets of leaf `index`, read once for its voxels.
     #[inline]
     fn band_of(&self, index: u64) -> Band<'a> {
-        let Some(e) = self.parts.entries.get(index as usize) else {
+        let Some((kind, start)) = self.entry(index) else {
             return Band::None;
         };
-        let e: FieldEntry = bytemuck::pod_read_unaligned(e);
         let data = self.parts.data;
-        match e.kind {
+        let at = start + FIELD_DISTS;
+        match kind {
             FIELD_ALL => data
-                .get(e.data as usize..e.data as usize + 3 * LEAF_VOXELS)
+                .get(at..at + 3 * LEAF_VOXELS)
                 .map_or(Band::None, Band::All),
             FIELD_MASKED => {
-                let Some(mask) = mask_at(data, e.data) else {
+                let Some(mask) = mask_at(data, at as u64) else {
                     return Band::None;
                 };
                 let mut ranks = [0u32; 8];
@@ -271,7 +299,7 @@ impl<'a> FieldView<'a> {
                     *r = below;
                     below += w.count_ones();
                 }
-                let at = e.data as usize + 64;
+                let at = at + 64;
                 data.get(at..at + 3 * below as usize)
                     .map_or(Band::None, |offsets| Band::Masked {
                         mask,
@@ -281,6 +309,47 @@ impl<'a> FieldView<'a> {
             }
             _ => Band::None,
         }
+    }
+
+    /// The quantised distances of leaf `index` (a leaf the snapshot holds).
+    #[inline]
+    fn dists_of(&self, index: u64) -> Dists<'a> {
+        let Some((kind, start)) = self.entry(index) else {
+            return Dists::Far;
+        };
+        if kind == FIELD_NONE {
+            return Dists::Far;
+        }
+        self.parts
+            .data
+            .get(start..start + FIELD_DISTS)
+            .and_then(|d| d.try_into().ok())
+            .map_or(Dists::Far, Dists::Near)
+    }
+
+    /// The distances of the leaf holding `v` (inside the window).
+    #[inline]
+    fn dists_at(&self, v: VoxelCoord) -> Dists<'a> {
+        self.view
+            .find_leaf(v)
+            .map_or(Dists::Absent, |l| self.dists_of(l.index))
+    }
+
+    /// Metres of in-leaf voxel `i` of a leaf's distances; `None` where unknown.
+    #[inline]
+    fn metres_in(&self, d: Dists<'_>, i: usize) -> Option<f64> {
+        match d {
+            Dists::Absent => self.metres(self.absent()),
+            Dists::Far => Some(self.max),
+            Dists::Near(q) => Some(self.metres_q(q[usize::from(MORTON[i & (LEAF_VOXELS - 1)])])),
+        }
+    }
+
+    /// Metres of a quantised distance, capped at the max distance (which
+    /// [`FIELD_DIST_FAR`] exceeds).
+    #[inline]
+    fn metres_q(&self, q: u8) -> f64 {
+        (f64::from(q) * self.unit).min(self.max)
     }
 
     /// Voxel `i` (in-leaf offset) of a leaf's band, stored at its Morton place.
@@ -340,7 +409,7 @@ impl<'a> FieldView<'a> {
     /// Metres of an offset of squared length `len2` (voxels²), capped at the max distance.
     #[inline]
     fn metres_of(&self, len2: i32) -> f64 {
-        (roots().get(len2 as usize)).map_or(self.max, |r| (r * self.res).min(self.max))
+        (f64::from(len2).sqrt() * self.res).min(self.max)
     }
 
     /// The distance from voxel `v`'s centre to the nearest obstacle's (metres), capped at
@@ -349,8 +418,8 @@ impl<'a> FieldView<'a> {
         self.metres(self.cell(v))
     }
 
-    /// The eight voxels whose centres surround `p`, as distances, and `p`'s place between
-    /// them (0..1 per axis).
+    /// The eight voxels whose centres surround `p`, as quantised distances, and `p`'s
+    /// place between them (0..1 per axis).
     #[inline]
     fn corners(&self, p: &WorldPoint) -> Option<([f64; 8], [f64; 3])> {
         let u = self.view.transform().point_to_units(p).map(|c| c - 0.5);
@@ -360,68 +429,34 @@ impl<'a> FieldView<'a> {
         let f = u.map(f64::floor);
         let t = [u[0] - f[0], u[1] - f[1], u[2] - f[2]];
         let b = VoxelCoord::new(f[0] as i32, f[1] as i32, f[2] as i32);
-        let top = b + VoxelCoord::new(1, 1, 1);
+        if !(self.covers(b) & self.covers(b + VoxelCoord::new(1, 1, 1))) {
+            return None;
+        }
         let mut d = [0.0; 8];
-        let inside = self.covers(b) & self.covers(top);
-        if inside & (b.x & 7 != 7) & (b.y & 7 != 7) & (b.z & 7 != 7) {
-            // All eight in one leaf (most points): one lookup, one read of its entry, and
-            // the squared lengths of their offsets read without a branch per kind.
-            let Some(l) = self.view.find_leaf(b) else {
-                return self.metres(self.absent()).map(|x| ([x; 8], t));
-            };
-            let i0 = leaf_offset(b);
-            let mut len2 = [FAR_LEN2; 8];
-            match self.band_of(l.index) {
-                Band::None => {}
-                Band::All(offsets) => {
-                    for (k, l2) in len2.iter_mut().enumerate() {
+        if (b.x & 7 != 7) & (b.y & 7 != 7) & (b.z & 7 != 7) {
+            // All eight in one leaf (most points): one lookup, one entry, and eight bytes
+            // of its distances, on one line when `b` is not on a 4x4x4 cube's upper face.
+            match self.dists_at(b) {
+                Dists::Absent => return self.metres(self.absent()).map(|x| ([x; 8], t)),
+                Dists::Far => d = [self.max; 8],
+                Dists::Near(q) => {
+                    let i0 = leaf_offset(b);
+                    for (k, out) in d.iter_mut().enumerate() {
                         let m = usize::from(MORTON[i0 + CORNER_STEP[k]]) & (LEAF_VOXELS - 1);
-                        if let Some(o) = offsets.get(3 * m..3 * m + 3) {
-                            *l2 = offset_len2([o[0] as i8, o[1] as i8, o[2] as i8]);
-                        }
-                    }
-                }
-                Band::Masked {
-                    mask,
-                    ranks,
-                    offsets,
-                } => {
-                    for (k, l2) in len2.iter_mut().enumerate() {
-                        let m = usize::from(MORTON[i0 + CORNER_STEP[k]]);
-                        let (w, bit) = ((m / 64) & 7, m % 64);
-                        if mask[w] >> bit & 1 != 0 {
-                            let at =
-                                (ranks[w] + (mask[w] & ((1u64 << bit) - 1)).count_ones()) as usize;
-                            if let Some(o) = offsets.get(3 * at..3 * at + 3) {
-                                *l2 = offset_len2([o[0] as i8, o[1] as i8, o[2] as i8]);
-                            }
-                        }
+                        *out = self.metres_q(q[m]);
                     }
                 }
             }
-            for (out, l2) in d.iter_mut().zip(len2) {
-                *out = self.metres_of(l2);
-            }
-        } else if inside {
+        } else {
             // `b` on a leaf's upper face: the eight span 2, 4 or 8 leaves, each looked up
             // and read once, found by which axes the corner steps into the next leaf.
             let next = [b.x & 7 == 7, b.y & 7 == 7, b.z & 7 == 7].map(usize::from);
-            let mut bands: [Option<Option<Band<'a>>>; 8] = [None; 8];
+            let mut leaves: [Option<Dists<'a>>; 8] = [None; 8];
             for (k, out) in d.iter_mut().enumerate() {
                 let v = b + VoxelCoord::new((k & 1) as i32, (k >> 1 & 1) as i32, (k >> 2) as i32);
                 let leaf = (k & next[0]) | (k & next[1] << 1) | (k & next[2] << 2);
-                let band = *bands[leaf]
-                    .get_or_insert_with(|| self.view.find_leaf(v).map(|l| self.band_of(l.index)));
-                let c = match band {
-                    Some(band) => Self::cell_in(&band, leaf_offset(v)),
-                    None => self.absent(),
-                };
-                *out = self.metres(c)?;
-            }
-        } else {
-            for (k, out) in d.iter_mut().enumerate() {
-                let v = b + VoxelCoord::new((k & 1) as i32, (k >> 1 & 1) as i32, (k >> 2) as i32);
-                *out = self.metres(self.cell(v))?;
+                let dists = *leaves[leaf].get_or_insert_with(|| self.dists_at(v));
+                *out = self.metres_in(dists, leaf_offset(v))?;
             }
         }
         Some((d, t))

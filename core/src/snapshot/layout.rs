@@ -27,7 +27,7 @@
 use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"VXMSNAP\0";
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
 /// The snapshot carries per-voxel log-odds.
 pub const FLAG_VALUES: u32 = 1;
 /// The table is a dense array over the blocks' bounds (`index_lo`, `index_dims`), not a
@@ -163,8 +163,8 @@ const _: () = assert!(std::mem::offset_of!(Header, checksum) == 192);
 
 /// The distance field section's header: it starts at the first 8-byte boundary after the
 /// last other section (values, else masks) and runs to `total_len`. After it come one
-/// [`FieldEntry`] per leaf (in leaf order), then `data_len` bytes of leaf data, zero-padded
-/// to a multiple of 8.
+/// [`FieldEntry`] per leaf (in leaf order), zero padding up to the next 64-byte boundary
+/// of the snapshot, then `data_len` bytes of leaf data in pieces of whole 64-byte lines.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldHeader {
@@ -174,14 +174,16 @@ pub struct FieldHeader {
     pub radius: u32,
     /// What unknown voxels count as: 0 free, 1 occupied.
     pub unknown: u8,
-    pub reserved: [u8; 3],
+    /// Steps per voxel of the quantised distances: [`field_steps`] of `radius`.
+    pub steps: u8,
+    pub reserved: [u8; 2],
     /// The voxels the field covers, inclusive (the whole index space when it has no
     /// window and the snapshot no box).
     pub window_lo: [i32; 3],
     pub window_hi: [i32; 3],
     /// Voxels stored (in the band).
     pub band_count: u64,
-    /// Bytes of leaf data (< 2^32).
+    /// Bytes of leaf data (a multiple of [`FIELD_LINE`], at most `u32::MAX` lines).
     pub data_len: u64,
     pub reserved2: u64,
 }
@@ -189,22 +191,63 @@ pub struct FieldHeader {
 pub const FIELD_HEADER_SIZE: usize = std::mem::size_of::<FieldHeader>();
 const _: () = assert!(FIELD_HEADER_SIZE == 64);
 
-/// A leaf's share of the distance field section: where its data starts in the data bytes,
-/// and its kind: [`FIELD_NONE`], [`FIELD_ALL`] or [`FIELD_MASKED`].
+/// The field's data lines: each band leaf's data starts on one (counted from the
+/// snapshot's start), so the distances of an aligned 4x4x4 cube share a cache line.
+pub const FIELD_LINE: u64 = 64;
+
+/// Where the data of a field section at `at` (from the snapshot's start) with entries
+/// for `leaves` leaves begins.
+#[inline]
+pub fn field_data_at(at: u64, leaves: u64) -> u64 {
+    align_line(at + FIELD_HEADER_SIZE as u64 + FIELD_ENTRY_SIZE as u64 * leaves)
+}
+
+/// Round up to a multiple of [`FIELD_LINE`].
+#[inline]
+pub fn align_line(n: u64) -> u64 {
+    n.div_ceil(FIELD_LINE) * FIELD_LINE
+}
+
+/// The steps per voxel of a band of `radius` voxels' quantised distances: as many as keep
+/// the radius within [`FIELD_DIST_FAR`] - 1.
+#[inline]
+pub fn field_steps(radius: u32) -> u8 {
+    (u32::from(FIELD_DIST_FAR - 1) / radius.max(1)).min(255) as u8
+}
+
+/// The quantised distance of an offset of squared length `len2` (voxels²).
+#[inline]
+pub fn quantise(len2: i32, steps: u8) -> u8 {
+    (f64::from(len2).sqrt() * f64::from(steps))
+        .round()
+        .min(f64::from(FIELD_DIST_FAR - 1)) as u8
+}
+
+/// A quantised distance of a voxel outside the band: at least the max distance.
+pub const FIELD_DIST_FAR: u8 = 255;
+
+/// A leaf's share of the distance field section: where its data starts, in
+/// [`FIELD_LINE`]s from the start of the data, and its kind: [`FIELD_NONE`],
+/// [`FIELD_ALL`] or [`FIELD_MASKED`].
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldEntry {
-    pub data: u32,
+    pub line: u32,
     pub kind: u32,
 }
 
 pub const FIELD_ENTRY_SIZE: usize = std::mem::size_of::<FieldEntry>();
+/// The bytes of a band leaf's quantised distances, which start its data: one `u8` per
+/// voxel in Morton order, the distance in 1/`steps` voxel rounded to nearest, or
+/// [`FIELD_DIST_FAR`] outside the band.
+pub const FIELD_DISTS: usize = 512;
 /// No voxel of the leaf lies in the band; no data.
 pub const FIELD_NONE: u32 = 0;
-/// Every voxel lies in the band: 512 offsets of 3 bytes (dx, dy, dz as `i8`), voxel order.
+/// Every voxel lies in the band: the distances, then 512 offsets of 3 bytes (dx, dy, dz
+/// as `i8`), Morton order.
 pub const FIELD_ALL: u32 = 1;
-/// A 64-byte mask (bit `x | y << 3 | z << 6`, eight little-endian words) of the voxels in
-/// the band, then their offsets, 3 bytes each, in voxel order.
+/// The distances, then a 64-byte mask (bit per Morton place, eight little-endian words)
+/// of the voxels in the band, then their offsets, 3 bytes each, in Morton order.
 pub const FIELD_MASKED: u32 = 2;
 
 /// Hash table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its

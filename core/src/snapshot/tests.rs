@@ -860,6 +860,9 @@ fn field_section_answers_like_the_field() {
         let f = view.distance_field().expect("a field");
         assert_eq!(f.band_voxels(), field.band_voxels());
         assert_eq!((f.radius(), f.unknown()), (5, unknown));
+        // 254 / 5 steps a voxel: the interpolating queries' distances, to the nearest step.
+        assert!((f.step() - 0.1 / 50.0).abs() < 1e-15, "{}", f.step());
+        let quantised = |d: f64| ((d / f.step()).round() * f.step()).min(f.max_distance());
         let (mut checked, mut interpolated) = (0, 0);
         for (origin, _) in map.grid().leaves() {
             for i in (0..512).step_by(3) {
@@ -867,9 +870,11 @@ fn field_section_answers_like_the_field() {
                 let want = field.distance(v).unwrap_or(0.5);
                 assert_eq!(f.distance(v), Some(want), "{v:?}");
                 let c = map.transform().voxel_center(v);
-                // None where a neighbour of the interpolation is unknown (map edges).
+                // None where a neighbour of the interpolation is unknown (map edges); at a
+                // centre, the voxel's distance to the nearest step.
                 if let Some(at) = f.distance_at(&c) {
-                    assert!((at - want).abs() < 1e-9, "{v:?}: {at} vs {want}");
+                    assert!((at - quantised(want)).abs() < 1e-9, "{v:?}: {at} vs {want}");
+                    assert!((at - want).abs() <= f.step() / 2.0 + 1e-9);
                     interpolated += 1;
                 }
                 match (f.nearest_obstacle(&c), field.nearest(v)) {
@@ -911,7 +916,10 @@ fn field_section_answers_like_the_field() {
                 g[2].floor() as i32,
             );
             let t = [0, 1, 2].map(|k| g[k] - g[k].floor());
-            let corner = |k: i32| f.distance(b + VoxelCoord::new(k & 1, k >> 1 & 1, k >> 2));
+            let corner = |k: i32| {
+                f.distance(b + VoxelCoord::new(k & 1, k >> 1 & 1, k >> 2))
+                    .map(quantised)
+            };
             let want = (0..8).try_fold(0.0, |acc, k| {
                 let w = [0, 1, 2].map(|a| if k >> a & 1 == 1 { t[a] } else { 1.0 - t[a] });
                 Some(acc + corner(k)? * w[0] * w[1] * w[2])
@@ -1020,5 +1028,87 @@ fn a_box_scope_limits_the_field_to_the_box() {
         f.distance_at(&WorldPoint::new(0.99, 0.0, 0.0)),
         None,
         "a corner is outside"
+    );
+}
+
+/// The field section as the format describes it: each band leaf's data on a 64-byte line
+/// of the snapshot, starting with its voxels' distances in steps (Morton order, 255
+/// outside the band), and every lie about its layout refused by name.
+#[test]
+fn field_section_layout_and_its_errors() {
+    use layout::*;
+    let map = random_map(9, 1);
+    let cfg = crate::field::FieldConfig {
+        max_distance: 0.7,
+        ..Default::default()
+    };
+    let mut field = crate::field::DistanceField::new(cfg, 0.1).unwrap();
+    field.rebuild(&map, None);
+    let good = Plan::new(&map, Scope::Whole, Meta::default())
+        .with_field(&field)
+        .to_vec();
+    let view = SnapshotView::open_checked(&good).unwrap();
+    let n = view.header().leaf_count;
+    let at = good.len() - field_section_len(&good);
+    let h: FieldHeader = bytemuck::pod_read_unaligned(&good[at..at + FIELD_HEADER_SIZE]);
+    assert_eq!((h.radius, h.steps), (7, 36));
+    let data_at = field_data_at(at as u64, n) as usize;
+    assert_eq!(data_at % 64, 0);
+    assert_eq!(data_at + h.data_len as usize, good.len());
+    let entry = |i: usize| -> FieldEntry {
+        let e = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * i;
+        bytemuck::pod_read_unaligned(&good[e..e + FIELD_ENTRY_SIZE])
+    };
+    let (mut leaves, mut near) = (0, 0);
+    for (i, (origin, _)) in view.stored_leaves().enumerate() {
+        let e = entry(i);
+        if e.kind == FIELD_NONE {
+            assert!(field.leaf(origin).is_none());
+            continue;
+        }
+        leaves += 1;
+        let dists = &good[data_at + 64 * e.line as usize..][..FIELD_DISTS];
+        for (m, &q) in dists.iter().enumerate() {
+            let v = crate::tree::voxel_at(origin, usize::from(crate::tree::UNMORTON[m]));
+            match field.nearest(v) {
+                Some(o) => {
+                    let exact = f64::from(crate::field::offset_len2(o)).sqrt() * 36.0;
+                    assert!((f64::from(q) - exact).abs() <= 0.5, "{v:?}: {q} vs {exact}");
+                    near += 1;
+                }
+                None => assert_eq!(q, FIELD_DIST_FAR, "{v:?}"),
+            }
+        }
+    }
+    assert!(leaves > 20 && near as u64 == field.band_voxels(), "{leaves} {near}");
+    let header = |f: &dyn Fn(&mut FieldHeader)| {
+        let mut b = good.clone();
+        let mut hh = h;
+        f(&mut hh);
+        b[at..at + FIELD_HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&hh));
+        SnapshotView::open(&b).map(|_| ()).unwrap_err()
+    };
+    assert_eq!(header(&|h| h.steps += 1), SnapshotError::BadHeader("field steps"));
+    assert_eq!(header(&|h| h.data_len -= 8), SnapshotError::BadHeader("field data_len"));
+    assert_eq!(
+        header(&|h| h.data_len -= 64),
+        SnapshotError::SectionOutOfBounds("field")
+    );
+    let pad = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * n as usize;
+    if pad < data_at {
+        let mut b = good.clone();
+        b[pad] = 1;
+        assert_eq!(
+            SnapshotView::open(&b).map(|_| ()).unwrap_err(),
+            SnapshotError::BadHeader("field padding")
+        );
+    }
+    let last = (0..n as usize).rev().find(|&i| entry(i).kind != FIELD_NONE).unwrap();
+    let mut b = good.clone();
+    let e = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * last;
+    b[e..e + 4].copy_from_slice(&(h.data_len as u32 / 64).to_le_bytes());
+    assert_eq!(
+        SnapshotView::open(&b).map(|_| ()).unwrap_err(),
+        SnapshotError::BadIndex("field leaf data outside the section")
     );
 }

@@ -275,7 +275,7 @@ impl<'a> SnapshotView<'a> {
             let body = bytes[..h.total_len as usize]
                 .get(at as usize..)
                 .ok_or(SnapshotError::SectionOutOfBounds("field"))?;
-            Some(super::field::FieldParts::open(body, n, h.resolution)?)
+            Some(super::field::FieldParts::open(body, at, n, h.resolution)?)
         } else {
             None
         };
@@ -517,7 +517,7 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// Every stored leaf as (origin, entry), in leaf order.
-    fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + 'a {
+    pub(super) fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + 'a {
         let v = *self;
         self.blocks.iter().flat_map(move |b| {
             let origin = VoxelCoord::from_array(block_origin_of(b));

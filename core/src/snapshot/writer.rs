@@ -6,6 +6,7 @@
 use super::layout::*;
 use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
+use crate::field::offset_len2;
 use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf, LEAF_VOXELS};
 use crate::map::OccupancyMap;
 use crate::mask::Mask512;
@@ -453,6 +454,7 @@ impl<'a> Plan<'a> {
             lo = lo.max(blo);
             hi = hi.min(bhi);
         }
+        let steps = field_steps(field.radius());
         let pieces: Vec<(Vec<FieldEntry>, Vec<u8>, u64)> = self
             .leaves
             .par_chunks(PIECE)
@@ -463,28 +465,29 @@ impl<'a> Plan<'a> {
                 for p in piece {
                     let Some(leaf) = field.leaf(p.origin) else {
                         entries.push(FieldEntry {
-                            data: 0,
+                            line: 0,
                             kind: FIELD_NONE,
                         });
                         continue;
                     };
-                    let at = data.len() as u32;
+                    let line = (data.len() as u64 / FIELD_LINE) as u32;
                     let (mask, offsets) = (leaf.mask(), leaf.offsets());
                     let count = mask.count();
                     band += u64::from(count);
                     // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
                     let morton = (0..LEAF_VOXELS).map(|m| usize::from(UNMORTON[m]));
-                    if count == 512 {
-                        entries.push(FieldEntry {
-                            data: at,
-                            kind: FIELD_ALL,
-                        });
+                    data.extend(morton.clone().map(|i| {
+                        if mask.get(i) {
+                            let o = offsets[mask.rank(i) as usize];
+                            quantise(offset_len2(o), steps)
+                        } else {
+                            FIELD_DIST_FAR
+                        }
+                    }));
+                    let kind = if count == 512 {
                         data.extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
+                        FIELD_ALL
                     } else {
-                        entries.push(FieldEntry {
-                            data: at,
-                            kind: FIELD_MASKED,
-                        });
                         let mut bits = Mask512::EMPTY;
                         for i in mask.iter_ones() {
                             bits.set(usize::from(MORTON[i]));
@@ -495,7 +498,10 @@ impl<'a> Plan<'a> {
                                 .filter(|&i| mask.get(i))
                                 .flat_map(|i| offsets[mask.rank(i) as usize].map(|c| c as u8)),
                         );
-                    }
+                        FIELD_MASKED
+                    };
+                    entries.push(FieldEntry { line, kind });
+                    data.resize(align_line(data.len() as u64) as usize, 0);
                 }
                 (entries, data, band)
             })
@@ -504,10 +510,11 @@ impl<'a> Plan<'a> {
         let mut data = Vec::with_capacity(pieces.len());
         let (mut at, mut band_count) = (0u64, 0u64);
         for (e, d, b) in pieces {
-            // Offsets within a piece become offsets within the section's data; past
-            // u32::MAX they would wrap, and `write` refuses the plan.
+            // Lines within a piece become lines within the section's data; past u32::MAX
+            // they would wrap, and `write` refuses the plan.
+            let base = at / FIELD_LINE;
             entries.extend(e.into_iter().map(|mut e| {
-                e.data = (at + u64::from(e.data)).min(u64::from(u32::MAX)) as u32;
+                e.line = (base + u64::from(e.line)).min(u64::from(u32::MAX)) as u32;
                 e
             }));
             at += d.len() as u64;
@@ -519,7 +526,8 @@ impl<'a> Plan<'a> {
                 max_distance: field.max_distance(),
                 radius: field.radius(),
                 unknown: field.config().unknown.code(),
-                reserved: [0; 3],
+                steps,
+                reserved: [0; 2],
                 window_lo: lo.to_array(),
                 window_hi: hi.to_array(),
                 band_count,
@@ -551,9 +559,8 @@ impl<'a> Plan<'a> {
         let (field, total) = match &self.field {
             Some(f) => {
                 let at = align8(end);
-                let len = (FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * f.entries.len()) as u64
-                    + align8(f.header.data_len);
-                (at, at + len)
+                let data = field_data_at(at, f.entries.len() as u64);
+                (at, data + f.header.data_len)
             }
             None => (0, end),
         };
@@ -588,7 +595,7 @@ impl<'a> Plan<'a> {
             || self
                 .field
                 .as_ref()
-                .is_some_and(|f| f.header.data_len > u64::from(u32::MAX))
+                .is_some_and(|f| f.header.data_len / FIELD_LINE > u64::from(u32::MAX))
             || self.table_capacity >= 1 << 32
             || self.leaves.len() as u64 >= u64::from(u32::MAX)
         {
@@ -679,8 +686,13 @@ impl<'a> Plan<'a> {
                 [(field - (masks + align8(self.masks_len) + values_len as u64)) as usize..];
             let (head, rest) = field_bytes.split_at_mut(FIELD_HEADER_SIZE);
             head.copy_from_slice(bytemuck::bytes_of(&f.header));
-            let (entry_out, mut data_out) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
+            let (entry_out, rest) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
             entry_out.copy_from_slice(bytemuck::cast_slice(&f.entries));
+            let data_at = field_data_at(field, f.entries.len() as u64);
+            let (pad, mut data_out) = rest.split_at_mut((data_at - field) as usize
+                - FIELD_HEADER_SIZE
+                - FIELD_ENTRY_SIZE * f.entries.len());
+            pad.fill(0);
             let mut pieces = Vec::with_capacity(f.data.len());
             for d in &f.data {
                 pieces.push((take(&mut data_out, d.len()), d));
