@@ -20,6 +20,9 @@ use nalgebra::Vector3;
 pub(super) struct FieldParts<'a> {
     header: FieldHeader,
     entries: &'a [[u8; FIELD_ENTRY_SIZE]],
+    /// The distance blocks, [`FIELD_DISTS`] bytes each.
+    dists: &'a [u8],
+    /// The leaves' offsets.
     data: &'a [u8],
 }
 
@@ -50,21 +53,25 @@ impl<'a> FieldParts<'a> {
         if h.steps != field_steps(h.radius) {
             return Err(bad("field steps"));
         }
-        if h.reserved != [0; 2] || h.reserved2 != 0 {
+        if h.reserved != [0; 2] {
             return Err(bad("field reserved bytes"));
         }
         if (0..3).any(|k| h.window_lo[k] > h.window_hi[k]) {
             return Err(bad("field window"));
         }
-        if h.data_len % FIELD_LINE != 0 || h.data_len / FIELD_LINE > u64::from(u32::MAX) {
-            return Err(bad("field data_len"));
+        if h.data_len % 8 != 0
+            || h.data_len / 8 >= u64::from(FIELD_MASKED)
+            || h.dist_blocks > leaves
+        {
+            return Err(bad("field lengths"));
         }
         let entries_end = FIELD_HEADER_SIZE as u64 + leaves * FIELD_ENTRY_SIZE as u64;
-        let data_at = field_data_at(at, leaves) - at;
+        let dists_at = field_dists_at(at, leaves) - at;
+        let data_at = dists_at + FIELD_DISTS as u64 * h.dist_blocks;
         if data_at.checked_add(h.data_len) != Some(body.len() as u64) {
             return Err(SnapshotError::SectionOutOfBounds("field"));
         }
-        if body[entries_end as usize..data_at as usize]
+        if body[entries_end as usize..dists_at as usize]
             .iter()
             .any(|&b| b != 0)
         {
@@ -72,29 +79,36 @@ impl<'a> FieldParts<'a> {
         }
         let entries: &[[u8; FIELD_ENTRY_SIZE]] =
             bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..entries_end as usize]);
+        let dists = &body[dists_at as usize..data_at as usize];
         let data = &body[data_at as usize..];
         let mut band = 0u64;
         for e in entries {
             let e: FieldEntry = bytemuck::pod_read_unaligned(e);
-            let start = u64::from(e.line) * FIELD_LINE;
-            let need = match e.kind {
-                FIELD_NONE => 0,
-                FIELD_ALL => {
-                    band += LEAF_VOXELS as u64;
-                    (FIELD_DISTS + 3 * LEAF_VOXELS) as u64
+            if e.dists == FIELD_NO_BLOCK {
+                if e.data != 0 {
+                    return Err(SnapshotError::BadIndex(
+                        "field data of a leaf without a band",
+                    ));
                 }
-                FIELD_MASKED => {
-                    let count = mask_at(data, start + FIELD_DISTS as u64)
-                        .ok_or(SnapshotError::BadIndex(
-                            "field leaf data outside the section",
-                        ))?
-                        .iter()
-                        .map(|w| u64::from(w.count_ones()))
-                        .sum::<u64>();
-                    band += count;
-                    (FIELD_DISTS + 64) as u64 + 3 * count
-                }
-                _ => return Err(SnapshotError::BadIndex("field leaf kind")),
+                continue;
+            }
+            if u64::from(e.dists) >= h.dist_blocks {
+                return Err(SnapshotError::BadIndex("field distance block"));
+            }
+            let start = e.data_at();
+            let need = if e.masked() {
+                let count = mask_at(data, start)
+                    .ok_or(SnapshotError::BadIndex(
+                        "field leaf data outside the section",
+                    ))?
+                    .iter()
+                    .map(|w| u64::from(w.count_ones()))
+                    .sum::<u64>();
+                band += count;
+                64 + 3 * count
+            } else {
+                band += LEAF_VOXELS as u64;
+                3 * LEAF_VOXELS as u64
             };
             if start + need > h.data_len {
                 return Err(SnapshotError::BadIndex(
@@ -108,6 +122,7 @@ impl<'a> FieldParts<'a> {
         Ok(Self {
             header: h,
             entries,
+            dists,
             data,
         })
     }
@@ -269,60 +284,57 @@ impl<'a> FieldView<'a> {
             & (v.z <= hi.z)
     }
 
-    /// The entry of leaf `index` (a leaf the snapshot holds) and where its data start.
+    /// The entry of leaf `index` (a leaf the snapshot holds).
     #[inline]
-    fn entry(&self, index: u64) -> Option<(u32, usize)> {
-        let e = self.parts.entries.get(index as usize)?;
-        let e: FieldEntry = bytemuck::pod_read_unaligned(e);
-        Some((e.kind, (u64::from(e.line) * FIELD_LINE) as usize))
+    fn entry(&self, index: u64) -> FieldEntry {
+        self.parts
+            .entries
+            .get(index as usize)
+            .map_or(FieldEntry::NONE, |e| bytemuck::pod_read_unaligned(e))
     }
 
     /// The offsets of leaf `index`, read once for its voxels.
     #[inline]
     fn band_of(&self, index: u64) -> Band<'a> {
-        let Some((kind, start)) = self.entry(index) else {
+        let e = self.entry(index);
+        if e.dists == FIELD_NO_BLOCK {
+            return Band::None;
+        }
+        let (data, at) = (self.parts.data, e.data_at() as usize);
+        if !e.masked() {
+            return data
+                .get(at..at + 3 * LEAF_VOXELS)
+                .map_or(Band::None, Band::All);
+        }
+        let Some(mask) = mask_at(data, at as u64) else {
             return Band::None;
         };
-        let data = self.parts.data;
-        let at = start + FIELD_DISTS;
-        match kind {
-            FIELD_ALL => data
-                .get(at..at + 3 * LEAF_VOXELS)
-                .map_or(Band::None, Band::All),
-            FIELD_MASKED => {
-                let Some(mask) = mask_at(data, at as u64) else {
-                    return Band::None;
-                };
-                let mut ranks = [0u32; 8];
-                let mut below = 0;
-                for (r, w) in ranks.iter_mut().zip(mask) {
-                    *r = below;
-                    below += w.count_ones();
-                }
-                let at = at + 64;
-                data.get(at..at + 3 * below as usize)
-                    .map_or(Band::None, |offsets| Band::Masked {
-                        mask,
-                        ranks,
-                        offsets,
-                    })
-            }
-            _ => Band::None,
+        let mut ranks = [0u32; 8];
+        let mut below = 0;
+        for (r, w) in ranks.iter_mut().zip(mask) {
+            *r = below;
+            below += w.count_ones();
         }
+        let at = at + 64;
+        data.get(at..at + 3 * below as usize)
+            .map_or(Band::None, |offsets| Band::Masked {
+                mask,
+                ranks,
+                offsets,
+            })
     }
 
     /// The quantised distances of leaf `index` (a leaf the snapshot holds).
     #[inline]
     fn dists_of(&self, index: u64) -> Dists<'a> {
-        let Some((kind, start)) = self.entry(index) else {
-            return Dists::Far;
-        };
-        if kind == FIELD_NONE {
+        let block = self.entry(index).dists;
+        if block == FIELD_NO_BLOCK {
             return Dists::Far;
         }
+        let at = block as usize * FIELD_DISTS;
         self.parts
-            .data
-            .get(start..start + FIELD_DISTS)
+            .dists
+            .get(at..at + FIELD_DISTS)
             .and_then(|d| d.try_into().ok())
             .map_or(Dists::Far, Dists::Near)
     }

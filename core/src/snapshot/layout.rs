@@ -164,7 +164,8 @@ const _: () = assert!(std::mem::offset_of!(Header, checksum) == 192);
 /// The distance field section's header: it starts at the first 8-byte boundary after the
 /// last other section (values, else masks) and runs to `total_len`. After it come one
 /// [`FieldEntry`] per leaf (in leaf order), zero padding up to the next 64-byte boundary
-/// of the snapshot, then `data_len` bytes of leaf data in pieces of whole 64-byte lines.
+/// of the snapshot, the distance blocks ([`FIELD_DISTS`] bytes for each of `dist_blocks`
+/// leaves), then `data_len` bytes of the leaves' offsets.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldHeader {
@@ -183,29 +184,21 @@ pub struct FieldHeader {
     pub window_hi: [i32; 3],
     /// Voxels stored (in the band).
     pub band_count: u64,
-    /// Bytes of leaf data (a multiple of [`FIELD_LINE`], at most `u32::MAX` lines).
+    /// Bytes of offsets (a multiple of 8, below 2^34).
     pub data_len: u64,
-    pub reserved2: u64,
+    /// Leaves with voxels in the band, each with a distance block (< 2^32 - 1).
+    pub dist_blocks: u64,
 }
 
 pub const FIELD_HEADER_SIZE: usize = std::mem::size_of::<FieldHeader>();
 const _: () = assert!(FIELD_HEADER_SIZE == 64);
 
-/// The field's data lines: each band leaf's data starts on one (counted from the
-/// snapshot's start), so the distances of an aligned 4x4x4 cube share a cache line.
-pub const FIELD_LINE: u64 = 64;
-
-/// Where the data of a field section at `at` (from the snapshot's start) with entries
-/// for `leaves` leaves begins.
+/// Where the distance blocks of a field section at `at` (from the snapshot's start) with
+/// entries for `leaves` leaves begin: on a 64-byte line, so that the distances of an
+/// aligned 4x4x4 cube share a cache line.
 #[inline]
-pub fn field_data_at(at: u64, leaves: u64) -> u64 {
-    align_line(at + FIELD_HEADER_SIZE as u64 + FIELD_ENTRY_SIZE as u64 * leaves)
-}
-
-/// Round up to a multiple of [`FIELD_LINE`].
-#[inline]
-pub fn align_line(n: u64) -> u64 {
-    n.div_ceil(FIELD_LINE) * FIELD_LINE
+pub fn field_dists_at(at: u64, leaves: u64) -> u64 {
+    (at + FIELD_HEADER_SIZE as u64 + FIELD_ENTRY_SIZE as u64 * leaves).div_ceil(64) * 64
 }
 
 /// The steps per voxel of a band of `radius` voxels' quantised distances: as many as keep
@@ -226,29 +219,48 @@ pub fn quantise(len2: i32, steps: u8) -> u8 {
 /// A quantised distance of a voxel outside the band: at least the max distance.
 pub const FIELD_DIST_FAR: u8 = 255;
 
-/// A leaf's share of the distance field section: where its data starts, in
-/// [`FIELD_LINE`]s from the start of the data, and its kind: [`FIELD_NONE`],
-/// [`FIELD_ALL`] or [`FIELD_MASKED`].
+/// The bytes of a leaf's distance block: one `u8` per voxel in Morton order, its distance
+/// in 1/`steps` voxel rounded to nearest, or [`FIELD_DIST_FAR`] outside the band.
+pub const FIELD_DISTS: usize = 512;
+
+/// A leaf's share of the distance field section.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldEntry {
-    pub line: u32,
-    pub kind: u32,
+    /// Its distance block's index, [`FIELD_NO_BLOCK`] when no voxel of the leaf lies in
+    /// the band (then `data` is 0).
+    pub dists: u32,
+    /// Where its offsets start in the data, in 8-byte units, with [`FIELD_MASKED`] set
+    /// when only some voxels lie in the band. All of them: 512 offsets of 3 bytes (dx,
+    /// dy, dz as `i8`), Morton order. Some: a 64-byte mask (bit per Morton place, eight
+    /// little-endian words), then the offsets of the voxels it sets, in Morton order.
+    pub data: u32,
 }
 
 pub const FIELD_ENTRY_SIZE: usize = std::mem::size_of::<FieldEntry>();
-/// The bytes of a band leaf's quantised distances, which start its data: one `u8` per
-/// voxel in Morton order, the distance in 1/`steps` voxel rounded to nearest, or
-/// [`FIELD_DIST_FAR`] outside the band.
-pub const FIELD_DISTS: usize = 512;
-/// No voxel of the leaf lies in the band; no data.
-pub const FIELD_NONE: u32 = 0;
-/// Every voxel lies in the band: the distances, then 512 offsets of 3 bytes (dx, dy, dz
-/// as `i8`), Morton order.
-pub const FIELD_ALL: u32 = 1;
-/// The distances, then a 64-byte mask (bit per Morton place, eight little-endian words)
-/// of the voxels in the band, then their offsets, 3 bytes each, in Morton order.
-pub const FIELD_MASKED: u32 = 2;
+/// [`FieldEntry::dists`] of a leaf with no voxel in the band.
+pub const FIELD_NO_BLOCK: u32 = u32::MAX;
+/// The bit of [`FieldEntry::data`] that marks a masked leaf.
+pub const FIELD_MASKED: u32 = 1 << 31;
+
+impl FieldEntry {
+    /// A leaf with no voxel in the band.
+    pub const NONE: Self = Self {
+        dists: FIELD_NO_BLOCK,
+        data: 0,
+    };
+
+    /// Where its offsets (all) or its mask and offsets (masked) start in the data.
+    #[inline]
+    pub fn data_at(&self) -> u64 {
+        u64::from(self.data & !FIELD_MASKED) * 8
+    }
+
+    #[inline]
+    pub fn masked(&self) -> bool {
+        self.data & FIELD_MASKED != 0
+    }
+}
 
 /// Hash table slots for `n` blocks: a load of 1/4, so a lookup nearly always ends at its
 /// first probe. Blocks are few (a 60 m map has some thousands), so this costs 16 bytes a

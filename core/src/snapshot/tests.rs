@@ -1031,9 +1031,9 @@ fn a_box_scope_limits_the_field_to_the_box() {
     );
 }
 
-/// The field section as the format describes it: each band leaf's data on a 64-byte line
-/// of the snapshot, starting with its voxels' distances in steps (Morton order, 255
-/// outside the band), and every lie about its layout refused by name.
+/// The field section as the format describes it: the distance blocks on 64-byte lines of
+/// the snapshot, each voxel's distance in steps (Morton order, 255 outside the band),
+/// the offsets after them; and every lie about its layout refused by name.
 #[test]
 fn field_section_layout_and_its_errors() {
     use layout::*;
@@ -1052,22 +1052,24 @@ fn field_section_layout_and_its_errors() {
     let at = good.len() - field_section_len(&good);
     let h: FieldHeader = bytemuck::pod_read_unaligned(&good[at..at + FIELD_HEADER_SIZE]);
     assert_eq!((h.radius, h.steps), (7, 36));
-    let data_at = field_data_at(at as u64, n) as usize;
-    assert_eq!(data_at % 64, 0);
+    let dists_at = field_dists_at(at as u64, n) as usize;
+    assert_eq!(dists_at % 64, 0);
+    let data_at = dists_at + FIELD_DISTS * h.dist_blocks as usize;
     assert_eq!(data_at + h.data_len as usize, good.len());
-    let entry = |i: usize| -> FieldEntry {
-        let e = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * i;
-        bytemuck::pod_read_unaligned(&good[e..e + FIELD_ENTRY_SIZE])
-    };
-    let (mut leaves, mut near) = (0, 0);
+    let entry_at = |i: usize| at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * i;
+    let entry =
+        |i: usize| -> FieldEntry { bytemuck::pod_read_unaligned(&good[entry_at(i)..][..8]) };
+    let (mut blocks, mut near) = (0, 0);
     for (i, (origin, _)) in view.stored_leaves().enumerate() {
         let e = entry(i);
-        if e.kind == FIELD_NONE {
-            assert!(field.leaf(origin).is_none());
+        let Some(band) = field.leaf(origin) else {
+            assert_eq!(e, FieldEntry::NONE);
             continue;
-        }
-        leaves += 1;
-        let dists = &good[data_at + 64 * e.line as usize..][..FIELD_DISTS];
+        };
+        // Blocks in leaf order; a leaf whole in the band is not masked.
+        assert_eq!((e.dists, e.masked()), (blocks, band.mask().count() < 512));
+        blocks += 1;
+        let dists = &good[dists_at + FIELD_DISTS * e.dists as usize..][..FIELD_DISTS];
         for (m, &q) in dists.iter().enumerate() {
             let v = crate::tree::voxel_at(origin, usize::from(crate::tree::UNMORTON[m]));
             match field.nearest(v) {
@@ -1080,35 +1082,77 @@ fn field_section_layout_and_its_errors() {
             }
         }
     }
-    assert!(leaves > 20 && near as u64 == field.band_voxels(), "{leaves} {near}");
+    assert_eq!(u64::from(blocks), h.dist_blocks);
+    assert!(
+        blocks > 20 && near as u64 == field.band_voxels(),
+        "{blocks} {near}"
+    );
+    let open = |b: &[u8]| SnapshotView::open(b).map(|_| ()).unwrap_err();
     let header = |f: &dyn Fn(&mut FieldHeader)| {
         let mut b = good.clone();
         let mut hh = h;
         f(&mut hh);
         b[at..at + FIELD_HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&hh));
-        SnapshotView::open(&b).map(|_| ()).unwrap_err()
+        open(&b)
     };
-    assert_eq!(header(&|h| h.steps += 1), SnapshotError::BadHeader("field steps"));
-    assert_eq!(header(&|h| h.data_len -= 8), SnapshotError::BadHeader("field data_len"));
     assert_eq!(
-        header(&|h| h.data_len -= 64),
+        header(&|h| h.steps += 1),
+        SnapshotError::BadHeader("field steps")
+    );
+    assert_eq!(
+        header(&|h| h.data_len -= 4),
+        SnapshotError::BadHeader("field lengths")
+    );
+    assert_eq!(
+        header(&|h| h.dist_blocks = n + 1),
+        SnapshotError::BadHeader("field lengths")
+    );
+    assert_eq!(
+        header(&|h| h.data_len -= 8),
         SnapshotError::SectionOutOfBounds("field")
     );
-    let pad = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * n as usize;
-    if pad < data_at {
+    assert_eq!(
+        header(&|h| h.dist_blocks -= 1),
+        SnapshotError::SectionOutOfBounds("field")
+    );
+    let pad = entry_at(n as usize);
+    if pad < dists_at {
         let mut b = good.clone();
         b[pad] = 1;
-        assert_eq!(
-            SnapshotView::open(&b).map(|_| ()).unwrap_err(),
-            SnapshotError::BadHeader("field padding")
-        );
+        assert_eq!(open(&b), SnapshotError::BadHeader("field padding"));
     }
-    let last = (0..n as usize).rev().find(|&i| entry(i).kind != FIELD_NONE).unwrap();
-    let mut b = good.clone();
-    let e = at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * last;
-    b[e..e + 4].copy_from_slice(&(h.data_len as u32 / 64).to_le_bytes());
+    let with_entry = |i: usize, e: FieldEntry| {
+        let mut b = good.clone();
+        b[entry_at(i)..][..8].copy_from_slice(bytemuck::bytes_of(&e));
+        open(&b)
+    };
+    let last = (0..n as usize)
+        .rev()
+        .find(|&i| entry(i) != FieldEntry::NONE)
+        .unwrap();
+    let e = entry(last);
     assert_eq!(
-        SnapshotView::open(&b).map(|_| ()).unwrap_err(),
+        with_entry(last, FieldEntry { dists: blocks, ..e }),
+        SnapshotError::BadIndex("field distance block")
+    );
+    assert_eq!(
+        with_entry(
+            last,
+            FieldEntry {
+                data: (h.data_len / 8) as u32,
+                ..e
+            }
+        ),
         SnapshotError::BadIndex("field leaf data outside the section")
+    );
+    assert_eq!(
+        with_entry(
+            last,
+            FieldEntry {
+                data: 8,
+                ..FieldEntry::NONE
+            }
+        ),
+        SnapshotError::BadIndex("field data of a leaf without a band")
     );
 }

@@ -222,11 +222,22 @@ pub struct Plan<'a> {
     field: Option<FieldPlan>,
 }
 
-/// The distance field section, encoded: header, one entry per planned leaf, data pieces.
+/// The distance field section, encoded: header, one entry per planned leaf, distance
+/// blocks and offsets in pieces.
 struct FieldPlan {
     header: FieldHeader,
     entries: Vec<FieldEntry>,
+    dists: Vec<Vec<u8>>,
     data: Vec<Vec<u8>>,
+}
+
+/// The field section of one piece of leaves, with places counted from the piece's start.
+#[derive(Default)]
+struct FieldPiece {
+    entries: Vec<FieldEntry>,
+    dists: Vec<u8>,
+    data: Vec<u8>,
+    band: u64,
 }
 
 /// Section offsets and the total length.
@@ -455,71 +466,86 @@ impl<'a> Plan<'a> {
             hi = hi.min(bhi);
         }
         let steps = field_steps(field.radius());
-        let pieces: Vec<(Vec<FieldEntry>, Vec<u8>, u64)> = self
+        // Quantised distances by squared offset length: every length a band can hold.
+        let r2 = (field.radius() * field.radius()) as i32;
+        let quantised: Vec<u8> = (0..r2).map(|l| quantise(l, steps)).collect();
+        let pieces: Vec<FieldPiece> = self
             .leaves
             .par_chunks(PIECE)
             .map(|piece| {
-                let mut entries = Vec::with_capacity(piece.len());
-                let mut data = Vec::new();
-                let mut band = 0u64;
+                let mut out = FieldPiece {
+                    entries: Vec::with_capacity(piece.len()),
+                    ..Default::default()
+                };
                 for p in piece {
                     let Some(leaf) = field.leaf(p.origin) else {
-                        entries.push(FieldEntry {
-                            line: 0,
-                            kind: FIELD_NONE,
-                        });
+                        out.entries.push(FieldEntry::NONE);
                         continue;
                     };
-                    let line = (data.len() as u64 / FIELD_LINE) as u32;
                     let (mask, offsets) = (leaf.mask(), leaf.offsets());
                     let count = mask.count();
-                    band += u64::from(count);
+                    out.band += u64::from(count);
+                    let dists = out.dists.len();
+                    out.dists.resize(dists + FIELD_DISTS, FIELD_DIST_FAR);
+                    let dists = &mut out.dists[dists..];
+                    for (i, o) in mask.iter_ones().zip(offsets) {
+                        let len2 = offset_len2(*o);
+                        dists[usize::from(MORTON[i])] = quantised
+                            .get(len2 as usize)
+                            .map_or_else(|| quantise(len2, steps), |q| *q);
+                    }
+                    let entry = FieldEntry {
+                        dists: (out.dists.len() / FIELD_DISTS - 1) as u32,
+                        data: (out.data.len() / 8) as u32,
+                    };
                     // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
                     let morton = (0..LEAF_VOXELS).map(|m| usize::from(UNMORTON[m]));
-                    data.extend(morton.clone().map(|i| {
-                        if mask.get(i) {
-                            let o = offsets[mask.rank(i) as usize];
-                            quantise(offset_len2(o), steps)
-                        } else {
-                            FIELD_DIST_FAR
-                        }
-                    }));
-                    let kind = if count == 512 {
-                        data.extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
-                        FIELD_ALL
+                    if count == 512 {
+                        out.entries.push(entry);
+                        out.data
+                            .extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
                     } else {
+                        out.entries.push(FieldEntry {
+                            data: entry.data | FIELD_MASKED,
+                            ..entry
+                        });
                         let mut bits = Mask512::EMPTY;
                         for i in mask.iter_ones() {
                             bits.set(usize::from(MORTON[i]));
                         }
-                        data.extend(bits.words.iter().flat_map(|w| w.to_le_bytes()));
-                        data.extend(
+                        out.data
+                            .extend(bits.words.iter().flat_map(|w| w.to_le_bytes()));
+                        out.data.extend(
                             morton
                                 .filter(|&i| mask.get(i))
                                 .flat_map(|i| offsets[mask.rank(i) as usize].map(|c| c as u8)),
                         );
-                        FIELD_MASKED
-                    };
-                    entries.push(FieldEntry { line, kind });
-                    data.resize(align_line(data.len() as u64) as usize, 0);
+                        out.data.resize(align8(out.data.len() as u64) as usize, 0);
+                    }
                 }
-                (entries, data, band)
+                out
             })
             .collect();
         let mut entries = Vec::with_capacity(self.leaves.len());
-        let mut data = Vec::with_capacity(pieces.len());
-        let (mut at, mut band_count) = (0u64, 0u64);
-        for (e, d, b) in pieces {
-            // Lines within a piece become lines within the section's data; past u32::MAX
-            // they would wrap, and `write` refuses the plan.
-            let base = at / FIELD_LINE;
-            entries.extend(e.into_iter().map(|mut e| {
-                e.line = (base + u64::from(e.line)).min(u64::from(u32::MAX)) as u32;
+        let (mut dists, mut data) = (Vec::new(), Vec::new());
+        let (mut blocks, mut at, mut band_count) = (0u64, 0u64, 0u64);
+        for piece in pieces {
+            // Places within a piece become places within the section; past the entries'
+            // limits they would wrap, and `write` refuses the plan.
+            entries.extend(piece.entries.into_iter().map(|mut e| {
+                if e.dists != FIELD_NO_BLOCK {
+                    e.dists = (blocks + u64::from(e.dists)).min(u64::from(FIELD_NO_BLOCK)) as u32;
+                    let units = at / 8 + u64::from(e.data & !FIELD_MASKED);
+                    e.data =
+                        units.min(u64::from(FIELD_MASKED - 1)) as u32 | (e.data & FIELD_MASKED);
+                }
                 e
             }));
-            at += d.len() as u64;
-            band_count += b;
-            data.push(d);
+            blocks += (piece.dists.len() / FIELD_DISTS) as u64;
+            at += piece.data.len() as u64;
+            band_count += piece.band;
+            dists.push(piece.dists);
+            data.push(piece.data);
         }
         self.field = Some(FieldPlan {
             header: FieldHeader {
@@ -532,9 +558,10 @@ impl<'a> Plan<'a> {
                 window_hi: hi.to_array(),
                 band_count,
                 data_len: at,
-                reserved2: 0,
+                dist_blocks: blocks,
             },
             entries,
+            dists,
             data,
         });
         self
@@ -559,8 +586,11 @@ impl<'a> Plan<'a> {
         let (field, total) = match &self.field {
             Some(f) => {
                 let at = align8(end);
-                let data = field_data_at(at, f.entries.len() as u64);
-                (at, data + f.header.data_len)
+                let dists = field_dists_at(at, f.entries.len() as u64);
+                (
+                    at,
+                    dists + FIELD_DISTS as u64 * f.header.dist_blocks + f.header.data_len,
+                )
             }
             None => (0, end),
         };
@@ -592,10 +622,10 @@ impl<'a> Plan<'a> {
             total,
         } = self.sections();
         if self.masks_len > MAX_MASKS_LEN
-            || self
-                .field
-                .as_ref()
-                .is_some_and(|f| f.header.data_len / FIELD_LINE > u64::from(u32::MAX))
+            || self.field.as_ref().is_some_and(|f| {
+                f.header.data_len / 8 >= u64::from(FIELD_MASKED)
+                    || f.header.dist_blocks >= u64::from(FIELD_NO_BLOCK)
+            })
             || self.table_capacity >= 1 << 32
             || self.leaves.len() as u64 >= u64::from(u32::MAX)
         {
@@ -688,16 +718,17 @@ impl<'a> Plan<'a> {
             head.copy_from_slice(bytemuck::bytes_of(&f.header));
             let (entry_out, rest) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
             entry_out.copy_from_slice(bytemuck::cast_slice(&f.entries));
-            let data_at = field_data_at(field, f.entries.len() as u64);
-            let (pad, mut data_out) = rest.split_at_mut((data_at - field) as usize
-                - FIELD_HEADER_SIZE
-                - FIELD_ENTRY_SIZE * f.entries.len());
+            let dists_at = field_dists_at(field, f.entries.len() as u64);
+            let (pad, mut rest) = rest.split_at_mut(
+                (dists_at - field) as usize
+                    - FIELD_HEADER_SIZE
+                    - FIELD_ENTRY_SIZE * f.entries.len(),
+            );
             pad.fill(0);
-            let mut pieces = Vec::with_capacity(f.data.len());
-            for d in &f.data {
-                pieces.push((take(&mut data_out, d.len()), d));
+            let mut pieces = Vec::with_capacity(f.dists.len() + f.data.len());
+            for d in f.dists.iter().chain(&f.data) {
+                pieces.push((take(&mut rest, d.len()), d));
             }
-            data_out.fill(0);
             pieces
                 .into_par_iter()
                 .for_each(|(out, d)| out.copy_from_slice(d));
