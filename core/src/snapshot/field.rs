@@ -8,10 +8,12 @@
 //! cache line. The leaf is found by the same block lookup as a state query.
 
 use super::layout::*;
-use super::view::SnapshotView;
+use super::view::{block_word, SnapshotView};
 use super::SnapshotError;
 use crate::coord::{VoxelCoord, WorldPoint, MAX_VOXEL_INDEX};
 use crate::field::{offset_len2, UnknownPolicy, MAX_RADIUS};
+use crate::grid::{block_origin, leaf_in_block};
+use crate::mask::BitIter;
 use crate::tree::{leaf_offset, LEAF_VOXELS, MORTON};
 use nalgebra::Vector3;
 
@@ -19,6 +21,8 @@ use nalgebra::Vector3;
 #[derive(Clone, Copy, Debug)]
 pub(super) struct FieldParts<'a> {
     header: FieldHeader,
+    /// One per block of the snapshot.
+    blocks: &'a [[u8; FIELD_BLOCK_SIZE]],
     entries: &'a [[u8; FIELD_ENTRY_SIZE]],
     /// The distance blocks, [`FIELD_DISTS`] bytes each.
     dists: &'a [u8],
@@ -28,10 +32,12 @@ pub(super) struct FieldParts<'a> {
 
 impl<'a> FieldParts<'a> {
     /// Check a field section (`body` runs from its start, at `at` in the snapshot, to the
-    /// snapshot's end) for a snapshot of `leaves` leaves at `resolution`.
+    /// snapshot's end) for a snapshot of `map_blocks` (validated) holding `leaves` leaves
+    /// at `resolution`.
     pub(super) fn open(
         body: &'a [u8],
         at: u64,
+        map_blocks: &[[u8; BLOCK_SIZE]],
         leaves: u64,
         resolution: f64,
     ) -> Result<Self, SnapshotError> {
@@ -59,14 +65,13 @@ impl<'a> FieldParts<'a> {
         if (0..3).any(|k| h.window_lo[k] > h.window_hi[k]) {
             return Err(bad("field window"));
         }
-        if h.data_len % 8 != 0
-            || h.data_len / 8 >= u64::from(FIELD_MASKED)
-            || h.dist_blocks > leaves
-        {
+        if h.data_len % 8 != 0 || h.data_len / 8 > FIELD_MAX_UNITS || h.dist_blocks > leaves {
             return Err(bad("field lengths"));
         }
-        let entries_end = FIELD_HEADER_SIZE as u64 + leaves * FIELD_ENTRY_SIZE as u64;
-        let dists_at = field_dists_at(at, leaves) - at;
+        let nb = map_blocks.len() as u64;
+        let blocks_end = FIELD_HEADER_SIZE as u64 + nb * FIELD_BLOCK_SIZE as u64;
+        let entries_end = blocks_end + leaves * FIELD_ENTRY_SIZE as u64;
+        let dists_at = field_dists_at(at, nb, leaves) - at;
         let data_at = dists_at + FIELD_DISTS as u64 * h.dist_blocks;
         if data_at.checked_add(h.data_len) != Some(body.len() as u64) {
             return Err(SnapshotError::SectionOutOfBounds("field"));
@@ -77,50 +82,79 @@ impl<'a> FieldParts<'a> {
         {
             return Err(bad("field padding"));
         }
+        let blocks: &[[u8; FIELD_BLOCK_SIZE]] =
+            bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..blocks_end as usize]);
         let entries: &[[u8; FIELD_ENTRY_SIZE]] =
-            bytemuck::cast_slice(&body[FIELD_HEADER_SIZE..entries_end as usize]);
+            bytemuck::cast_slice(&body[blocks_end as usize..entries_end as usize]);
         let dists = &body[dists_at as usize..data_at as usize];
         let data = &body[data_at as usize..];
-        let mut band = 0u64;
-        for e in entries {
-            let e: FieldEntry = bytemuck::pod_read_unaligned(e);
-            if e.dists == FIELD_NO_BLOCK {
-                if e.data != 0 {
+        // Each block names the band leaves among its leaves and where their distance
+        // blocks begin, one after another in leaf order; each leaf's entry agrees.
+        let (mut band, mut next, mut leaf) = (0u64, 0u64, 0usize);
+        for (b, fb) in map_blocks.iter().zip(blocks) {
+            let fb: FieldBlock = bytemuck::pod_read_unaligned(fb);
+            if u64::from(fb.first) != next
+                || fb.reserved != 0
+                || fb.ranks != BlockEntry::ranks_of(&fb.band)
+            {
+                return Err(SnapshotError::BadIndex("field block out of sequence"));
+            }
+            for (w, &bits) in fb.band.iter().enumerate() {
+                let stored = block_word(b, w);
+                if bits & !stored != 0 {
                     return Err(SnapshotError::BadIndex(
-                        "field data of a leaf without a band",
+                        "field block names a leaf not stored",
                     ));
                 }
-                continue;
+                for bit in BitIter(stored) {
+                    let e: FieldEntry = entries
+                        .get(leaf)
+                        .map(|e| bytemuck::pod_read_unaligned(e))
+                        .ok_or(SnapshotError::BadIndex("field entries"))?;
+                    leaf += 1;
+                    if bits >> bit & 1 == 0 {
+                        if e != FieldEntry::NONE {
+                            return Err(SnapshotError::BadIndex(
+                                "field data of a leaf without a band",
+                            ));
+                        }
+                        continue;
+                    }
+                    next += 1;
+                    let start = e.data_at();
+                    let need = if e == FieldEntry::NONE {
+                        return Err(SnapshotError::BadIndex("field band leaf without data"));
+                    } else if e.masked() {
+                        let count = mask_at(data, start)
+                            .ok_or(SnapshotError::BadIndex(
+                                "field leaf data outside the section",
+                            ))?
+                            .iter()
+                            .map(|w| u64::from(w.count_ones()))
+                            .sum::<u64>();
+                        band += count;
+                        64 + 3 * count
+                    } else {
+                        band += LEAF_VOXELS as u64;
+                        3 * LEAF_VOXELS as u64
+                    };
+                    if start + need > h.data_len {
+                        return Err(SnapshotError::BadIndex(
+                            "field leaf data outside the section",
+                        ));
+                    }
+                }
             }
-            if u64::from(e.dists) >= h.dist_blocks {
-                return Err(SnapshotError::BadIndex("field distance block"));
-            }
-            let start = e.data_at();
-            let need = if e.masked() {
-                let count = mask_at(data, start)
-                    .ok_or(SnapshotError::BadIndex(
-                        "field leaf data outside the section",
-                    ))?
-                    .iter()
-                    .map(|w| u64::from(w.count_ones()))
-                    .sum::<u64>();
-                band += count;
-                64 + 3 * count
-            } else {
-                band += LEAF_VOXELS as u64;
-                3 * LEAF_VOXELS as u64
-            };
-            if start + need > h.data_len {
-                return Err(SnapshotError::BadIndex(
-                    "field leaf data outside the section",
-                ));
-            }
+        }
+        if next != h.dist_blocks {
+            return Err(bad("field dist_blocks"));
         }
         if band != h.band_count {
             return Err(bad("field band_count"));
         }
         Ok(Self {
             header: h,
+            blocks,
             entries,
             dists,
             data,
@@ -284,20 +318,15 @@ impl<'a> FieldView<'a> {
             & (v.z <= hi.z)
     }
 
-    /// The entry of leaf `index` (a leaf the snapshot holds).
-    #[inline]
-    fn entry(&self, index: u64) -> FieldEntry {
-        self.parts
-            .entries
-            .get(index as usize)
-            .map_or(FieldEntry::NONE, |e| bytemuck::pod_read_unaligned(e))
-    }
-
-    /// The offsets of leaf `index`, read once for its voxels.
+    /// The offsets of leaf `index` (a leaf the snapshot holds), read once for its voxels.
     #[inline]
     fn band_of(&self, index: u64) -> Band<'a> {
-        let e = self.entry(index);
-        if e.dists == FIELD_NO_BLOCK {
+        let e = self
+            .parts
+            .entries
+            .get(index as usize)
+            .map_or(FieldEntry::NONE, |e| bytemuck::pod_read_unaligned(e));
+        if e == FieldEntry::NONE {
             return Band::None;
         }
         let (data, at) = (self.parts.data, e.data_at() as usize);
@@ -324,27 +353,37 @@ impl<'a> FieldView<'a> {
             })
     }
 
-    /// The quantised distances of leaf `index` (a leaf the snapshot holds).
+    /// The quantised distances of the leaf holding `v` (inside the window), found from
+    /// its block: the snapshot's block and the field's are read side by side, and the
+    /// leaf's entry not at all.
     #[inline]
-    fn dists_of(&self, index: u64) -> Dists<'a> {
-        let block = self.entry(index).dists;
-        if block == FIELD_NO_BLOCK {
+    fn dists_at(&self, v: VoxelCoord) -> Dists<'a> {
+        let Some((i, block)) = self.view.find_block_at(block_origin(v).to_array()) else {
+            return Dists::Absent;
+        };
+        let Some(fb) = self.parts.blocks.get(i) else {
+            return Dists::Absent;
+        };
+        let j = leaf_in_block(v);
+        let (w, bit) = (j / 64 & 7, j % 64);
+        if block_word(block, w) >> bit & 1 == 0 {
+            return Dists::Absent;
+        }
+        let word = |at: usize| u64::from_le_bytes(fb[at..at + 8].try_into().unwrap_or([0; 8]));
+        let band = word(FIELD_BLOCK_BAND_AT + 8 * w);
+        if band >> bit & 1 == 0 {
             return Dists::Far;
         }
-        let at = block as usize * FIELD_DISTS;
+        let first = u32::from_le_bytes(fb[0..4].try_into().unwrap_or([0; 4])) as usize;
+        let at = FIELD_BLOCK_RANKS_AT + 2 * w;
+        let rank = usize::from(u16::from_le_bytes([fb[at], fb[at + 1]]))
+            + (band & ((1 << bit) - 1)).count_ones() as usize;
+        let at = (first + rank) * FIELD_DISTS;
         self.parts
             .dists
             .get(at..at + FIELD_DISTS)
             .and_then(|d| d.try_into().ok())
             .map_or(Dists::Far, Dists::Near)
-    }
-
-    /// The distances of the leaf holding `v` (inside the window).
-    #[inline]
-    fn dists_at(&self, v: VoxelCoord) -> Dists<'a> {
-        self.view
-            .find_leaf(v)
-            .map_or(Dists::Absent, |l| self.dists_of(l.index))
     }
 
     /// Metres of in-leaf voxel `i` of a leaf's distances; `None` where unknown.

@@ -163,9 +163,10 @@ const _: () = assert!(std::mem::offset_of!(Header, checksum) == 192);
 
 /// The distance field section's header: it starts at the first 8-byte boundary after the
 /// last other section (values, else masks) and runs to `total_len`. After it come one
-/// [`FieldEntry`] per leaf (in leaf order), zero padding up to the next 64-byte boundary
-/// of the snapshot, the distance blocks ([`FIELD_DISTS`] bytes for each of `dist_blocks`
-/// leaves), then `data_len` bytes of the leaves' offsets.
+/// [`FieldBlock`] per block and one [`FieldEntry`] per leaf (each in the snapshot's
+/// order), zero padding up to the next 64-byte boundary of the snapshot, the distance
+/// blocks ([`FIELD_DISTS`] bytes for each of `dist_blocks` leaves, in leaf order), then
+/// `data_len` bytes of the leaves' offsets.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldHeader {
@@ -186,20 +187,46 @@ pub struct FieldHeader {
     pub band_count: u64,
     /// Bytes of offsets (a multiple of 8, below 2^34).
     pub data_len: u64,
-    /// Leaves with voxels in the band, each with a distance block (< 2^32 - 1).
+    /// Leaves with voxels in the band, each with a distance block.
     pub dist_blocks: u64,
 }
 
 pub const FIELD_HEADER_SIZE: usize = std::mem::size_of::<FieldHeader>();
 const _: () = assert!(FIELD_HEADER_SIZE == 64);
 
-/// Where the distance blocks of a field section at `at` (from the snapshot's start) with
-/// entries for `leaves` leaves begin: on a 64-byte line, so that the distances of an
-/// aligned 4x4x4 cube share a cache line.
+/// Where the distance blocks of a field section at `at` (from the snapshot's start) for
+/// `blocks` blocks and `leaves` leaves begin: on a 64-byte line, so that the distances of
+/// an aligned 4x4x4 cube share a cache line.
 #[inline]
-pub fn field_dists_at(at: u64, leaves: u64) -> u64 {
-    (at + FIELD_HEADER_SIZE as u64 + FIELD_ENTRY_SIZE as u64 * leaves).div_ceil(64) * 64
+pub fn field_dists_at(at: u64, blocks: u64, leaves: u64) -> u64 {
+    (at + FIELD_HEADER_SIZE as u64
+        + FIELD_BLOCK_SIZE as u64 * blocks
+        + FIELD_ENTRY_SIZE as u64 * leaves)
+        .div_ceil(64)
+        * 64
 }
+
+/// A block's share of the distance field section: which of its leaves have a distance
+/// block, and where theirs are, so that a query finds a leaf's distances from its block
+/// (as a state query finds its leaf), without reading the leaf's entry.
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct FieldBlock {
+    /// The distance block of the block's first leaf in the band: the leaves in the band
+    /// of the blocks before it.
+    pub first: u32,
+    pub reserved: u32,
+    /// `ranks[w]`: set bits of `band` in words `..w`.
+    pub ranks: [u16; 8],
+    /// Bit `j` (as in [`BlockEntry::leaves`]) set when leaf `j` of the block has voxels in
+    /// the band (a stored leaf).
+    pub band: [u64; 8],
+}
+
+pub const FIELD_BLOCK_SIZE: usize = std::mem::size_of::<FieldBlock>();
+const _: () = assert!(FIELD_BLOCK_SIZE == 88);
+pub const FIELD_BLOCK_RANKS_AT: usize = std::mem::offset_of!(FieldBlock, ranks);
+pub const FIELD_BLOCK_BAND_AT: usize = std::mem::offset_of!(FieldBlock, band);
 
 /// The steps per voxel of a band of `radius` voxels' quantised distances: as many as keep
 /// the radius within [`FIELD_DIST_FAR`] - 1.
@@ -223,32 +250,27 @@ pub const FIELD_DIST_FAR: u8 = 255;
 /// in 1/`steps` voxel rounded to nearest, or [`FIELD_DIST_FAR`] outside the band.
 pub const FIELD_DISTS: usize = 512;
 
-/// A leaf's share of the distance field section.
+/// A leaf's share of the distance field section: where its offsets start in the data, in
+/// 8-byte units, with [`FIELD_MASKED`] set when only some of its voxels lie in the band;
+/// [`FieldEntry::NONE`] when none do. All of them: 512 offsets of 3 bytes (dx, dy, dz as
+/// `i8`), Morton order. Some: a 64-byte mask (bit per Morton place, eight little-endian
+/// words), then the offsets of the voxels it sets, in Morton order.
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FieldEntry {
-    /// Its distance block's index, [`FIELD_NO_BLOCK`] when no voxel of the leaf lies in
-    /// the band (then `data` is 0).
-    pub dists: u32,
-    /// Where its offsets start in the data, in 8-byte units, with [`FIELD_MASKED`] set
-    /// when only some voxels lie in the band. All of them: 512 offsets of 3 bytes (dx,
-    /// dy, dz as `i8`), Morton order. Some: a 64-byte mask (bit per Morton place, eight
-    /// little-endian words), then the offsets of the voxels it sets, in Morton order.
     pub data: u32,
 }
 
 pub const FIELD_ENTRY_SIZE: usize = std::mem::size_of::<FieldEntry>();
-/// [`FieldEntry::dists`] of a leaf with no voxel in the band.
-pub const FIELD_NO_BLOCK: u32 = u32::MAX;
 /// The bit of [`FieldEntry::data`] that marks a masked leaf.
 pub const FIELD_MASKED: u32 = 1 << 31;
+/// The most 8-byte units a [`FieldEntry`] can place its offsets at (all bits set is
+/// [`FieldEntry::NONE`]).
+pub const FIELD_MAX_UNITS: u64 = (FIELD_MASKED - 2) as u64;
 
 impl FieldEntry {
     /// A leaf with no voxel in the band.
-    pub const NONE: Self = Self {
-        dists: FIELD_NO_BLOCK,
-        data: 0,
-    };
+    pub const NONE: Self = Self { data: u32::MAX };
 
     /// Where its offsets (all) or its mask and offsets (masked) start in the data.
     #[inline]

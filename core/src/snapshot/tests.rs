@@ -1031,9 +1031,10 @@ fn a_box_scope_limits_the_field_to_the_box() {
     );
 }
 
-/// The field section as the format describes it: the distance blocks on 64-byte lines of
-/// the snapshot, each voxel's distance in steps (Morton order, 255 outside the band),
-/// the offsets after them; and every lie about its layout refused by name.
+/// The field section as the format describes it: per block, its band leaves and where
+/// their distance blocks start; the distance blocks on 64-byte lines of the snapshot,
+/// each voxel's distance in steps (Morton order, 255 outside the band); the offsets after
+/// them; and every lie about its layout refused by name.
 #[test]
 fn field_section_layout_and_its_errors() {
     use layout::*;
@@ -1048,28 +1049,31 @@ fn field_section_layout_and_its_errors() {
         .with_field(&field)
         .to_vec();
     let view = SnapshotView::open_checked(&good).unwrap();
-    let n = view.header().leaf_count;
+    let (n, nb) = (view.header().leaf_count, view.header().block_count);
     let at = good.len() - field_section_len(&good);
     let h: FieldHeader = bytemuck::pod_read_unaligned(&good[at..at + FIELD_HEADER_SIZE]);
     assert_eq!((h.radius, h.steps), (7, 36));
-    let dists_at = field_dists_at(at as u64, n) as usize;
+    let dists_at = field_dists_at(at as u64, nb, n) as usize;
     assert_eq!(dists_at % 64, 0);
     let data_at = dists_at + FIELD_DISTS * h.dist_blocks as usize;
     assert_eq!(data_at + h.data_len as usize, good.len());
-    let entry_at = |i: usize| at + FIELD_HEADER_SIZE + FIELD_ENTRY_SIZE * i;
+    let block_at = |i: usize| at + FIELD_HEADER_SIZE + FIELD_BLOCK_SIZE * i;
+    let entry_at = |i: usize| block_at(nb as usize) + FIELD_ENTRY_SIZE * i;
     let entry =
-        |i: usize| -> FieldEntry { bytemuck::pod_read_unaligned(&good[entry_at(i)..][..8]) };
-    let (mut blocks, mut near) = (0, 0);
+        |i: usize| -> FieldEntry { bytemuck::pod_read_unaligned(&good[entry_at(i)..][..4]) };
+    let (mut blocks, mut near) = (0u32, 0);
+    let mut band_leaves = std::collections::HashMap::new();
     for (i, (origin, _)) in view.stored_leaves().enumerate() {
         let e = entry(i);
         let Some(band) = field.leaf(origin) else {
             assert_eq!(e, FieldEntry::NONE);
             continue;
         };
-        // Blocks in leaf order; a leaf whole in the band is not masked.
-        assert_eq!((e.dists, e.masked()), (blocks, band.mask().count() < 512));
+        // A leaf whole in the band is not masked; distance blocks come in leaf order.
+        assert_eq!(e.masked(), band.mask().count() < 512);
+        band_leaves.insert(origin, blocks);
+        let dists = &good[dists_at + FIELD_DISTS * blocks as usize..][..FIELD_DISTS];
         blocks += 1;
-        let dists = &good[dists_at + FIELD_DISTS * e.dists as usize..][..FIELD_DISTS];
         for (m, &q) in dists.iter().enumerate() {
             let v = crate::tree::voxel_at(origin, usize::from(crate::tree::UNMORTON[m]));
             match field.nearest(v) {
@@ -1087,6 +1091,24 @@ fn field_section_layout_and_its_errors() {
         blocks > 20 && near as u64 == field.band_voxels(),
         "{blocks} {near}"
     );
+    // Each block's first distance block and band bits name the same leaves.
+    let snapshot_blocks: &[BlockEntry] = bytemuck::cast_slice(
+        &good[view.header().blocks_offset as usize..][..BLOCK_SIZE * nb as usize],
+    );
+    for (i, b) in snapshot_blocks.iter().enumerate() {
+        let fb: FieldBlock = bytemuck::pod_read_unaligned(&good[block_at(i)..][..FIELD_BLOCK_SIZE]);
+        let mut k = 0;
+        for j in 0..512 {
+            let leaf = VoxelCoord::from_array(b.origin)
+                + VoxelCoord::new(8 * (j & 7), 8 * (j >> 3 & 7), 8 * (j >> 6));
+            let set = fb.band[j as usize / 64] >> (j % 64) & 1 == 1;
+            assert_eq!(set, band_leaves.contains_key(&leaf), "{leaf:?}");
+            if set {
+                assert_eq!(band_leaves[&leaf], fb.first + k);
+                k += 1;
+            }
+        }
+    }
     let open = |b: &[u8]| SnapshotView::open(b).map(|_| ()).unwrap_err();
     let header = |f: &dyn Fn(&mut FieldHeader)| {
         let mut b = good.clone();
@@ -1121,38 +1143,32 @@ fn field_section_layout_and_its_errors() {
         b[pad] = 1;
         assert_eq!(open(&b), SnapshotError::BadHeader("field padding"));
     }
+    let mut b = good.clone();
+    b[block_at(nb as usize - 1)] ^= 1;
+    assert_eq!(
+        open(&b),
+        SnapshotError::BadIndex("field block out of sequence")
+    );
     let with_entry = |i: usize, e: FieldEntry| {
         let mut b = good.clone();
-        b[entry_at(i)..][..8].copy_from_slice(bytemuck::bytes_of(&e));
+        b[entry_at(i)..][..4].copy_from_slice(bytemuck::bytes_of(&e));
         open(&b)
     };
     let last = (0..n as usize)
         .rev()
         .find(|&i| entry(i) != FieldEntry::NONE)
         .unwrap();
-    let e = entry(last);
-    assert_eq!(
-        with_entry(last, FieldEntry { dists: blocks, ..e }),
-        SnapshotError::BadIndex("field distance block")
-    );
     assert_eq!(
         with_entry(
             last,
             FieldEntry {
-                data: (h.data_len / 8) as u32,
-                ..e
+                data: (h.data_len / 8) as u32
             }
         ),
         SnapshotError::BadIndex("field leaf data outside the section")
     );
     assert_eq!(
-        with_entry(
-            last,
-            FieldEntry {
-                data: 8,
-                ..FieldEntry::NONE
-            }
-        ),
-        SnapshotError::BadIndex("field data of a leaf without a band")
+        with_entry(last, FieldEntry::NONE),
+        SnapshotError::BadIndex("field band leaf without data")
     );
 }

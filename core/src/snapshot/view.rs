@@ -92,7 +92,7 @@ fn block_origin_of(b: &[u8; BLOCK_SIZE]) -> [i32; 3] {
 
 /// A block entry's first leaf.
 #[inline]
-fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
+pub(super) fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
     u32::from_le_bytes([b[12], b[13], b[14], b[15]])
 }
 
@@ -105,7 +105,7 @@ fn block_rank(b: &[u8; BLOCK_SIZE], w: usize) -> u16 {
 
 /// Word `w` (< 8) of a block entry's leaf bits.
 #[inline]
-fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
+pub(super) fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
     let at = BLOCK_LEAVES_AT + 8 * (w & 7);
     u64::from_le_bytes(b[at..at + 8].try_into().unwrap_or([0; 8]))
 }
@@ -265,24 +265,10 @@ impl<'a> SnapshotView<'a> {
             max: h.clamp_max,
             threshold: h.threshold,
         };
-        let field = if h.flags & FLAG_FIELD != 0 {
-            let end = (h.masks_offset + align8(h.masks_len)).max(if h.flags & FLAG_VALUES != 0 {
-                h.values_offset + n * VALUES_PER_LEAF as u64
-            } else {
-                0
-            });
-            let at = align8(end);
-            let body = bytes[..h.total_len as usize]
-                .get(at as usize..)
-                .ok_or(SnapshotError::SectionOutOfBounds("field"))?;
-            Some(super::field::FieldParts::open(body, at, n, h.resolution)?)
-        } else {
-            None
-        };
         // In bounds: every section was checked to lie inside total_len <= bytes.len().
         let sub = |off: u64, len: u64| &bytes[off as usize..(off + len) as usize];
-        let v = SnapshotView {
-            field,
+        let mut v = SnapshotView {
+            field: None,
             bytes: &bytes[..h.total_len as usize],
             table: bytemuck::cast_slice(sub(h.table_offset, 4 * cap)),
             blocks: bytemuck::cast_slice(sub(h.blocks_offset, BLOCK_SIZE as u64 * nb)),
@@ -354,6 +340,25 @@ impl<'a> SnapshotView<'a> {
                     "leaf mask kinds or record malformed",
                 ));
             }
+        }
+        if h.flags & FLAG_FIELD != 0 {
+            let end = (h.masks_offset + align8(h.masks_len)).max(if h.flags & FLAG_VALUES != 0 {
+                h.values_offset + n * VALUES_PER_LEAF as u64
+            } else {
+                0
+            });
+            let at = align8(end);
+            let body = v
+                .bytes
+                .get(at as usize..)
+                .ok_or(SnapshotError::SectionOutOfBounds("field"))?;
+            v.field = Some(super::field::FieldParts::open(
+                body,
+                at,
+                v.blocks,
+                n,
+                h.resolution,
+            )?);
         }
         Ok(v)
     }
@@ -451,6 +456,13 @@ impl<'a> SnapshotView<'a> {
         self.block_from(b, self.home(b)?)
     }
 
+    /// The block with origin `b` and its index.
+    #[inline]
+    pub(super) fn find_block_at(&self, b: [i32; 3]) -> Option<(usize, &'a [u8; BLOCK_SIZE])> {
+        let i = self.block_index_from(b, self.home(b)?)?;
+        Some((i, self.blocks.get(i)?))
+    }
+
     /// The table slot where a lookup of the block with origin `b` starts; `None` outside
     /// a dense array.
     #[inline]
@@ -466,27 +478,22 @@ impl<'a> SnapshotView<'a> {
     /// The block with origin `b`, looked up from its [`Self::home`] slot `s`.
     #[inline]
     fn block_from(&self, b: [i32; 3], s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
-        if self.dense {
-            let e = self.slot(s);
-            self.blocks.get((e as usize).checked_sub(1)?)
-        } else {
-            self.probe(b, s)
-        }
+        self.blocks.get(self.block_index_from(b, s)?)
     }
 
-    /// The block with origin `b`, probing the hash table from slot `s` (its hash).
+    /// The index of the block with origin `b`, looked up from its [`Self::home`] slot `s`:
+    /// a dense index's slot names it; a hash table is probed from `s`.
     #[inline]
-    fn probe(&self, b: [i32; 3], mut s: u64) -> Option<&'a [u8; BLOCK_SIZE]> {
+    fn block_index_from(&self, b: [i32; 3], mut s: u64) -> Option<usize> {
+        if self.dense {
+            return (self.slot(s) as usize).checked_sub(1);
+        }
         let cap = self.header.table_capacity;
         // Bounded: validated tables have an empty slot; the bound guards nothing else.
         for _ in 0..cap {
-            let e = self.slot(s);
-            if e == 0 {
-                return None;
-            }
-            let block = self.blocks.get(e as usize - 1)?;
-            if block_origin_of(block) == b {
-                return Some(block);
+            let e = self.slot(s) as usize;
+            if block_origin_of(self.blocks.get(e.checked_sub(1)?)?) == b {
+                return Some(e - 1);
             }
             s = if s + 1 == cap { 0 } else { s + 1 };
         }

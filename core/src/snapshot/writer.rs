@@ -226,6 +226,7 @@ pub struct Plan<'a> {
 /// blocks and offsets in pieces.
 struct FieldPlan {
     header: FieldHeader,
+    blocks: Vec<FieldBlock>,
     entries: Vec<FieldEntry>,
     dists: Vec<Vec<u8>>,
     data: Vec<Vec<u8>>,
@@ -494,20 +495,16 @@ impl<'a> Plan<'a> {
                             .get(len2 as usize)
                             .map_or_else(|| quantise(len2, steps), |q| *q);
                     }
-                    let entry = FieldEntry {
-                        dists: (out.dists.len() / FIELD_DISTS - 1) as u32,
-                        data: (out.data.len() / 8) as u32,
-                    };
+                    let units = (out.data.len() / 8) as u32;
                     // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
                     let morton = (0..LEAF_VOXELS).map(|m| usize::from(UNMORTON[m]));
                     if count == 512 {
-                        out.entries.push(entry);
+                        out.entries.push(FieldEntry { data: units });
                         out.data
                             .extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
                     } else {
                         out.entries.push(FieldEntry {
-                            data: entry.data | FIELD_MASKED,
-                            ..entry
+                            data: units | FIELD_MASKED,
                         });
                         let mut bits = Mask512::EMPTY;
                         for i in mask.iter_ones() {
@@ -528,24 +525,45 @@ impl<'a> Plan<'a> {
             .collect();
         let mut entries = Vec::with_capacity(self.leaves.len());
         let (mut dists, mut data) = (Vec::new(), Vec::new());
-        let (mut blocks, mut at, mut band_count) = (0u64, 0u64, 0u64);
+        let (mut at, mut band_count) = (0u64, 0u64);
         for piece in pieces {
             // Places within a piece become places within the section; past the entries'
-            // limits they would wrap, and `write` refuses the plan.
-            entries.extend(piece.entries.into_iter().map(|mut e| {
-                if e.dists != FIELD_NO_BLOCK {
-                    e.dists = (blocks + u64::from(e.dists)).min(u64::from(FIELD_NO_BLOCK)) as u32;
-                    let units = at / 8 + u64::from(e.data & !FIELD_MASKED);
-                    e.data =
-                        units.min(u64::from(FIELD_MASKED - 1)) as u32 | (e.data & FIELD_MASKED);
+            // limit they would wrap, and `write` refuses the plan.
+            entries.extend(piece.entries.into_iter().map(|e| {
+                if e == FieldEntry::NONE {
+                    return e;
                 }
-                e
+                let units = (at / 8 + u64::from(e.data & !FIELD_MASKED)).min(FIELD_MAX_UNITS);
+                FieldEntry {
+                    data: units as u32 | (e.data & FIELD_MASKED),
+                }
             }));
-            blocks += (piece.dists.len() / FIELD_DISTS) as u64;
             at += piece.data.len() as u64;
             band_count += piece.band;
             dists.push(piece.dists);
             data.push(piece.data);
+        }
+        // Each block's leaves in the band, found as its leaves are: by in-block index.
+        let mut blocks = Vec::with_capacity(self.blocks.len());
+        let mut first = 0u64;
+        for b in &self.blocks {
+            let mut band = [0u64; 8];
+            let mut leaf = b.first as usize;
+            for (w, word) in b.leaves.iter().enumerate() {
+                for bit in crate::mask::BitIter(*word) {
+                    if entries[leaf] != FieldEntry::NONE {
+                        band[w] |= 1 << bit;
+                    }
+                    leaf += 1;
+                }
+            }
+            blocks.push(FieldBlock {
+                first: first.min(u64::from(u32::MAX)) as u32,
+                reserved: 0,
+                ranks: BlockEntry::ranks_of(&band),
+                band,
+            });
+            first += band.iter().map(|w| u64::from(w.count_ones())).sum::<u64>();
         }
         self.field = Some(FieldPlan {
             header: FieldHeader {
@@ -558,8 +576,9 @@ impl<'a> Plan<'a> {
                 window_hi: hi.to_array(),
                 band_count,
                 data_len: at,
-                dist_blocks: blocks,
+                dist_blocks: first,
             },
+            blocks,
             entries,
             dists,
             data,
@@ -586,7 +605,7 @@ impl<'a> Plan<'a> {
         let (field, total) = match &self.field {
             Some(f) => {
                 let at = align8(end);
-                let dists = field_dists_at(at, f.entries.len() as u64);
+                let dists = field_dists_at(at, f.blocks.len() as u64, f.entries.len() as u64);
                 (
                     at,
                     dists + FIELD_DISTS as u64 * f.header.dist_blocks + f.header.data_len,
@@ -623,8 +642,8 @@ impl<'a> Plan<'a> {
         } = self.sections();
         if self.masks_len > MAX_MASKS_LEN
             || self.field.as_ref().is_some_and(|f| {
-                f.header.data_len / 8 >= u64::from(FIELD_MASKED)
-                    || f.header.dist_blocks >= u64::from(FIELD_NO_BLOCK)
+                f.header.data_len / 8 > FIELD_MAX_UNITS
+                    || f.header.dist_blocks > u64::from(u32::MAX)
             })
             || self.table_capacity >= 1 << 32
             || self.leaves.len() as u64 >= u64::from(u32::MAX)
@@ -716,12 +735,15 @@ impl<'a> Plan<'a> {
                 [(field - (masks + align8(self.masks_len) + values_len as u64)) as usize..];
             let (head, rest) = field_bytes.split_at_mut(FIELD_HEADER_SIZE);
             head.copy_from_slice(bytemuck::bytes_of(&f.header));
+            let (block_out, rest) = rest.split_at_mut(FIELD_BLOCK_SIZE * f.blocks.len());
+            block_out.copy_from_slice(bytemuck::cast_slice(&f.blocks));
             let (entry_out, rest) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
             entry_out.copy_from_slice(bytemuck::cast_slice(&f.entries));
-            let dists_at = field_dists_at(field, f.entries.len() as u64);
+            let dists_at = field_dists_at(field, f.blocks.len() as u64, f.entries.len() as u64);
             let (pad, mut rest) = rest.split_at_mut(
                 (dists_at - field) as usize
                     - FIELD_HEADER_SIZE
+                    - FIELD_BLOCK_SIZE * f.blocks.len()
                     - FIELD_ENTRY_SIZE * f.entries.len(),
             );
             pad.fill(0);
