@@ -486,37 +486,45 @@ impl<'a> Plan<'a> {
                     let (mask, offsets) = (leaf.mask(), leaf.offsets());
                     let count = mask.count();
                     out.band += u64::from(count);
-                    let dists = out.dists.len();
-                    out.dists.resize(dists + FIELD_DISTS, FIELD_DIST_FAR);
-                    let dists = &mut out.dists[dists..];
-                    for (i, o) in mask.iter_ones().zip(offsets) {
-                        let len2 = offset_len2(*o);
-                        dists[usize::from(MORTON[i])] = quantised
+                    let q = |o: [i8; 3]| {
+                        let len2 = offset_len2(o);
+                        quantised
                             .get(len2 as usize)
-                            .map_or_else(|| quantise(len2, steps), |q| *q);
-                    }
+                            .map_or_else(|| quantise(len2, steps), |q| *q)
+                    };
                     let units = (out.data.len() / 8) as u32;
+                    let (d0, o0) = (out.dists.len(), out.data.len());
+                    out.dists.resize(d0 + FIELD_DISTS, FIELD_DIST_FAR);
+                    let dists = &mut out.dists[d0..];
                     // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
-                    let morton = (0..LEAF_VOXELS).map(|m| usize::from(UNMORTON[m]));
                     if count == 512 {
                         out.entries.push(FieldEntry { data: units });
-                        out.data
-                            .extend(morton.flat_map(|i| offsets[i].map(|c| c as u8)));
+                        out.data.resize(o0 + 3 * LEAF_VOXELS, 0);
+                        let data = &mut out.data[o0..];
+                        for (m, (d, o)) in
+                            dists.iter_mut().zip(data.chunks_exact_mut(3)).enumerate()
+                        {
+                            let off = offsets[usize::from(UNMORTON[m])];
+                            *d = q(off);
+                            o.copy_from_slice(&off.map(|c| c as u8));
+                        }
                     } else {
                         out.entries.push(FieldEntry {
                             data: units | FIELD_MASKED,
                         });
                         let mut bits = Mask512::EMPTY;
-                        for i in mask.iter_ones() {
-                            bits.set(usize::from(MORTON[i]));
+                        let mut by_place = [[0i8; 3]; LEAF_VOXELS];
+                        for (i, off) in mask.iter_ones().zip(offsets) {
+                            let m = usize::from(MORTON[i]);
+                            bits.set(m);
+                            dists[m] = q(*off);
+                            by_place[m] = *off;
                         }
                         out.data
                             .extend(bits.words.iter().flat_map(|w| w.to_le_bytes()));
-                        out.data.extend(
-                            morton
-                                .filter(|&i| mask.get(i))
-                                .flat_map(|i| offsets[mask.rank(i) as usize].map(|c| c as u8)),
-                        );
+                        for m in bits.iter_ones() {
+                            out.data.extend(by_place[m].map(|c| c as u8));
+                        }
                         out.data.resize(align8(out.data.len() as u64) as usize, 0);
                     }
                 }
