@@ -170,8 +170,9 @@ int voxmap_view_field(const struct voxmap_view *view,
                       double *max_distance,
                       int *unknown_is_occupied);
 
-// The distance (metres) at `p`, interpolated between the voxel centres around it and
-// capped at the field's max distance, and its gradient (per metre, pointing away from the
+// The distance (metres) at `p`, interpolated between the voxel centres around it (their
+// distances kept to the nearest 1/steps voxel, docs/distance-field.md) and capped at the
+// field's max distance, and its gradient (per metre, pointing away from the
 // nearest obstacles; `gradient` may be null): 1 when written, 0 where the field does not
 // reach (unknown space, outside its window), or an error code (no field).
 //

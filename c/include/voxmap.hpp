@@ -189,8 +189,9 @@ class View {
   }
 
   /// The distance (metres) to the nearest obstacle at p, interpolated between the voxel
-  /// centres around it and capped at the max distance; nothing where the field does not
-  /// reach (unknown space, outside its window). Throws without a field.
+  /// centres around it (their distances to the nearest 1/steps voxel, docs/distance-field.md)
+  /// and capped at the max distance; nothing where the field does not reach (unknown space,
+  /// outside its window). Throws without a field.
   std::optional<double> distance_at(const Vec3& p) const {
     double d = 0;
     if (detail::check(voxmap_view_distance_at(v_, p.data(), &d, nullptr)) == 0) return std::nullopt;

@@ -67,8 +67,9 @@ pub unsafe extern "C" fn voxmap_view_field(
     })
 }
 
-/// The distance (metres) at `p`, interpolated between the voxel centres around it and
-/// capped at the field's max distance, and its gradient (per metre, pointing away from the
+/// The distance (metres) at `p`, interpolated between the voxel centres around it (their
+/// distances kept to the nearest 1/steps voxel, docs/distance-field.md) and capped at the
+/// field's max distance, and its gradient (per metre, pointing away from the
 /// nearest obstacles; `gradient` may be null): 1 when written, 0 where the field does not
 /// reach (unknown space, outside its window), or an error code (no field).
 ///

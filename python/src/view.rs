@@ -227,7 +227,8 @@ impl View {
     }
 
     /// The distance (metres) to the nearest obstacle at p, interpolated between the voxel
-    /// centres around it and capped at the max distance, or None where the field does not
+    /// centres around it (their distances kept to the nearest 1/steps voxel) and capped at
+    /// the max distance, or None where the field does not
     /// reach (unknown space, outside its window). Raises VoxmapError without a field.
     fn distance_at(&self, p: [f64; 3]) -> PyResult<Option<f64>> {
         Ok(self.field_view()?.distance_at(&WorldPoint::from(p)))

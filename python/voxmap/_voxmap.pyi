@@ -58,8 +58,8 @@ class View:
         """(max distance in metres, unknown policy "free" or "occupied") of the snapshot's
         distance field, or None when it carries none (a service run with --esdf does)."""
     def distance_at(self, p: _Vec3) -> Optional[float]:
-        """Distance (m) to the nearest obstacle at p, interpolated between voxel centres and
-        capped at the max distance; None where the field does not reach. Raises
+        """Distance (m) to the nearest obstacle at p, interpolated between voxel centres
+        (their distances kept to the nearest 1/steps voxel) and capped at the max distance; None where the field does not reach. Raises
         VoxmapError without a field."""
     def distance_and_gradient_at(
         self, p: _Vec3
