@@ -65,7 +65,10 @@ impl<'a> FieldParts<'a> {
         if (0..3).any(|k| h.window_lo[k] > h.window_hi[k]) {
             return Err(bad("field window"));
         }
-        if !h.data_len.is_multiple_of(8) || h.data_len / 8 > FIELD_MAX_UNITS || h.dist_blocks > leaves {
+        if !h.data_len.is_multiple_of(8)
+            || h.data_len / 8 > FIELD_MAX_UNITS
+            || h.dist_blocks > leaves
+        {
             return Err(bad("field lengths"));
         }
         let nb = map_blocks.len() as u64;

@@ -219,26 +219,91 @@ pub struct Plan<'a> {
     sums: Sums,
     /// The voxels a box scope keeps (inclusive), `None` for the whole map.
     scope_box: Option<(VoxelCoord, VoxelCoord)>,
-    field: Option<FieldPlan>,
+    field: Option<FieldPlan<'a>>,
 }
 
-/// The distance field section, encoded: header, one entry per planned leaf, distance
-/// blocks and offsets in pieces.
-struct FieldPlan {
+/// The distance field section, planned: header, blocks and entries; the distance blocks
+/// and offsets are written from the field by [`Plan::write`], piece by piece.
+struct FieldPlan<'a> {
+    field: &'a crate::field::DistanceField,
     header: FieldHeader,
     blocks: Vec<FieldBlock>,
     entries: Vec<FieldEntry>,
-    dists: Vec<Vec<u8>>,
-    data: Vec<Vec<u8>>,
+    /// Per piece of [`PIECE`] leaves: bytes of its distance blocks and of its offsets.
+    pieces: Vec<(usize, usize)>,
+    /// Quantised distances by squared offset length, for every length the band holds.
+    quantised: Vec<u8>,
 }
 
-/// The field section of one piece of leaves, with places counted from the piece's start.
-#[derive(Default)]
+/// The field section of one piece of leaves, sized: entries with places counted from the
+/// piece's start.
 struct FieldPiece {
     entries: Vec<FieldEntry>,
-    dists: Vec<u8>,
-    data: Vec<u8>,
+    dists: usize,
+    data: usize,
     band: u64,
+}
+
+/// Bytes of a band leaf's offsets with `count` voxels in the band.
+fn offsets_len(count: u32) -> usize {
+    if count == 512 {
+        3 * LEAF_VOXELS
+    } else {
+        align8(64 + 3 * u64::from(count)) as usize
+    }
+}
+
+/// Write the distance blocks and offsets of `leaves` (one piece) into `dists` and `data`,
+/// sized for them by [`Plan::with_field`].
+fn write_field_piece(
+    leaves: &[PlannedLeaf<'_>],
+    f: &FieldPlan<'_>,
+    mut dists: &mut [u8],
+    mut data: &mut [u8],
+) {
+    let steps = f.header.steps;
+    let q = |o: [i8; 3]| {
+        let len2 = offset_len2(o);
+        f.quantised
+            .get(len2 as usize)
+            .map_or_else(|| quantise(len2, steps), |q| *q)
+    };
+    for p in leaves {
+        let Some(leaf) = f.field.leaf(p.origin) else {
+            continue;
+        };
+        let (mask, offsets) = (leaf.mask(), leaf.offsets());
+        let count = mask.count();
+        let d = take(&mut dists, FIELD_DISTS);
+        let o = take(&mut data, offsets_len(count));
+        // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
+        if count == 512 {
+            for (m, (d, o)) in d.iter_mut().zip(o.chunks_exact_mut(3)).enumerate() {
+                let off = offsets[usize::from(UNMORTON[m])];
+                *d = q(off);
+                o.copy_from_slice(&off.map(|c| c as u8));
+            }
+        } else {
+            d.fill(FIELD_DIST_FAR);
+            let mut bits = Mask512::EMPTY;
+            let mut by_place = [[0i8; 3]; LEAF_VOXELS];
+            for (i, off) in mask.iter_ones().zip(offsets) {
+                let m = usize::from(MORTON[i]);
+                bits.set(m);
+                d[m] = q(*off);
+                by_place[m] = *off;
+            }
+            let (head, rest) = o.split_at_mut(64);
+            for (h, w) in head.chunks_exact_mut(8).zip(bits.words) {
+                h.copy_from_slice(&w.to_le_bytes());
+            }
+            let (offs, pad) = rest.split_at_mut(3 * count as usize);
+            for (out, m) in offs.chunks_exact_mut(3).zip(bits.iter_ones()) {
+                out.copy_from_slice(&by_place[m].map(|c| c as u8));
+            }
+            pad.fill(0);
+        }
+    }
 }
 
 /// Section offsets and the total length.
@@ -456,7 +521,7 @@ impl<'a> Plan<'a> {
     }
 
     /// Carry `field` (kept beside the planned map) in the snapshot, for the leaves planned.
-    pub fn with_field(mut self, field: &crate::field::DistanceField) -> Self {
+    pub fn with_field(mut self, field: &'a crate::field::DistanceField) -> Self {
         let whole = (
             VoxelCoord::new(i32::MIN, i32::MIN, i32::MIN),
             VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
@@ -467,7 +532,6 @@ impl<'a> Plan<'a> {
             hi = hi.min(bhi);
         }
         let steps = field_steps(field.radius());
-        // Quantised distances by squared offset length: every length a band can hold.
         let r2 = (field.radius() * field.radius()) as i32;
         let quantised: Vec<u8> = (0..r2).map(|l| quantise(l, steps)).collect();
         let pieces: Vec<FieldPiece> = self
@@ -476,63 +540,33 @@ impl<'a> Plan<'a> {
             .map(|piece| {
                 let mut out = FieldPiece {
                     entries: Vec::with_capacity(piece.len()),
-                    ..Default::default()
+                    dists: 0,
+                    data: 0,
+                    band: 0,
                 };
                 for p in piece {
                     let Some(leaf) = field.leaf(p.origin) else {
                         out.entries.push(FieldEntry::NONE);
                         continue;
                     };
-                    let (mask, offsets) = (leaf.mask(), leaf.offsets());
-                    let count = mask.count();
+                    let count = leaf.mask().count();
+                    let units = (out.data / 8) as u32;
+                    out.entries.push(FieldEntry {
+                        data: if count == 512 {
+                            units
+                        } else {
+                            units | FIELD_MASKED
+                        },
+                    });
                     out.band += u64::from(count);
-                    let q = |o: [i8; 3]| {
-                        let len2 = offset_len2(o);
-                        quantised
-                            .get(len2 as usize)
-                            .map_or_else(|| quantise(len2, steps), |q| *q)
-                    };
-                    let units = (out.data.len() / 8) as u32;
-                    let (d0, o0) = (out.dists.len(), out.data.len());
-                    out.dists.resize(d0 + FIELD_DISTS, FIELD_DIST_FAR);
-                    let dists = &mut out.dists[d0..];
-                    // Voxels in Morton order (`tree::MORTON`), the mask's bits too.
-                    if count == 512 {
-                        out.entries.push(FieldEntry { data: units });
-                        out.data.resize(o0 + 3 * LEAF_VOXELS, 0);
-                        let data = &mut out.data[o0..];
-                        for (m, (d, o)) in
-                            dists.iter_mut().zip(data.chunks_exact_mut(3)).enumerate()
-                        {
-                            let off = offsets[usize::from(UNMORTON[m])];
-                            *d = q(off);
-                            o.copy_from_slice(&off.map(|c| c as u8));
-                        }
-                    } else {
-                        out.entries.push(FieldEntry {
-                            data: units | FIELD_MASKED,
-                        });
-                        let mut bits = Mask512::EMPTY;
-                        let mut by_place = [[0i8; 3]; LEAF_VOXELS];
-                        for (i, off) in mask.iter_ones().zip(offsets) {
-                            let m = usize::from(MORTON[i]);
-                            bits.set(m);
-                            dists[m] = q(*off);
-                            by_place[m] = *off;
-                        }
-                        out.data
-                            .extend(bits.words.iter().flat_map(|w| w.to_le_bytes()));
-                        for m in bits.iter_ones() {
-                            out.data.extend(by_place[m].map(|c| c as u8));
-                        }
-                        out.data.resize(align8(out.data.len() as u64) as usize, 0);
-                    }
+                    out.dists += FIELD_DISTS;
+                    out.data += offsets_len(count);
                 }
                 out
             })
             .collect();
         let mut entries = Vec::with_capacity(self.leaves.len());
-        let (mut dists, mut data) = (Vec::new(), Vec::new());
+        let mut sizes = Vec::with_capacity(pieces.len());
         let (mut at, mut band_count) = (0u64, 0u64);
         for piece in pieces {
             // Places within a piece become places within the section; past the entries'
@@ -546,10 +580,9 @@ impl<'a> Plan<'a> {
                     data: units as u32 | (e.data & FIELD_MASKED),
                 }
             }));
-            at += piece.data.len() as u64;
+            at += piece.data as u64;
             band_count += piece.band;
-            dists.push(piece.dists);
-            data.push(piece.data);
+            sizes.push((piece.dists, piece.data));
         }
         // Each block's leaves in the band, found as its leaves are: by in-block index.
         let mut blocks = Vec::with_capacity(self.blocks.len());
@@ -586,10 +619,11 @@ impl<'a> Plan<'a> {
                 data_len: at,
                 dist_blocks: first,
             },
+            field,
             blocks,
             entries,
-            dists,
-            data,
+            pieces: sizes,
+            quantised,
         });
         self
     }
@@ -748,20 +782,22 @@ impl<'a> Plan<'a> {
             let (entry_out, rest) = rest.split_at_mut(FIELD_ENTRY_SIZE * f.entries.len());
             entry_out.copy_from_slice(bytemuck::cast_slice(&f.entries));
             let dists_at = field_dists_at(field, f.blocks.len() as u64, f.entries.len() as u64);
-            let (pad, mut rest) = rest.split_at_mut(
+            let (pad, rest) = rest.split_at_mut(
                 (dists_at - field) as usize
                     - FIELD_HEADER_SIZE
                     - FIELD_BLOCK_SIZE * f.blocks.len()
                     - FIELD_ENTRY_SIZE * f.entries.len(),
             );
             pad.fill(0);
-            let mut pieces = Vec::with_capacity(f.dists.len() + f.data.len());
-            for d in f.dists.iter().chain(&f.data) {
-                pieces.push((take(&mut rest, d.len()), d));
+            let (mut dists, mut data) =
+                rest.split_at_mut(FIELD_DISTS * f.header.dist_blocks as usize);
+            let mut pieces = Vec::with_capacity(f.pieces.len());
+            for (leaves, &(d, o)) in self.leaves.chunks(PIECE).zip(&f.pieces) {
+                pieces.push((leaves, take(&mut dists, d), take(&mut data, o)));
             }
             pieces
                 .into_par_iter()
-                .for_each(|(out, d)| out.copy_from_slice(d));
+                .for_each(|(leaves, d, o)| write_field_piece(leaves, f, d, o));
         }
         let sums = &self.sums;
         let checksum = buf[HEADER_SIZE..]
