@@ -1,11 +1,10 @@
 //! The distance field section of a snapshot, read in place: [`FieldView`].
 //!
-//! Each leaf of the snapshot has a [`FieldEntry`]: none of its voxels in the band, or its
-//! data on a line of its own: 512 quantised distances, then the offsets of all its voxels
-//! or a mask and the offsets of the voxels it sets. An offset is the step from a voxel to
-//! its nearest obstacle voxel (exact distances and `nearest_obstacle` read it); the
-//! interpolating queries read the one-byte distances, whose eight corners mostly share a
-//! cache line. The leaf is found by the same block lookup as a state query.
+//! Each leaf with voxels in the band has a distance block (a byte per voxel, its distance
+//! quantised) and its offsets (the step from each voxel to its nearest obstacle voxel).
+//! The interpolating queries find a leaf's distance block from its block alone, as the
+//! table names it, and read eight bytes, most often on one cache line; the exact queries
+//! (`distance`, `nearest_obstacle`) read the leaf's entry and its offsets.
 
 use super::layout::*;
 use super::view::{block_word, SnapshotView};
