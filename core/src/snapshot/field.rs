@@ -11,9 +11,8 @@ use super::view::{block_word, SnapshotView};
 use super::SnapshotError;
 use crate::coord::{VoxelCoord, WorldPoint, MAX_VOXEL_INDEX};
 use crate::field::{offset_len2, UnknownPolicy, MAX_RADIUS};
-use crate::grid::{block_origin, leaf_in_block};
 use crate::mask::BitIter;
-use crate::tree::{leaf_offset, LEAF_VOXELS, MORTON};
+use crate::tree::{block_origin, leaf_in_block, leaf_offset, LEAF_VOXELS, MORTON};
 use nalgebra::Vector3;
 
 /// The validated pieces of a field section.
