@@ -59,6 +59,7 @@ fn gather_bytes(words: &[u64; 8], y: usize) -> u64 {
 /// The mask's rows along `axis` (0, 1, 2), as 64 bytes held in 8 words (row `r` is byte
 /// `r & 7` of word `r >> 3`).
 #[inline(always)]
+#[cfg(feature = "map")]
 fn to_rows(m: &Mask512, axis: u8) -> [u64; 8] {
     match axis {
         0 => m.words,
@@ -92,6 +93,7 @@ fn nonzero_bytes(v: u64) -> u8 {
 
 /// The presence word of `rows`.
 #[inline(always)]
+#[cfg(feature = "map")]
 fn presence(rows: &[u64; 8]) -> u64 {
     rows.iter()
         .enumerate()
@@ -147,6 +149,7 @@ impl Shifts {
 
 /// Axis and complement of a kind >= 2.
 #[inline]
+#[cfg(feature = "map")]
 fn rows_kind(kind: u8) -> (u8, bool) {
     (axis_of(kind), kind >= 5)
 }
@@ -229,6 +232,7 @@ fn smallest(rows: &[u32; 6]) -> Choice {
 /// the length written at the start of `out`. With `avx512`, rows are compressed with one
 /// VBMI2 store.
 #[inline(always)]
+#[cfg(feature = "map")]
 pub(crate) fn encode(
     known: &Mask512,
     known_kind: u8,
@@ -285,6 +289,7 @@ pub(crate) fn encode(
 /// of the random 500k 60 m map took 277-305 ms against 314-389 (minimum of 12 encodes,
 /// three alternated probe runs).
 #[inline(always)]
+#[cfg(feature = "map")]
 fn compress_rows(
     rows: &[u64; 8],
     present: u64,
@@ -313,8 +318,10 @@ fn compress_rows(
 /// kernel ([`crate::kernel::Kernel::process`]) and the CPU has every feature that
 /// `writer::encode_piece_avx512` enables (the list in `detect` is the same).
 #[derive(Clone, Copy, Debug)]
+#[cfg(feature = "map")]
 pub(crate) struct Avx512Encode(());
 
+#[cfg(feature = "map")]
 impl Avx512Encode {
     /// `Some` where the CPU and kernel allow it; checked once per process.
     pub fn detect() -> Option<Avx512Encode> {
@@ -346,6 +353,7 @@ impl Avx512Encode {
 /// The CPU must have AVX-512F and VBMI2, and `out` must hold `present.count_ones()` bytes.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vbmi2")]
+#[cfg(feature = "map")]
 unsafe fn compress_rows_vbmi2(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
     use std::arch::x86_64::*;
     // SAFETY: the load reads the 64 bytes of `rows`; the compressing store writes
