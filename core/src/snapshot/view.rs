@@ -92,7 +92,7 @@ fn block_origin_of(b: &[u8; BLOCK_SIZE]) -> [i32; 3] {
 
 /// A block entry's first leaf.
 #[inline]
-pub(super) fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
+fn block_first(b: &[u8; BLOCK_SIZE]) -> u32 {
     u32::from_le_bytes([b[12], b[13], b[14], b[15]])
 }
 
