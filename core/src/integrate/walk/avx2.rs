@@ -3,18 +3,22 @@
 //! lane, walked the random 500k 60 m frame's rays 35-50% slower than one ray at a time;
 //! see `docs/design.md`.)
 //!
-//! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters and no compress,
-//! so this is not the AVX-512 walk narrowed: the lane masks are vectors (all ones or all
-//! zeros per lane), a finished axis's next crossing is `i64::MAX` so that signed compares
-//! order the crossings, a new ray is set up in scalar code ([`raycast::axis`], exactly as
-//! [`crate::raycast::Dda::new`] does) for the lanes that need one, and marks are written
-//! lane by lane. Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y,
-//! z) and end voxel as `super::dense::walk_rays`.
+//! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters, no compress and
+//! no conversion from doubles to 64-bit integers, so this is not the AVX-512 walk
+//! narrowed: the lane masks are vectors (all ones or all zeros per lane), a finished
+//! axis's next crossing is `i64::MAX` so that signed compares order the crossings, each
+//! lane's rays are set up four at a time into a queue of its own ([`Axis::setup`], bit
+//! for bit `raycast::axis`), every lane walks as many steps as the live lane with the
+//! fewest left (so the loop tests no lane for its end), and marks are written lane by
+//! lane. Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and
+//! end voxel as `super::dense::walk_rays`. The walk stays inside the box because the
+//! origin's voxel and every end voxel are checked to be in it: a walk moves along each
+//! axis monotonically from the one to the other.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
-use crate::raycast;
+use crate::raycast::T_ONE;
 use std::arch::x86_64::*;
 use std::ops::Range;
 
@@ -25,37 +29,118 @@ const NEVER: i64 = i64::MAX;
 /// crosses once, and the cap keeps `t + between` below [`NEVER`].
 const T_CAP: u64 = 1 << 62;
 
-/// One ray's per-axis set-up in lane form: next crossing, between, last, index increment,
-/// and the ray's steps.
-struct Setup {
-    t: [i64; 3],
-    d: [i64; 3],
-    last: [i64; 3],
-    inc: [i64; 3],
-    n: i64,
+/// Per-axis constants of the rays' set-up: all rays start at the same origin.
+struct Axis {
+    /// The origin, its voxel's lower face, and the distances from the origin to the
+    /// faces above and below it, as `raycast::axis` computes them.
+    o: __m256d,
+    s: __m256d,
+    up: __m256d,
+    down: __m256d,
+    /// Index increment of one step up the axis.
+    stride: __m256i,
+    /// The box's voxels along the axis, `lo..hi`, as floats.
+    lo: __m256d,
+    hi: __m256d,
 }
 
-fn setup(origin: [f64; 3], end: [f64; 3], strides: [i64; 3]) -> Setup {
-    let mut s = Setup {
-        t: [NEVER; 3],
-        d: [0; 3],
-        last: [0; 3],
-        inc: [0; 3],
-        n: 0,
-    };
-    for a in 0..3 {
-        let (_, dir, t0, d, last, n) = raycast::axis(origin[a], end[a]);
-        if n > 0 {
-            // t0 and last are at most about 2^60 (t = 1); `d` above the cap only when
-            // n = 1, where `last` does not use it.
-            s.t[a] = t0.min(T_CAP) as i64;
-            s.d[a] = d.min(T_CAP) as i64;
-            s.last[a] = last.min(T_CAP) as i64;
-            s.inc[a] = i64::from(dir) * strides[a];
+/// Four rays' set-up in lane form, lane `l` for the `l`-th ray, per axis: next crossing
+/// (`NEVER` for an axis without any), between, last, index increment; and each ray's
+/// steps.
+struct Setup4 {
+    t: [[i64; 4]; 3],
+    d: [[i64; 4]; 3],
+    last: [[i64; 4]; 3],
+    inc: [[i64; 4]; 3],
+    n: [i64; 4],
+}
+
+/// `v` truncated to an integer, for `0 <= v <= 2^62` (AVX2 has no conversion from
+/// doubles to 64-bit integers): the significand with its implicit bit, shifted by the
+/// exponent. Shifts of 64 or more give 0, so one of the two shifts is the answer.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn trunc_u64(v: __m256d) -> __m256i {
+    let bits = _mm256_castpd_si256(v);
+    let exp = _mm256_srli_epi64::<52>(bits);
+    let mant = _mm256_or_si256(
+        _mm256_and_si256(bits, _mm256_set1_epi64x((1 << 52) - 1)),
+        _mm256_set1_epi64x(1 << 52),
+    );
+    let bias = _mm256_set1_epi64x(1075);
+    _mm256_or_si256(
+        _mm256_sllv_epi64(mant, _mm256_sub_epi64(exp, bias)),
+        _mm256_srlv_epi64(mant, _mm256_sub_epi64(bias, exp)),
+    )
+}
+
+impl Axis {
+    fn new(o: f64, stride: i64, lo: i32, len: u64) -> Self {
+        let s = o.floor();
+        // SAFETY: only built inside `walk`, which requires AVX2.
+        unsafe {
+            Axis {
+                o: _mm256_set1_pd(o),
+                s: _mm256_set1_pd(s),
+                up: _mm256_set1_pd(s + 1.0 - o),
+                down: _mm256_set1_pd(o - s),
+                stride: _mm256_set1_epi64x(stride),
+                lo: _mm256_set1_pd(f64::from(lo)),
+                hi: _mm256_set1_pd(f64::from(lo) + len as f64),
+            }
         }
-        s.n += i64::from(n);
     }
-    s
+
+    /// One axis of four rays' set-up, ending at `e`: lane by lane the arithmetic of
+    /// `raycast::axis` in the same order, so bit for bit `Dda::new`'s, with `t`, `d` and
+    /// `last` capped at [`T_CAP`]. Returns (t, d, last, inc, n, inside): `inside` all ones
+    /// where the end voxel lies in the box.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn setup(&self, e: __m256d) -> [__m256i; 6] {
+        let t = _mm256_floor_pd(e);
+        let inside = _mm256_and_pd(
+            _mm256_cmp_pd::<_CMP_GE_OQ>(t, self.lo),
+            _mm256_cmp_pd::<_CMP_LT_OQ>(t, self.hi),
+        );
+        // Floors of coordinates inside the box: their difference is exact, and below 2^31.
+        let diff = _mm256_sub_pd(t, self.s);
+        let abs = |v: __m256d| _mm256_andnot_pd(_mm256_set1_pd(-0.0), v);
+        let n = _mm256_cvtepi32_epi64(_mm256_cvttpd_epi32(abs(diff)));
+        let none = _mm256_cmpeq_epi64(n, _mm256_setzero_si256());
+        let up = _mm256_cmp_pd::<_CMP_GT_OQ>(t, self.s);
+        let inv = _mm256_div_pd(_mm256_set1_pd(1.0), abs(_mm256_sub_pd(e, self.o)));
+        let face = _mm256_blendv_pd(self.down, self.up, up);
+        let cap = _mm256_set1_pd(T_CAP as f64);
+        let one = _mm256_set1_pd(T_ONE);
+        let t0 = trunc_u64(_mm256_min_pd(
+            _mm256_mul_pd(_mm256_mul_pd(face, inv), one),
+            cap,
+        ));
+        // `d` reaches the cap only where `n` is 1, where `last` does not use it; where
+        // `n` is 2 or more the ray is longer than a voxel, so t0, d (n - 1) and their sum
+        // stay below 2^61 and `d` below 2^60: the 32 x 32-bit products below are exact.
+        let d = trunc_u64(_mm256_min_pd(_mm256_mul_pd(inv, one), cap));
+        let k = _mm256_sub_epi64(n, _mm256_set1_epi64x(1));
+        let dk = _mm256_add_epi64(
+            _mm256_mul_epu32(d, k),
+            _mm256_slli_epi64::<32>(_mm256_mul_epu32(_mm256_srli_epi64::<32>(d), k)),
+        );
+        let last = _mm256_add_epi64(t0, dk);
+        let inc = _mm256_blendv_epi8(
+            _mm256_sub_epi64(_mm256_setzero_si256(), self.stride),
+            self.stride,
+            _mm256_castpd_si256(up),
+        );
+        [
+            _mm256_blendv_epi8(t0, _mm256_set1_epi64x(NEVER), none),
+            _mm256_andnot_si256(none, d),
+            _mm256_andnot_si256(none, last),
+            _mm256_andnot_si256(none, inc),
+            n,
+            _mm256_castpd_si256(inside),
+        ]
+    }
 }
 
 /// Each lane's rays: its current range, then the ones left to hand out.
@@ -136,6 +221,75 @@ fn lanes(m: __m256i) -> u32 {
     _mm256_movemask_pd(_mm256_castsi256_pd(m)) as u32
 }
 
+/// Up to four rays of one lane, set up together, in the order its feed gave them.
+struct Queue {
+    s: Setup4,
+    hit: [bool; 4],
+    len: usize,
+    next: usize,
+}
+
+impl Queue {
+    fn new() -> Self {
+        Queue {
+            s: Setup4 {
+                t: [[NEVER; 4]; 3],
+                d: [[0; 4]; 3],
+                last: [[0; 4]; 3],
+                inc: [[0; 4]; 3],
+                n: [0; 4],
+            },
+            hit: [false; 4],
+            len: 0,
+            next: 0,
+        }
+    }
+
+    /// Lane `l`'s next ray: its index in the queue, set up with its next four from `feed`
+    /// when the queue is empty; `None` when the lane has no rays left.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn pop(
+        &mut self,
+        feed: &mut Feed<'_>,
+        l: usize,
+        axes: &[Axis; 3],
+        origin: [f64; 3],
+    ) -> Option<usize> {
+        if self.next == self.len {
+            // Lanes without a ray end at the origin: no steps.
+            let mut ends = [origin; 4];
+            self.len = 0;
+            while self.len < 4 {
+                let Some(r) = feed.next(l) else { break };
+                (ends[self.len], self.hit[self.len]) = (r.end, r.hit);
+                self.len += 1;
+            }
+            if self.len == 0 {
+                return None;
+            }
+            self.next = 0;
+            let mut inside = _mm256_set1_epi64x(-1);
+            let mut n = _mm256_setzero_si256();
+            for (a, axis) in axes.iter().enumerate() {
+                let e = _mm256_set_pd(ends[3][a], ends[2][a], ends[1][a], ends[0][a]);
+                let [t, d, last, inc, na, ins] = axis.setup(e);
+                (self.s.t[a], self.s.d[a], self.s.last[a], self.s.inc[a]) =
+                    (to_array(t), to_array(d), to_array(last), to_array(inc));
+                n = _mm256_add_epi64(n, na);
+                inside = _mm256_and_si256(inside, ins);
+            }
+            // The walk's reads and writes stay in the box only if every end voxel does.
+            if lanes(inside) != 0b1111 {
+                outside_the_box();
+            }
+            self.s.n = to_array(n);
+        }
+        self.next += 1;
+        Some(self.next - 1)
+    }
+}
+
 #[target_feature(enable = "avx2")]
 fn walk<const TEST_FIRST: bool>(
     bits: &mut DenseBits,
@@ -145,7 +299,21 @@ fn walk<const TEST_FIRST: bool>(
     ranges: [Range<usize>; 8],
 ) -> u64 {
     let strides = dbox.strides();
-    let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
+    let origin_voxel = crate::coord::units_to_voxel(origin).expect("origin checked");
+    let (lo, d) = (dbox.lo, origin_voxel - dbox.lo);
+    if [d.x, d.y, d.z]
+        .iter()
+        .zip(dbox.n)
+        .any(|(&d, n)| d < 0 || d as u64 >= n)
+    {
+        outside_the_box();
+    }
+    let axes = [
+        Axis::new(origin[0], strides[0], lo.x, dbox.n[0]),
+        Axis::new(origin[1], strides[1], lo.y, dbox.n[1]),
+        Axis::new(origin[2], strides[2], lo.z, dbox.n[2]),
+    ];
+    let start = dbox.index(origin_voxel);
     let sink = dbox.sink() as i64;
     let (free, hits) = bits.words_mut();
     let [r0, r1, r2, r3, r4, r5, r6, r7] = ranges;
@@ -156,11 +324,11 @@ fn walk<const TEST_FIRST: bool>(
         spare: [r7, r6, r5, r4],
         spare_left: 4,
     };
+    let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let zero = _mm256_setzero_si256();
-    let ones = _mm256_set1_epi64x(-1);
     let one = _mm256_set1_epi64x(1);
+    let low6 = _mm256_set1_epi64x(63);
     let never = _mm256_set1_epi64x(NEVER);
-    let words = _mm256_set1_epi64x(free.len() as i64);
     // Lane state, kept in arrays between refills and in registers while walking.
     let mut st = [[NEVER; 4]; 3];
     let mut dt = [[0i64; 4]; 3];
@@ -176,24 +344,25 @@ fn walk<const TEST_FIRST: bool>(
         // Give each lane in `need` its next ray that takes a step; rays that end in their
         // start voxel are done here (a hit at most).
         for l in BitIter(u64::from(need)) {
-            while let Some(r) = feed.next(l) {
-                let s = setup(origin, r.end, strides);
-                steps += s.n as u64 + 1;
-                if s.n == 0 {
-                    if r.hit {
+            let q = &mut queues[l];
+            while let Some(j) = q.pop(&mut feed, l, &axes, origin) {
+                let n = q.s.n[j];
+                steps += n as u64 + 1;
+                if n == 0 {
+                    if q.hit[j] {
                         set_bit(hits, start);
                     }
                     continue;
                 }
                 for a in 0..3 {
-                    st[a][l] = s.t[a];
-                    dt[a][l] = s.d[a];
-                    lt[a][l] = s.last[a];
-                    mt[a][l] = s.inc[a];
+                    st[a][l] = q.s.t[a][j];
+                    dt[a][l] = q.s.d[a][j];
+                    lt[a][l] = q.s.last[a][j];
+                    mt[a][l] = q.s.inc[a][j];
                 }
                 pos[l] = start as i64;
-                rem[l] = s.n;
-                hit[l] = r.hit;
+                rem[l] = n;
+                hit[l] = q.hit[j];
                 live |= 1 << l;
                 break;
             }
@@ -201,34 +370,34 @@ fn walk<const TEST_FIRST: bool>(
         if live == 0 {
             break;
         }
-        // A lane without a ray sits on the sink bit and does not move (no increments),
-        // its count never reaches 0: the loop needs no lane mask.
+        // A lane without a ray sits on the sink bit and does not move (no increments):
+        // the loop needs no lane mask.
         for l in 0..4 {
             if live >> l & 1 == 0 {
                 for a in 0..3 {
                     (st[a][l], dt[a][l], lt[a][l], mt[a][l]) = (NEVER, 0, 0, 0);
                 }
-                (pos[l], rem[l]) = (sink, -1);
+                (pos[l], rem[l]) = (sink, i64::MAX);
             }
         }
+        // Every lane walks as many steps as the live lane with the fewest left, so the
+        // loop tests no lane for its end.
+        let k = rem.iter().copied().min().unwrap_or(0);
         let (mut tx, mut ty, mut tz) = (from_array(st[0]), from_array(st[1]), from_array(st[2]));
         let (dx, dy, dz) = (from_array(dt[0]), from_array(dt[1]), from_array(dt[2]));
         let (lx, ly, lz) = (from_array(lt[0]), from_array(lt[1]), from_array(lt[2]));
         let (mx, my, mz) = (from_array(mt[0]), from_array(mt[1]), from_array(mt[2]));
         let mut p = from_array(pos);
-        let mut left = from_array(rem);
-        // Walk until a lane ends its ray.
-        let ended = loop {
+        for _ in 0..k {
             if TEST_FIRST {
                 // Most marks are set already: read the words with one gather and write
                 // only the lanes whose bit is not yet set.
                 let word = _mm256_srli_epi64::<6>(p);
-                let bit = _mm256_sllv_epi64(one, _mm256_and_si256(p, _mm256_set1_epi64x(63)));
-                if lanes(_mm256_cmpgt_epi64(words, word)) != 0b1111 {
-                    outside_the_box();
-                }
-                // SAFETY: every lane's `word < free.len()` (checked just above; lanes
-                // without a ray read the sink's word), so every read is inside `free`.
+                let bit = _mm256_sllv_epi64(one, _mm256_and_si256(p, low6));
+                // SAFETY: every lane's voxel is in the box, so `word < free.len()`: the
+                // origin's voxel and each ray's end voxel were checked to be (`pop`), and
+                // a walk moves along each axis monotonically from the one to the other;
+                // lanes without a ray read the sink's word, the last of `free`.
                 let w = unsafe { _mm256_i64gather_epi64::<8>(free.as_ptr().cast(), word) };
                 let unset = lanes(_mm256_cmpeq_epi64(_mm256_and_si256(w, bit), zero));
                 if unset != 0 {
@@ -254,31 +423,25 @@ fn walk<const TEST_FIRST: bool>(
                 _mm256_blendv_epi8(_mm256_add_epi64(ty, dy), never, _mm256_cmpeq_epi64(ty, ly));
             let nz =
                 _mm256_blendv_epi8(_mm256_add_epi64(tz, dz), never, _mm256_cmpeq_epi64(tz, lz));
-            let cx = _mm256_andnot_si256(_mm256_or_si256(gxy, gxz), ones);
-            let cy = _mm256_andnot_si256(_mm256_or_si256(cx, gyz), ones);
-            let cz = _mm256_andnot_si256(cx, gyz);
-            tx = _mm256_blendv_epi8(tx, nx, cx);
-            ty = _mm256_blendv_epi8(ty, ny, cy);
-            tz = _mm256_blendv_epi8(tz, nz, cz);
-            let inc = _mm256_or_si256(
-                _mm256_or_si256(_mm256_and_si256(cx, mx), _mm256_and_si256(cy, my)),
-                _mm256_and_si256(cz, mz),
+            // Not x: y where its crossing is not after z's, else z.
+            let not_x = _mm256_or_si256(gxy, gxz);
+            tx = _mm256_blendv_epi8(nx, tx, not_x);
+            ty = _mm256_blendv_epi8(ty, ny, _mm256_andnot_si256(gyz, not_x));
+            tz = _mm256_blendv_epi8(tz, nz, _mm256_and_si256(gyz, not_x));
+            p = _mm256_add_epi64(
+                p,
+                _mm256_blendv_epi8(mx, _mm256_blendv_epi8(my, mz, gyz), not_x),
             );
-            p = _mm256_add_epi64(p, inc);
-            left = _mm256_sub_epi64(left, one);
-            let end = lanes(_mm256_cmpeq_epi64(left, zero));
-            if end != 0 {
-                break end;
-            }
-        };
-        (st, pos, rem) = (
-            [to_array(tx), to_array(ty), to_array(tz)],
-            to_array(p),
-            to_array(left),
-        );
-        for l in BitIter(u64::from(ended)) {
-            if hit[l] {
-                set_bit(hits, pos[l] as u64);
+        }
+        (st, pos) = ([to_array(tx), to_array(ty), to_array(tz)], to_array(p));
+        let mut ended = 0;
+        for l in 0..4 {
+            rem[l] -= k;
+            if rem[l] == 0 {
+                ended |= 1 << l;
+                if hit[l] {
+                    set_bit(hits, pos[l] as u64);
+                }
             }
         }
         live &= !ended;
@@ -292,4 +455,101 @@ fn walk<const TEST_FIRST: bool>(
 #[inline(never)]
 fn outside_the_box() -> ! {
     panic!("dense walk left its box");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raycast;
+    use crate::test_rng::Rng;
+
+    /// One axis of one ray as `raycast::axis` sets it up, in lane form.
+    fn scalar(o: f64, e: f64, stride: i64) -> [i64; 5] {
+        let (_, dir, t0, d, last, n) = raycast::axis(o, e);
+        if n == 0 {
+            return [NEVER, 0, 0, 0, 0];
+        }
+        [
+            t0.min(T_CAP) as i64,
+            d.min(T_CAP) as i64,
+            last.min(T_CAP) as i64,
+            i64::from(dir) * stride,
+            i64::from(n),
+        ]
+    }
+
+    #[test]
+    fn four_lane_setup_equals_the_scalar_one_bit_for_bit() {
+        if !is_x86_feature_detected!("avx2") {
+            println!("notice: this CPU has no AVX2; the AVX2 set-up is not tested here");
+            return;
+        }
+        let mut rng = Rng(7);
+        let mut cases: Vec<(f64, f64)> = Vec::new();
+        // On faces, just off them, tiny and long crossings, both directions.
+        for o in [
+            0.0,
+            0.5,
+            1.0,
+            1.0 - 1e-16,
+            3.999_999_999,
+            -2.0,
+            -0.25,
+            100.125,
+        ] {
+            for de in [0.0, 1e-300, 1e-16, 0.5, 1.0, 1.5, 2.0, 63.0, 64.75, 8191.5] {
+                cases.push((o, o + de));
+                cases.push((o, o - de));
+            }
+        }
+        for _ in 0..200_000 {
+            let o = (rng.f() - 0.5) * 200.0;
+            let len = if rng.f() < 0.5 {
+                rng.f() * 4.0
+            } else {
+                rng.f() * 2000.0
+            };
+            cases.push((o, o + (rng.f() - 0.5) * len));
+        }
+        let stride = 1 << 12;
+        for (o, group) in cases
+            .chunks(4)
+            .flat_map(|g| [g[0].0, 1.0, -3.5].map(|o| (o, g)))
+        {
+            // Every ray of a group from one origin, as in a frame.
+            let ends: Vec<f64> = group.iter().map(|&(go, e)| o + (e - go)).collect();
+            let mut e4 = [o; 4];
+            e4[..ends.len()].copy_from_slice(&ends);
+            // SAFETY: AVX2 was detected above.
+            let got = unsafe {
+                let axis = Axis::new(o, stride, -100_000, 200_000);
+                axis.setup(_mm256_set_pd(e4[3], e4[2], e4[1], e4[0]))
+            };
+            for (l, &e) in e4.iter().enumerate() {
+                let want = scalar(o, e, stride);
+                let lane: [i64; 5] = std::array::from_fn(|k| to_array(got[k])[l]);
+                assert_eq!(lane, want, "origin {o:e}, end {e:e}");
+                assert_eq!(
+                    to_array(got[5])[l],
+                    -1,
+                    "origin {o:e}, end {e:e} is in the box"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn ends_outside_the_box_are_found() {
+        if !is_x86_feature_detected!("avx2") {
+            println!("notice: this CPU has no AVX2; the AVX2 set-up is not tested here");
+            return;
+        }
+        // Box voxels -4..12 along the axis.
+        // SAFETY: AVX2 was detected above.
+        let inside = unsafe {
+            let axis = Axis::new(0.5, 1, -4, 16);
+            to_array(axis.setup(_mm256_set_pd(12.0, 11.999, -4.0, -4.001))[5])
+        };
+        assert_eq!(inside, [0, -1, -1, 0]);
+    }
 }
