@@ -9,8 +9,8 @@
 //! axis's next crossing is `i64::MAX` so that signed compares order the crossings, each
 //! lane's rays are set up four at a time into a queue of its own ([`Axis::setup`], bit
 //! for bit `raycast::axis`), every lane walks as many steps as the live lane with the
-//! fewest left (so the loop tests no lane for its end), and marks are written lane by
-//! lane. Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and
+//! fewest left (so the loop tests no lane for its end), and marks are tested and written
+//! lane by lane in scalar code (one gather for the four tests was slower on AMD Zen 4). Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and
 //! end voxel as `super::dense::walk_rays`. The walk stays inside the box because the
 //! origin's voxel and every end voxel are checked to be in it: a walk moves along each
 //! axis monotonically from the one to the other.
@@ -325,9 +325,6 @@ fn walk<const TEST_FIRST: bool>(
         spare_left: 4,
     };
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
-    let zero = _mm256_setzero_si256();
-    let one = _mm256_set1_epi64x(1);
-    let low6 = _mm256_set1_epi64x(63);
     let never = _mm256_set1_epi64x(NEVER);
     // Lane state, kept in arrays between refills and in registers while walking.
     let mut st = [[NEVER; 4]; 3];
@@ -389,26 +386,17 @@ fn walk<const TEST_FIRST: bool>(
         let (mx, my, mz) = (from_array(mt[0]), from_array(mt[1]), from_array(mt[2]));
         let mut p = from_array(pos);
         for _ in 0..k {
-            if TEST_FIRST {
-                // Most marks are set already: read the words with one gather and write
-                // only the lanes whose bit is not yet set.
-                let word = _mm256_srli_epi64::<6>(p);
-                let bit = _mm256_sllv_epi64(one, _mm256_and_si256(p, low6));
+            for q in to_array(p) {
+                let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
                 // SAFETY: every lane's voxel is in the box, so `word < free.len()`: the
                 // origin's voxel and each ray's end voxel were checked to be (`pop`), and
                 // a walk moves along each axis monotonically from the one to the other;
-                // lanes without a ray read the sink's word, the last of `free`.
-                let w = unsafe { _mm256_i64gather_epi64::<8>(free.as_ptr().cast(), word) };
-                let unset = lanes(_mm256_cmpeq_epi64(_mm256_and_si256(w, bit), zero));
-                if unset != 0 {
-                    let (word, bit) = (to_array(word), to_array(bit));
-                    for l in BitIter(u64::from(unset)) {
-                        free[word[l] as usize] |= bit[l] as u64;
-                    }
-                }
-            } else {
-                for q in to_array(p) {
-                    set_bit(free, q as u64);
+                // lanes without a ray mark the sink, the last word of `free`.
+                let w = unsafe { free.get_unchecked_mut(word) };
+                // Most marks are set already where `TEST_FIRST`: read, and write only
+                // the new ones.
+                if !TEST_FIRST || *w & bit == 0 {
+                    *w |= bit;
                 }
             }
             // Step: the axis whose crossing comes first (ties x, y, z). Each axis's next
