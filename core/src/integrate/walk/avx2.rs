@@ -10,10 +10,11 @@
 //! lane's rays are set up four at a time into a queue of its own ([`Axis::setup`], bit
 //! for bit `raycast::axis`), every lane walks as many steps as the live lane with the
 //! fewest left (so the loop tests no lane for its end), and marks are tested and written
-//! lane by lane in scalar code (one gather for the four tests was slower on AMD Zen 4). Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and
-//! end voxel as `super::dense::walk_rays`. The walk stays inside the box because the
-//! origin's voxel and every end voxel are checked to be in it: a walk moves along each
-//! axis monotonically from the one to the other.
+//! lane by lane in scalar code (one gather for the four tests was slower on AMD Zen 4).
+//! Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and end
+//! voxel as `super::dense::walk_rays`. The walk stays inside the box because the origin's
+//! voxel and every end voxel are checked to be in it: a walk moves along each axis
+//! monotonically from the one to the other.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
 use crate::integrate::prepare::Ray;
