@@ -133,9 +133,7 @@ fn run_dense(
                 #[cfg(target_arch = "x86_64")]
                 // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
                 // (`Kernel::supported`), which is all `walk_dense` needs.
-                Kernel::Avx2 => unsafe {
-                    avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, test_first)
-                },
+                Kernel::Avx2 => unsafe { avx2::walk_dense(&mut bits, dbox, origin, rays, ranges) },
                 _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges),
             }
         })
