@@ -326,7 +326,8 @@ pub(super) fn walk_dense(
     let (mut mx, mut my, mut mz) = (dx, dy, dz);
     let mut p = _mm256_set1_epi64x(sink);
     let mut rem = [i64::MAX; 4];
-    let mut hit = [false; 4];
+    // Lane l's ray hits: bit l.
+    let mut hit = 0u32;
     let mut live = 0u32;
     let mut need = 0b1111u32;
     let mut steps = 0u64;
@@ -365,7 +366,7 @@ pub(super) fn walk_dense(
                 );
                 p = _mm256_blendv_epi8(p, start_v, lane);
                 rem[l] = n;
-                hit[l] = q.hit[j];
+                hit = hit & !(1 << l) | u32::from(q.hit[j]) << l;
                 live |= 1 << l;
                 break;
             }
@@ -418,16 +419,15 @@ pub(super) fn walk_dense(
         // from the one to the other. Lanes without a ray sit on the sink, increments 0.
         unsafe { walk_steps(k, &mut t, &mut p, &fixed, free) };
         [tx, ty, tz] = t;
-        let pos = to_array(p);
+        // Which lanes ended, without a branch per lane: which one is a coin toss.
         let mut ended = 0;
-        for l in 0..4 {
-            rem[l] -= k;
-            if rem[l] == 0 {
-                ended |= 1 << l;
-                if hit[l] {
-                    set_bit(hits, pos[l] as u64);
-                }
-            }
+        for (l, rem) in rem.iter_mut().enumerate() {
+            *rem -= k;
+            ended |= u32::from(*rem == 0) << l;
+        }
+        let pos = to_array(p);
+        for l in BitIter(u64::from(ended & hit)) {
+            set_bit(hits, pos[l] as u64);
         }
         live &= !ended;
         need = ended;
