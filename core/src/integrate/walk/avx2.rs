@@ -65,19 +65,17 @@ fn trunc_u64(v: __m256d) -> __m256i {
 }
 
 impl Axis {
+    #[target_feature(enable = "avx2")]
     fn new(o: f64, stride: i64, lo: i32, len: u64) -> Self {
         let s = o.floor();
-        // SAFETY: only built inside `walk_dense`, which requires AVX2.
-        unsafe {
-            Axis {
-                o: _mm256_set1_pd(o),
-                s: _mm256_set1_pd(s),
-                up: _mm256_set1_pd(s + 1.0 - o),
-                down: _mm256_set1_pd(o - s),
-                stride: _mm256_set1_epi64x(stride),
-                lo: _mm256_set1_pd(f64::from(lo)),
-                hi: _mm256_set1_pd(f64::from(lo) + len as f64),
-            }
+        Axis {
+            o: _mm256_set1_pd(o),
+            s: _mm256_set1_pd(s),
+            up: _mm256_set1_pd(s + 1.0 - o),
+            down: _mm256_set1_pd(o - s),
+            stride: _mm256_set1_epi64x(stride),
+            lo: _mm256_set1_pd(f64::from(lo)),
+            hi: _mm256_set1_pd(f64::from(lo) + len as f64),
         }
     }
 
@@ -228,7 +226,7 @@ impl Queue {
         axes: &[Axis; 3],
         origin: [f64; 3],
     ) -> Option<usize> {
-        // SAFETY: `Queue`s exist only inside `walk_dense`, which requires AVX2.
+        // SAFETY: the CPU has AVX2: `Queue::new`, the only way to make a queue, needs it.
         if self.next == self.len && !unsafe { self.fill(feed, l, axes, origin) } {
             return None;
         }
