@@ -6,7 +6,9 @@
 set -euo pipefail
 py=${1:?python with rosbags}; runs=${2:-8}
 root=$(cd "$(dirname "$0")/.." && pwd)
-cargo build --release -q -p voxmap-service --manifest-path "$root/Cargo.toml"
+# From the checkout: cargo reads .cargo/config.toml (the x86-64-v2 baseline) from the
+# working directory, so a build started elsewhere makes a different, slower binary.
+(cd "$root" && cargo build --release -q -p voxmap-service)
 v="$root/target/release/voxmap"
 d=$(mktemp -d); trap 'rm -rf "$d"' EXIT
 "$py" "$root/tests/ros/make_bags.py" bench 100 65536 "$d/w"

@@ -9,7 +9,9 @@
 set -euo pipefail
 wl=${1:?workload dir (python3 ../shared/bench/gen_workloads.py DIR)}; rounds=${2:-2}
 root=$(cd "$(dirname "$0")/.." && pwd)
-cargo build --release -q -p voxmap-service --manifest-path "$root/Cargo.toml"
+# From the checkout: cargo reads .cargo/config.toml (the x86-64-v2 baseline) from the
+# working directory, so a build started elsewhere makes a different, slower binary.
+(cd "$root" && cargo build --release -q -p voxmap-service)
 v="$root/target/release/voxmap"
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 g++ -O2 -o "$tmp/esdf_edt3d" "$root/bench/esdf_edt3d.cpp" -ldynamicedt3d -loctomap -loctomath

@@ -7,7 +7,9 @@
 set -euo pipefail
 wl=${1:?workload dir (python3 ../shared/bench/gen_workloads.py DIR)}; rounds=${2:-2}; filter=${3:-6m}
 root=$(cd "$(dirname "$0")/.." && pwd)
-cargo build --release -q -p voxmap-service --manifest-path "$root/Cargo.toml"
+# From the checkout: cargo reads .cargo/config.toml (the x86-64-v2 baseline) from the
+# working directory, so a build started elsewhere makes a different, slower binary.
+(cd "$root" && cargo build --release -q -p voxmap-service)
 v="$root/target/release/voxmap"
 ob=$(mktemp -d)/octomap_bench; trap 'rm -rf "$(dirname "$ob")"' EXIT
 g++ -O2 -o "$ob" "$root/bench/octomap_bench.cpp" -loctomap -loctomath
