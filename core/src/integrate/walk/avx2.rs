@@ -582,6 +582,41 @@ mod tests {
     }
 
     #[test]
+    fn a_walk_marks_within_its_box_and_stops_at_an_end_outside_it() {
+        if !is_x86_feature_detected!("avx2") {
+            println!("notice: this CPU has no AVX2; the AVX2 walk is not tested here");
+            return;
+        }
+        use crate::coord::VoxelCoord;
+        // Box voxels 0..64 x 0..8 x 0..8, origin in voxel (2, 2, 2).
+        let dbox = DenseBox::new(VoxelCoord::new(0, 0, 0), VoxelCoord::new(63, 7, 7)).unwrap();
+        let origin = [2.5, 2.5, 2.5];
+        let walk = |ends: &[[f64; 3]]| {
+            let rays: Vec<Ray> = ends.iter().map(|&e| Ray::new(e, 0, true)).collect();
+            let mut ranges: [Range<usize>; 8] = Default::default();
+            ranges[0] = 0..rays.len();
+            let mut bits = DenseBits::default();
+            bits.begin(1, dbox.words());
+            // SAFETY: AVX2 was detected above.
+            let steps = unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges) };
+            (steps, bits)
+        };
+        // Inside: a ray along x to voxel (60, 2, 2) marks voxels 2..60 free and 60 hit.
+        let (steps, bits) = walk(&[[60.5, 2.5, 2.5]]);
+        assert_eq!(steps, 59);
+        let row = bits.free[(dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize];
+        assert_eq!(row, ((1u64 << 60) - 1) & !0b11);
+        let word = (dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize;
+        assert_eq!(bits.hit[word], 1 << 60);
+        assert_eq!(bits.free.iter().map(|w| w.count_ones()).sum::<u32>(), 58);
+        // An end outside the box stops the walk before it reads or writes outside it.
+        for end in [[64.5, 2.5, 2.5], [2.5, 8.5, 2.5], [2.5, 2.5, -0.5]] {
+            let outcome = std::panic::catch_unwind(|| walk(&[[3.5, 3.5, 3.5], end]));
+            assert!(outcome.is_err(), "end {end:?} outside the box");
+        }
+    }
+
+    #[test]
     fn ends_outside_the_box_are_found() {
         if !is_x86_feature_detected!("avx2") {
             println!("notice: this CPU has no AVX2; the AVX2 set-up is not tested here");
