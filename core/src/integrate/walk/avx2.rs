@@ -9,8 +9,8 @@
 //! axis's next crossing is `i64::MAX` so that signed compares order the crossings, each
 //! lane's rays are set up four at a time into a queue of its own ([`Axis::setup`], bit
 //! for bit `raycast::axis`), every lane walks as many steps as the live lane with the
-//! fewest left (so the loop tests no lane for its end), and marks are tested and written
-//! lane by lane in scalar code (one gather for the four tests was slower on AMD Zen 4).
+//! fewest left (so the loop tests no lane for its end), and marks are written lane by lane
+//! in scalar code, without being read first (see [`walk_dense`]).
 //! Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and end
 //! voxel as `super::dense::walk_rays`. The walk stays inside the box because the origin's
 //! voxel and every end voxel are checked to be in it: a walk moves along each axis
@@ -311,17 +311,16 @@ pub(super) fn walk_dense(
     let never = _mm256_set1_epi64x(NEVER);
     let iota = _mm256_setr_epi64x(0, 1, 2, 3);
     let start_v = _mm256_set1_epi64x(start as i64);
-    // Lane state, in registers: per axis next crossing, between, last and increment; the
-    // voxel. A lane without a ray sits on the sink bit and does not move (no
-    // increments): the loop needs no lane mask.
-    let (mut tx, mut ty, mut tz) = (never, never, never);
-    let (mut dx, mut dy, mut dz) = (
-        _mm256_setzero_si256(),
-        _mm256_setzero_si256(),
-        _mm256_setzero_si256(),
-    );
-    let (mut lx, mut ly, mut lz) = (dx, dy, dz);
-    let (mut mx, mut my, mut mz) = (dx, dy, dz);
+    // Lane state: per axis next crossing, and the ray's constants; the voxel. A lane
+    // without a ray sits on the sink bit and does not move (no increments): the loop
+    // needs no lane mask.
+    let zero = _mm256_setzero_si256();
+    let mut t = [never; 3];
+    let mut fixed = Fixed {
+        d: [zero; 3],
+        last: [zero; 3],
+        inc: [zero; 3],
+    };
     let mut p = _mm256_set1_epi64x(sink);
     let mut rem = [i64::MAX; 4];
     // Lane l's ray hits: bit l.
@@ -350,18 +349,12 @@ pub(super) fn walk_dense(
                 let put = |v: __m256i, from: __m256i| {
                     _mm256_blendv_epi8(v, _mm256_permutevar8x32_epi32(from, pick), lane)
                 };
-                (tx, ty, tz) = (put(tx, q.t[g][0]), put(ty, q.t[g][1]), put(tz, q.t[g][2]));
-                (dx, dy, dz) = (put(dx, q.d[g][0]), put(dy, q.d[g][1]), put(dz, q.d[g][2]));
-                (lx, ly, lz) = (
-                    put(lx, q.last[g][0]),
-                    put(ly, q.last[g][1]),
-                    put(lz, q.last[g][2]),
-                );
-                (mx, my, mz) = (
-                    put(mx, q.inc[g][0]),
-                    put(my, q.inc[g][1]),
-                    put(mz, q.inc[g][2]),
-                );
+                for a in 0..3 {
+                    t[a] = put(t[a], q.t[g][a]);
+                    fixed.d[a] = put(fixed.d[a], q.d[g][a]);
+                    fixed.last[a] = put(fixed.last[a], q.last[g][a]);
+                    fixed.inc[a] = put(fixed.inc[a], q.inc[g][a]);
+                }
                 p = _mm256_blendv_epi8(p, start_v, lane);
                 rem[l] = n;
                 hit = hit & !(1 << l) | u32::from(q.hit[j]) << l;
@@ -380,23 +373,13 @@ pub(super) fn walk_dense(
                     _mm256_set1_epi64x(i64::from(done)),
                     _mm256_setr_epi64x(1, 2, 4, 8),
                 ),
-                _mm256_setzero_si256(),
+                zero,
             );
-            (tx, ty, tz) = (
-                _mm256_blendv_epi8(tx, never, m),
-                _mm256_blendv_epi8(ty, never, m),
-                _mm256_blendv_epi8(tz, never, m),
-            );
-            (dx, dy, dz) = (
-                _mm256_andnot_si256(m, dx),
-                _mm256_andnot_si256(m, dy),
-                _mm256_andnot_si256(m, dz),
-            );
-            (mx, my, mz) = (
-                _mm256_andnot_si256(m, mx),
-                _mm256_andnot_si256(m, my),
-                _mm256_andnot_si256(m, mz),
-            );
+            for a in 0..3 {
+                t[a] = _mm256_blendv_epi8(t[a], never, m);
+                fixed.d[a] = _mm256_andnot_si256(m, fixed.d[a]);
+                fixed.inc[a] = _mm256_andnot_si256(m, fixed.inc[a]);
+            }
             p = _mm256_blendv_epi8(p, _mm256_set1_epi64x(sink), m);
             for l in BitIter(u64::from(done)) {
                 rem[l] = i64::MAX;
@@ -405,18 +388,11 @@ pub(super) fn walk_dense(
         // Every lane walks as many steps as the live lane with the fewest left, so the
         // loop tests no lane for its end.
         let k = rem.iter().copied().min().unwrap_or(0);
-        let mut t = [tx, ty, tz];
-        let fixed = Fixed {
-            d: [dx, dy, dz],
-            last: [lx, ly, lz],
-            inc: [mx, my, mz],
-        };
         // SAFETY: every lane's voxels are in the box: the origin's voxel and each ray's
         // end voxel were checked to be (`Queue::fill`), a lane stops at its ray's end (k
         // is at most its steps left), and a walk moves along each axis monotonically
         // from the one to the other. Lanes without a ray sit on the sink, increments 0.
         unsafe { walk_steps(k, &mut t, &mut p, &fixed, free) };
-        [tx, ty, tz] = t;
         // Which lanes ended, without a branch per lane: which one is a coin toss.
         let mut ended = 0;
         for (l, rem) in rem.iter_mut().enumerate() {
