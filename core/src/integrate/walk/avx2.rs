@@ -346,15 +346,15 @@ pub(super) fn walk_dense(
                 let lane = _mm256_cmpeq_epi64(iota, _mm256_set1_epi64x(l as i64));
                 let (g, i) = (j / 4, 2 * (j % 4) as i32);
                 let pick = _mm256_setr_epi32(i, i + 1, i, i + 1, i, i + 1, i, i + 1);
-                let put = |v: __m256i, from: __m256i| {
-                    _mm256_blendv_epi8(v, _mm256_permutevar8x32_epi32(from, pick), lane)
+                let put = |v: &mut [__m256i; 3], from: &[__m256i; 3]| {
+                    for (v, &f) in v.iter_mut().zip(from) {
+                        *v = _mm256_blendv_epi8(*v, _mm256_permutevar8x32_epi32(f, pick), lane);
+                    }
                 };
-                for a in 0..3 {
-                    t[a] = put(t[a], q.t[g][a]);
-                    fixed.d[a] = put(fixed.d[a], q.d[g][a]);
-                    fixed.last[a] = put(fixed.last[a], q.last[g][a]);
-                    fixed.inc[a] = put(fixed.inc[a], q.inc[g][a]);
-                }
+                put(&mut t, &q.t[g]);
+                put(&mut fixed.d, &q.d[g]);
+                put(&mut fixed.last, &q.last[g]);
+                put(&mut fixed.inc, &q.inc[g]);
                 p = _mm256_blendv_epi8(p, start_v, lane);
                 rem[l] = n;
                 hit = hit & !(1 << l) | u32::from(q.hit[j]) << l;
@@ -375,10 +375,11 @@ pub(super) fn walk_dense(
                 ),
                 zero,
             );
-            for a in 0..3 {
-                t[a] = _mm256_blendv_epi8(t[a], never, m);
-                fixed.d[a] = _mm256_andnot_si256(m, fixed.d[a]);
-                fixed.inc[a] = _mm256_andnot_si256(m, fixed.inc[a]);
+            let axes = t.iter_mut().zip(&mut fixed.d).zip(&mut fixed.inc);
+            for ((t, d), inc) in axes {
+                *t = _mm256_blendv_epi8(*t, never, m);
+                *d = _mm256_andnot_si256(m, *d);
+                *inc = _mm256_andnot_si256(m, *inc);
             }
             p = _mm256_blendv_epi8(p, _mm256_set1_epi64x(sink), m);
             for l in BitIter(u64::from(done)) {
