@@ -76,8 +76,11 @@ impl Kernel {
                     && has!("popcnt")
             }
             #[cfg(target_arch = "x86_64")]
+            // The AVX-512 kernel runs AVX2 code where AVX-512 does not pay (every AVX-512
+            // CPU has AVX2).
             Self::Avx512 => {
-                std::arch::is_x86_feature_detected!("avx512f")
+                Self::Avx2.supported()
+                    && std::arch::is_x86_feature_detected!("avx512f")
                     && std::arch::is_x86_feature_detected!("avx512dq")
                     && std::arch::is_x86_feature_detected!("avx512bw")
             }

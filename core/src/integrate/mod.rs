@@ -391,7 +391,7 @@ impl Integrator {
             // of its prepare time). The sparse walk needs them sorted by direction, without
             // gaps.
             if !report.dense {
-                prepare::order_by_direction(rays, report.rays, origin);
+                prepare::order_by_direction(rays, sides, origin);
             }
             marks.reset(
                 lo,

@@ -227,14 +227,29 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
             }
         })
         .collect();
-    let mut out = vec![Ray::new([9.0; 3], 1, true); RAY_CHUNK];
-    let [front, back] = s.lay_out(&rays, &mut out).map(|c| c as usize);
     let ahead = |r: &Ray| {
         (0..3)
             .map(|a| (r.end[a] - origin[a]) * axis[a])
             .sum::<f64>()
             >= 0.0
     };
+    let mut out = vec![Ray::new([9.0; 3], 1, true); RAY_CHUNK];
+    let (counts, order) = s.lay_out(&rays, &mut out);
+    let [front, back] = counts.map(|c| c as usize);
+    // The order says where each ray of the scan went.
+    let mut places = vec![0u16; RAY_CHUNK];
+    order.places(&mut places);
+    for (j, r) in rays.iter().enumerate() {
+        let made = r.key != SKIPPED;
+        let bit = |m: &[u64]| m[j / 64] >> (j % 64) & 1 != 0;
+        assert_eq!(
+            (bit(&order.front), bit(&order.back)),
+            (made && ahead(r), made && !ahead(r))
+        );
+        if made {
+            assert_eq!(out[usize::from(places[j])].end, r.end);
+        }
+    }
     assert_eq!(front + back, RAY_CHUNK - RAY_CHUNK.div_ceil(5));
     assert!(out[..front].iter().all(|r| r.key != SKIPPED && ahead(r)));
     assert!(out[front..RAY_CHUNK - back]
@@ -679,6 +694,27 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                     (one.end.map(f64::to_bits), one.key, one.hit),
                     (b.end.map(f64::to_bits), b.key, b.hit),
                     "{kernel:?}, point {p:?}"
+                );
+            }
+            // The trade-off modes' cell keys and the extent, noted as the rays are made:
+            // the same bits as the scalar code's.
+            for factor in [1, 2, 64] {
+                let cells = super::thin::CellKeys::new(o, factor);
+                let mut keys = vec![0; bulk.len()];
+                cells.keys(kernel, &bulk, &mut keys);
+                for (r, &k) in bulk.iter().zip(&keys) {
+                    assert_eq!(k, cells.key(r), "{kernel:?}, factor {factor}, {r:?}");
+                }
+            }
+            let sum = |s: super::prepare::ExtentSum| {
+                let bits = |v: [f64; 3]| v.map(f64::to_bits);
+                (bits(s.lo), bits(s.hi), bits(s.length), s.cut, s.skipped)
+            };
+            for n in [0, 1, 2, 5, bulk.len()] {
+                assert_eq!(
+                    sum(super::prepare::ExtentSum::of(o, &bulk[..n], kernel)),
+                    sum(super::prepare::ExtentSum::of_scalar(o, &bulk[..n])),
+                    "{kernel:?}, {n} rays"
                 );
             }
         }

@@ -2,6 +2,11 @@
 //! map. Each keeps the first ray of a kind in scan order, so its result does not depend on
 //! the thread count.
 //!
+//! The rays are made and laid out by sides as in exact mode, and the same pass notes each
+//! ray's cell key ([`CellKeys`]) in scan order and where the layout put it
+//! ([`ChunkOrder`]). The modes choose from the keys alone (8 bytes a ray, not the ray's
+//! 32), and the layout then drops what they drop (`prepare::compact`).
+//!
 //! Subsample and unique-end keep the first ray per cell (a sub-cell or the end voxel, and
 //! whether the ray hits). Over a frame whose cells fit [`DENSE_CELL_BITS`], each thread
 //! marks the cells of its own run of rays in a bit set over the frame's box, then drops
@@ -12,26 +17,50 @@
 //! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
 //! Both sum a group's ends in scan order, so the mean is the same on any thread count.
 
-use super::prepare::{direction_key, Extent, Ray};
+use super::prepare::{direction_key, ChunkOrder, Extent, Ray, RAY_CHUNK, SKIPPED};
 use super::RayMode;
+use crate::kernel::Kernel;
 use hashbrown::{HashMap, HashSet};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+#[cfg(target_arch = "x86_64")]
+mod avx2;
 
 /// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
 /// bits, 4 MiB per thread (and bit indices below 2^31).
 pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
 
+/// The key of a skipped point's ray: no cell's ([`CellKeys`] fields never are all ones).
+const NONE: u64 = u64::MAX;
+
 /// The buffers the trade-off modes reuse from frame to frame: in fresh memory a frame's
 /// would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
 pub(in crate::integrate) struct Buffers {
+    /// Each ray's cell key in scan order ([`CellKeys`]), written as the rays are made.
+    keys: Vec<u64>,
+    /// Per chunk, where the layout put each ray of its scan.
+    orders: Vec<ChunkOrder>,
     /// Each ray's cell bit ([`CellBox::bit`]).
     bits: Vec<u32>,
     /// [`bundle_dense`]'s (cell bit, ray) in cell order.
     sorted: Vec<AtomicU64>,
     /// Whether each ray is kept.
     keep: Vec<AtomicBool>,
+    /// Bundle's [`Layout`].
+    places: Vec<u16>,
+    /// [`firsts_dense`]'s bit sets, one per run.
+    sets: Vec<Vec<u64>>,
+}
+
+impl Buffers {
+    /// Room for the notes of a frame of `n` points: a key per ray and an order per chunk.
+    pub(in crate::integrate) fn notes(&mut self, n: usize) -> (&mut [u64], &mut [ChunkOrder]) {
+        sized(&mut self.keys, n, || NONE);
+        sized(&mut self.orders, n.div_ceil(RAY_CHUNK), ChunkOrder::default);
+        (&mut self.keys, &mut self.orders)
+    }
 }
 
 /// `v` as long as `n`, writing only what it did not hold.
@@ -40,55 +69,200 @@ fn sized<T>(v: &mut Vec<T>, n: usize, new: impl FnMut() -> T) {
     v.resize_with(n, new);
 }
 
-/// Which rays a trade-off mode keeps, and as what. The layout by sides reads it as it
-/// lays the rays out, so dropping rays costs no pass of its own.
-pub(in crate::integrate) struct Kept<'a> {
-    keep: &'a [AtomicBool],
-    /// Unique-end: each ray kept goes to the centre of its end voxel.
-    centre: bool,
+/// A ray's cell (`factor` per voxel edge, `floor(end * factor)` on each axis) and hit flag
+/// in one `u64`: 21 bits an axis, relative to the origin's cell and biased by 2^20, and
+/// the hit flag on top. Rays end within max range (8192 voxels) of the origin and the
+/// factor is at most 64, so a field lies within 2^20 ± (2^19 + 1): never all ones.
+pub(in crate::integrate) struct CellKeys {
+    f: f64,
+    /// The cell that keys to 0 on each axis, as a float (an integer).
+    base: [f64; 3],
 }
 
-impl Kept<'_> {
-    /// Ray `i`, `r`, as kept, or `None`.
+impl CellKeys {
+    const BIAS: f64 = (1 << 20) as f64;
+    const FIELD: u64 = (1 << 21) - 1;
+
+    pub(in crate::integrate) fn new(origin: [f64; 3], factor: u32) -> Self {
+        let f = f64::from(factor);
+        CellKeys {
+            f,
+            base: origin.map(|c| (c * f).floor() - Self::BIAS),
+        }
+    }
+
+    /// The key of `r`, [`NONE`] for a skipped point's.
     #[inline]
-    pub(in crate::integrate) fn ray(&self, i: usize, r: &Ray) -> Option<Ray> {
-        let keep = self.keep[i].load(Ordering::Relaxed);
-        keep.then(|| if self.centre { to_centre(r) } else { *r })
+    pub(in crate::integrate) fn key(&self, r: &Ray) -> u64 {
+        if r.key == SKIPPED {
+            return NONE;
+        }
+        let c =
+            [0, 1, 2].map(|a| ((r.end[a] * self.f).floor() - self.base[a]) as u64 & Self::FIELD);
+        c[0] | c[1] << 21 | c[2] << 42 | u64::from(r.hit) << 63
+    }
+
+    /// `out[i] = self.key(&rays[i])`, four at a time with the vector kernels.
+    pub(in crate::integrate) fn keys(&self, kernel: Kernel, rays: &[Ray], out: &mut [u64]) {
+        let done = match kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
+            // AVX2 (`Kernel::supported`), which is all `avx2::keys` needs.
+            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::keys(self, rays, out) },
+            _ => 0,
+        };
+        for (k, r) in out.iter_mut().zip(rays).skip(done) {
+            *k = self.key(r);
+        }
     }
 }
 
-/// Choose (or merge) the rays that `mode` trades for speed; `extent` bounds the rays'
-/// ends. A bundle's mean is written into its first ray; the rays dropped are those the
-/// returned [`Kept`] does not keep. `mode` is not `Exact`.
+/// The factor of a mode's cells: subsample's, one for the others (the end voxel).
+pub(super) fn cell_factor(mode: RayMode) -> u32 {
+    match mode {
+        RayMode::Subsample { factor } => factor,
+        _ => 1,
+    }
+}
+
+/// Which rays a trade-off mode keeps (by place in the scan), and as what.
+pub(in crate::integrate) struct Kept<'a> {
+    keep: Keep<'a>,
+    /// Unique-end: each ray kept goes to the centre of its end voxel.
+    centre: bool,
+    origin: [f64; 3],
+}
+
+impl Kept<'_> {
+    /// Whether each of the `len` rays of the scan from `at`, a chunk, is kept: ray
+    /// `at + j` as bit `j % 64` of word `j / 64`.
+    #[inline]
+    pub(in crate::integrate) fn mask(&self, at: usize, len: usize) -> [u64; RAY_CHUNK / 64] {
+        let mut m = [0u64; RAY_CHUNK / 64];
+        match self.keep {
+            Keep::Flags(keep) => {
+                for (j, k) in keep[at..at + len].iter().enumerate() {
+                    m[j / 64] |= u64::from(k.load(Ordering::Relaxed)) << (j % 64);
+                }
+            }
+            Keep::Firsts { noted, seen, per } => {
+                let noted = &noted[at..at + len];
+                // A chunk lies in one run; the first run has no runs before it.
+                let Some(earlier) = (at / per).checked_sub(1).map(|j| &seen[j]) else {
+                    for (j, &n) in noted.iter().enumerate() {
+                        m[j / 64] |= u64::from(n >> 31) << (j % 64);
+                    }
+                    return m;
+                };
+                for (j, &n) in noted.iter().enumerate() {
+                    let b = (n & !FIRST) as usize;
+                    let seen = earlier[b / 64] >> (b % 64) & 1;
+                    m[j / 64] |= (u64::from(n >> 31) & !seen) << (j % 64);
+                }
+            }
+        }
+        m
+    }
+
+    /// A ray kept, as the mode casts it.
+    #[inline]
+    pub(in crate::integrate) fn finish(&self, r: &Ray) -> Ray {
+        if self.centre {
+            to_centre(r)
+        } else {
+            *r
+        }
+    }
+
+    pub(in crate::integrate) fn origin(&self) -> [f64; 3] {
+        self.origin
+    }
+}
+
+/// Where a [`Kept`] finds whether a ray is kept.
+enum Keep<'a> {
+    /// A flag per ray of the scan.
+    Flags(&'a [AtomicBool]),
+    /// [`firsts_dense`]'s notes: each ray's cell bit, [`FIRST`] if it is the first of its
+    /// run (of `per` rays) to see it, and per run the cells of the runs up to it; a ray is
+    /// kept if first in its run and not seen by the runs before.
+    Firsts {
+        noted: &'a [u32],
+        seen: &'a [Vec<u64>],
+        per: usize,
+    },
+}
+
+/// Marks a noted cell bit first in its run ([`Keep::Firsts`]).
+const FIRST: u32 = 1 << 31;
+
+/// Choose (or merge) the rays that `mode` trades for speed, from the notes the making of
+/// `rays` left in `bufs` ([`Buffers::notes`]); `extent` bounds the rays' ends. A bundle's
+/// mean is written into its first ray's place; the rays dropped are those the returned
+/// [`Kept`] does not keep. `mode` is not `Exact`.
 pub(super) fn thin_out<'b>(
     rays: &mut [Ray],
     origin: [f64; 3],
     mode: RayMode,
     extent: &Extent,
     bufs: &'b mut Buffers,
-) -> Kept<'b> {
+) -> (Kept<'b>, &'b [ChunkOrder]) {
     sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
+    let cells = CellKeys::new(origin, cell_factor(mode));
+    let boxed = CellBox::new(extent, &cells);
     match mode {
-        RayMode::Bundle { threshold } => match CellBox::new(extent, 1) {
-            Some(cells) => bundle_dense(rays, origin, threshold, &cells, bufs),
-            None => bundle(rays, origin, threshold, &bufs.keep),
-        },
-        RayMode::Subsample { factor } => firsts(rays, origin, factor, extent, bufs),
-        RayMode::UniqueEnd => firsts(rays, origin, 1, extent, bufs),
+        RayMode::Bundle { threshold } => {
+            // Out of `bufs` while the others are written.
+            let mut places = std::mem::take(&mut bufs.places);
+            sized(&mut places, rays.len(), || 0);
+            (places.par_chunks_mut(RAY_CHUNK))
+                .zip(bufs.orders.par_iter())
+                .for_each(|(p, o)| o.places(p));
+            let layout = Layout { places: &places };
+            let means = match boxed {
+                Some(b) => bundle_dense(rays, &layout, threshold, &b, bufs),
+                None => bundle(rays, &layout, threshold, &bufs.keys, &bufs.keep),
+            };
+            set_means(rays, &layout, origin, means);
+            bufs.places = places;
+        }
+        RayMode::Subsample { .. } | RayMode::UniqueEnd => {
+            if let Some(b) = boxed {
+                let (runs, per) = firsts_dense(&b, bufs);
+                let keep = Keep::Firsts {
+                    noted: &bufs.bits,
+                    seen: &bufs.sets[..runs],
+                    per,
+                };
+                let kept = Kept {
+                    keep,
+                    centre: mode == RayMode::UniqueEnd,
+                    origin,
+                };
+                return (kept, &bufs.orders);
+            }
+            firsts_hashed(&bufs.keys, &bufs.keep);
+        }
         RayMode::Exact => unreachable!("exact rays are not thinned"),
     }
-    Kept {
-        keep: &bufs.keep,
+    let kept = Kept {
+        keep: Keep::Flags(&bufs.keep),
         centre: mode == RayMode::UniqueEnd,
-    }
+        origin,
+    };
+    (kept, &bufs.orders)
 }
 
-/// Whether each ray is the first of its cell (`factor` per voxel edge) in scan order, into
-/// `bufs.keep`: by bit sets over a small frame's box, by hash partitions over a larger one.
-fn firsts(rays: &[Ray], origin: [f64; 3], factor: u32, extent: &Extent, bufs: &mut Buffers) {
-    match CellBox::new(extent, factor) {
-        Some(cells) => firsts_dense(rays, &cells, bufs),
-        None => firsts_hashed(rays, origin, factor, &bufs.keep),
+/// Where the layout put each ray of the scan: its place within its chunk.
+struct Layout<'a> {
+    places: &'a [u16],
+}
+
+impl Layout<'_> {
+    /// The place of ray `i` of the scan (not a skipped point's) in the laid-out rays.
+    #[inline]
+    fn place(&self, i: usize) -> usize {
+        i / RAY_CHUNK * RAY_CHUNK + usize::from(self.places[i])
     }
 }
 
@@ -100,39 +274,24 @@ fn to_centre(r: &Ray) -> Ray {
     }
 }
 
-/// Rays per run of [`firsts_hashed`]'s first pass: fixed, so that the partitions see the
-/// rays in scan order whatever the thread count.
+/// Keys per run of [`partitioned`]'s pass: fixed, so that the partitions see the rays in
+/// scan order whatever the thread count.
 const HASH_RUN: usize = 16 * 1024;
 /// Partitions of [`firsts_hashed`]'s cells (a power of two).
 const PARTITIONS: usize = 64;
 
-/// Per fixed run of rays and per partition of the cell keys (the cell `factor` per voxel
-/// edge, relative to the origin's, with the hit flag), `item(index, key, ray)` of each ray
-/// in scan order: a partition's items, run after run, are in scan order whatever the
-/// thread count. The items carry what a partition needs, so that it reads them one after
-/// another instead of the rays all over memory.
-fn partitioned<T: Send>(
-    rays: &[Ray],
-    origin: [f64; 3],
-    factor: u32,
-    item: impl Fn(u32, u64, &Ray) -> T + Sync,
-) -> Vec<Vec<Vec<T>>> {
-    let f = f64::from(factor);
-    let base = origin.map(|c| (c * f).floor() as i64);
-    // Cells within max range (8192 voxels) times the factor (at most 64) of the origin's:
-    // 21 bits an axis, and the hit flag.
-    let key = |r: &Ray| {
-        let c = [0, 1, 2].map(|a| (((r.end[a] * f).floor() as i64 - base[a]) & 0x1f_ffff) as u64);
-        c[0] | c[1] << 21 | c[2] << 42 | u64::from(r.hit) << 63
-    };
+/// Per fixed run of rays and per partition of the cell keys, `item(index, key)` of each
+/// ray (skipped points' left out) in scan order: a partition's items, run after run, are
+/// in scan order whatever the thread count. The items carry what a partition needs, so
+/// that it reads them one after another instead of all over memory.
+fn partitioned<T: Send>(keys: &[u64], item: impl Fn(u32, u64) -> T + Sync) -> Vec<Vec<Vec<T>>> {
     let part = |k: u64| (k.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize;
-    rays.par_chunks(HASH_RUN)
+    keys.par_chunks(HASH_RUN)
         .enumerate()
-        .map(|(j, rs)| {
+        .map(|(j, ks)| {
             let mut lists: Vec<Vec<T>> = (0..PARTITIONS).map(|_| Vec::new()).collect();
-            for (i, r) in rs.iter().enumerate() {
-                let k = key(r);
-                lists[part(k)].push(item((j * HASH_RUN + i) as u32, k, r));
+            for (i, &k) in ks.iter().enumerate().filter(|&(_, &k)| k != NONE) {
+                lists[part(k)].push(item((j * HASH_RUN + i) as u32, k));
             }
             lists
         })
@@ -147,8 +306,8 @@ fn in_partition<T>(runs: &[Vec<Vec<T>>], p: usize) -> impl Iterator<Item = &T> +
 /// [`firsts_dense`] for boxes too large for bit sets: each cell goes to one of
 /// [`PARTITIONS`] by a hash of its key; each partition, on a thread of its own, takes its
 /// rays in scan order into a hash set of its own and keeps those it had not seen.
-fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32, keep: &[AtomicBool]) {
-    let runs = partitioned(rays, origin, factor, |i, k, _| (k, i));
+fn firsts_hashed(keys: &[u64], keep: &[AtomicBool]) {
+    let runs = partitioned(keys, |i, k| (k, i));
     (0..PARTITIONS).into_par_iter().for_each(|p| {
         let mut seen = HashSet::with_capacity(runs.iter().map(|r| r[p].len()).sum());
         for &(k, i) in in_partition(&runs, p) {
@@ -157,14 +316,22 @@ fn firsts_hashed(rays: &[Ray], origin: [f64; 3], factor: u32, keep: &[AtomicBool
     });
 }
 
+/// A bundled group: its first ray (place in the scan) and the mean of its ends.
+type Mean = (u32, [f64; 3]);
+
 /// Bundle: the rays ending in one voxel (and alike in hitting) form a group; a group of
 /// more than `threshold` becomes one ray to the mean of their ends, in the place of its
 /// first ray; smaller groups keep their rays. Grouped by partition as [`firsts_hashed`]:
 /// a group's ends are summed in scan order, so the mean is the same on any thread count.
-fn bundle(rays: &mut [Ray], origin: [f64; 3], threshold: u32, keep: &[AtomicBool]) {
-    let runs = partitioned(rays, origin, 1, |i, k, r| (k, i, r.end));
-    // Per partition, the bundled groups as (first ray, mean end).
-    let means: Vec<Vec<(u32, [f64; 3])>> = (0..PARTITIONS)
+fn bundle(
+    rays: &[Ray],
+    layout: &Layout<'_>,
+    threshold: u32,
+    keys: &[u64],
+    keep: &[AtomicBool],
+) -> Vec<Vec<Mean>> {
+    let runs = partitioned(keys, |i, k| (k, i, rays[layout.place(i as usize)].end));
+    (0..PARTITIONS)
         .into_par_iter()
         .map(|p| {
             let n = runs.iter().map(|r| r[p].len()).sum();
@@ -192,8 +359,7 @@ fn bundle(rays: &mut [Ray], origin: [f64; 3], threshold: u32, keep: &[AtomicBool
                 .map(|(first, n, sum)| (first, sum.map(|c| c / f64::from(n))))
                 .collect()
         })
-        .collect();
-    set_means(rays, origin, means.into_iter().flatten());
+        .collect()
 }
 
 /// Low bits of a cell's bit that [`bundle_dense`] groups by within a bucket: a bucket's
@@ -205,24 +371,30 @@ const BUCKET_BITS: u32 = 12;
 /// holds its rays in scan order), then each bucket groups its rays in a small table of
 /// its own. A group's ends are summed in scan order, as [`bundle`] sums them.
 fn bundle_dense(
-    rays: &mut [Ray],
-    origin: [f64; 3],
+    rays: &[Ray],
+    layout: &Layout<'_>,
     threshold: u32,
     cells: &CellBox,
     bufs: &mut Buffers,
-) {
+) -> Vec<Vec<Mean>> {
     let n = rays.len();
     let (runs, per) = scan_runs(n);
     let buckets = cells.bits().div_ceil(1 << BUCKET_BITS);
     sized(&mut bufs.bits, n, || 0);
     // Each run's bucket counts, then where each run's part of each bucket starts.
     let mut counts: Vec<Vec<u32>> = (bufs.bits.par_chunks_mut(per))
-        .zip(rays.par_chunks(per))
-        .map(|(bits, rays)| {
+        .zip(bufs.keys.par_chunks(per))
+        .map(|(bits, keys)| {
             let mut c = vec![0u32; buckets];
-            for (b, r) in bits.iter_mut().zip(rays) {
-                *b = cells.bit(r) as u32;
-                c[(*b >> BUCKET_BITS) as usize] += 1;
+            for (b, &k) in bits.iter_mut().zip(keys) {
+                *b = if k == NONE {
+                    u32::MAX
+                } else {
+                    cells.bit(k) as u32
+                };
+                if k != NONE {
+                    c[(*b >> BUCKET_BITS) as usize] += 1;
+                }
             }
             c
         })
@@ -238,14 +410,15 @@ fn bundle_dense(
         }
     }
     starts.push(at);
+    let m = at as usize;
     // Stable scatter: (cell bit, ray) in bucket order; distinct runs write distinct places.
-    sized(&mut bufs.sorted, n, || AtomicU64::new(0));
+    sized(&mut bufs.sorted, m, || AtomicU64::new(0));
     let sorted = &bufs.sorted;
     (bufs.bits.par_chunks(per))
         .zip(counts.par_iter_mut())
         .enumerate()
         .for_each(|(j, (bits, at))| {
-            for (i, &b) in bits.iter().enumerate() {
+            for (i, &b) in bits.iter().enumerate().filter(|&(_, &b)| b != u32::MAX) {
                 let slot = &mut at[(b >> BUCKET_BITS) as usize];
                 let item = u64::from(b) << 32 | (j * per + i) as u64;
                 sorted[*slot as usize].store(item, Ordering::Relaxed);
@@ -258,11 +431,11 @@ fn bundle_dense(
     let bounds: Vec<usize> = (0..=tasks)
         .map(|t| {
             starts
-                .partition_point(|&s| (s as usize) < t * n / tasks)
+                .partition_point(|&s| (s as usize) < t * m / tasks)
                 .min(buckets)
         })
         .collect();
-    let (rays_read, keep) = (&*rays, &bufs.keep);
+    let keep = &bufs.keep;
     // Per cell of a bucket (its low bits): rays, the first, the sum of the ends; zeroed
     // once per worker (128 KiB), each bucket leaving them as it found them.
     let tables = || {
@@ -273,7 +446,7 @@ fn bundle_dense(
             vec![[0.0f64; 3]; cells],
         )
     };
-    let means: Vec<Vec<(u32, [f64; 3])>> = (0..tasks)
+    (0..tasks)
         .into_par_iter()
         .map_init(tables, |(count, first, sum), t| {
             const LOW: u64 = (1 << BUCKET_BITS) - 1;
@@ -287,15 +460,20 @@ fn bundle_dense(
                         first[low(x)] = x as u32;
                     }
                     *c += 1;
-                    // The next pass reads the end of each ray it bundles.
-                    crate::prefetch::prefetch(rays_read, x as u32 as usize);
+                }
+                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
+                    let l = low(x);
+                    if count[l] > threshold {
+                        // The next pass reads the end of each ray it bundles.
+                        crate::prefetch::prefetch(rays, layout.place(x as u32 as usize));
+                    }
                 }
                 for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let (l, i) = (low(x), x as u32);
                     let bundled = count[l] > threshold;
                     keep[i as usize].store(!bundled || i == first[l], Ordering::Relaxed);
                     if bundled {
-                        let e = rays_read[i as usize].end;
+                        let e = rays[layout.place(i as usize)].end;
                         (0..3).for_each(|a| sum[l][a] += e[a]);
                     }
                 }
@@ -311,90 +489,99 @@ fn bundle_dense(
             }
             out
         })
-        .collect();
-    set_means(rays, origin, means.into_iter().flatten());
+        .collect()
 }
 
 /// The runs of rays in scan order that [`firsts_dense`] and [`bundle_dense`] cut a
-/// frame's `n` rays into, one per thread (fewer for few rays): how many and how long.
+/// frame's `n` rays into, one per thread (fewer for few rays), of whole chunks: how many
+/// and how long.
 fn scan_runs(n: usize) -> (usize, usize) {
     let runs = rayon::current_num_threads().min(n / 4096).max(1);
-    (runs, n.div_ceil(runs).max(1))
+    let per = n.div_ceil(runs).next_multiple_of(RAY_CHUNK);
+    (n.div_ceil(per).max(1), per)
 }
 
 /// A bundle's first ray becomes the ray to the mean.
-fn set_means(rays: &mut [Ray], origin: [f64; 3], means: impl Iterator<Item = (u32, [f64; 3])>) {
-    for (first, end) in means {
-        let r = &mut rays[first as usize];
+fn set_means(rays: &mut [Ray], layout: &Layout<'_>, origin: [f64; 3], means: Vec<Vec<Mean>>) {
+    for (first, end) in means.into_iter().flatten() {
+        let r = &mut rays[layout.place(first as usize)];
         let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
         *r = Ray::new(end, direction_key(d), r.hit);
     }
 }
 
-/// The cells (`factor` per voxel edge) over a frame's voxel box, indexed densely.
+/// The cells ([`CellKeys`]) over a frame's voxel box, indexed densely, each as two bits
+/// (hit or not), or one where every ray hits.
 struct CellBox {
-    factor: f64,
+    /// The key field of the box's first cell on each axis.
     lo: [i64; 3],
     dims: [u64; 3],
+    /// 1 where a cell has two bits, else 0.
+    hit_bit: u64,
 }
 
 impl CellBox {
-    /// `None` when the box has more than [`DENSE_CELL_BITS`] / 2 cells.
-    fn new(extent: &Extent, factor: u32) -> Option<Self> {
-        let f = i64::from(factor);
+    /// `None` when the box's cells need more than [`DENSE_CELL_BITS`] bits.
+    fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
+        let f = cells.f as i64;
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
-        let lo = lo.map(|c| i64::from(c) * f);
-        let dims = [0, 1, 2].map(|a| ((i64::from(hi[a]) + 1) * f - lo[a]) as u64);
-        let cells = dims[0]
+        let lo = [0, 1, 2].map(|a| i64::from(lo[a]) * f - cells.base[a] as i64);
+        let dims =
+            [0, 1, 2].map(|a| ((i64::from(hi[a]) + 1) * f - cells.base[a] as i64 - lo[a]) as u64);
+        let n = dims[0]
             .checked_mul(dims[1])
             .and_then(|c| c.checked_mul(dims[2]))?;
-        (cells.checked_mul(2)? <= DENSE_CELL_BITS).then_some(CellBox {
-            factor: f64::from(factor),
-            lo,
-            dims,
-        })
+        let hit_bit = u64::from(extent.cut_rays > 0);
+        (n.checked_mul(1 << hit_bit)? <= DENSE_CELL_BITS).then_some(CellBox { lo, dims, hit_bit })
     }
 
     fn bits(&self) -> usize {
-        (2 * self.dims[0] * self.dims[1] * self.dims[2]) as usize
+        ((self.dims[0] * self.dims[1] * self.dims[2]) << self.hit_bit) as usize
     }
 
-    /// The bit of a ray's cell and hit flag. Ends lie in the box, whose voxel bounds the
+    /// The bit of a cell key (not [`NONE`]). Ends lie in the box, whose voxel bounds the
     /// extent gives; a float end on the box's upper face is clamped into its last cell.
     #[inline]
-    fn bit(&self, r: &Ray) -> usize {
+    fn bit(&self, key: u64) -> usize {
         let c = [0, 1, 2].map(|a| {
-            let k = (r.end[a] * self.factor).floor() as i64 - self.lo[a];
+            let k = (key >> (21 * a) & CellKeys::FIELD) as i64 - self.lo[a];
             k.clamp(0, self.dims[a] as i64 - 1) as u64
         });
         let cell = (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0];
-        (2 * cell + u64::from(r.hit)) as usize
+        (cell << self.hit_bit | (key >> 63 & self.hit_bit)) as usize
     }
 }
 
-/// Whether each ray is the first of its cell in scan order, into `bufs.keep`. The rays
-/// are cut into one run per thread; each run keeps its own firsts, marking them in a bit
-/// set of its own, and the sets of the runs before it, OR-ed, then drop those an earlier
-/// run saw. The first pass notes each ray's bit, so the second reads 4 bytes a ray
-/// instead of the ray.
-fn firsts_dense(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) {
-    const FIRST: u32 = 1 << 31;
-    let (_, per) = scan_runs(rays.len());
+/// Which rays are the first of their cell in scan order, as [`Keep::Firsts`] reads it;
+/// returns the runs and their length. The rays are cut into one run per thread; each run
+/// notes its own firsts, marking them in a bit set of its own, and the sets become the
+/// cells of all runs up to each, by which the runs after the first drop the rays an
+/// earlier run saw. The first pass notes each ray's bit, so the second reads 4 bytes a
+/// ray instead of the key.
+fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
+    let n = bufs.keys.len();
+    let (runs, per) = scan_runs(n);
     let words = cells.bits().div_ceil(64);
-    sized(&mut bufs.bits, rays.len(), || 0);
-    let mut seen: Vec<Vec<u64>> = (bufs.bits.par_chunks_mut(per))
-        .zip(rays.par_chunks(per))
-        .map(|(noted, rays)| {
-            let mut set = vec![0u64; words];
-            for (n, r) in noted.iter_mut().zip(rays) {
-                let b = cells.bit(r);
+    sized(&mut bufs.bits, n, || 0);
+    bufs.sets.resize_with(runs.max(bufs.sets.len()), Vec::new);
+    (bufs.bits.par_chunks_mut(per))
+        .zip(bufs.keys.par_chunks(per))
+        .zip(bufs.sets[..runs].par_iter_mut())
+        .for_each(|((noted, keys), set)| {
+            set.clear();
+            set.resize(words, 0);
+            for (n, &k) in noted.iter_mut().zip(keys) {
+                if k == NONE {
+                    *n = 0;
+                    continue;
+                }
+                let b = cells.bit(k);
                 let (w, m) = (b / 64, 1u64 << (b % 64));
                 *n = b as u32 | if set[w] & m == 0 { FIRST } else { 0 };
                 set[w] |= m;
             }
-            set
-        })
-        .collect();
+        });
+    let seen = &mut bufs.sets[..runs];
     // seen[j] becomes the cells of runs 0..=j.
     for j in 1..seen.len() {
         let (before, rest) = seen.split_at_mut(j);
@@ -403,16 +590,7 @@ fn firsts_dense(rays: &[Ray], cells: &CellBox, bufs: &mut Buffers) {
             .zip(before[j - 1].par_iter())
             .for_each(|(w, p)| *w |= p);
     }
-    (bufs.keep.par_chunks(per))
-        .zip(bufs.bits.par_chunks(per))
-        .enumerate()
-        .for_each(|(j, (keep, noted))| {
-            for (k, &n) in keep.iter().zip(noted) {
-                let b = (n & !FIRST) as usize;
-                let earlier = j > 0 && seen[j - 1][b / 64] & (1u64 << (b % 64)) != 0;
-                k.store(n & FIRST != 0 && !earlier, Ordering::Relaxed);
-            }
-        });
+    (runs, per)
 }
 
 /// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
@@ -469,24 +647,80 @@ fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::integrate::prepare::bounds;
+    use crate::integrate::prepare::{bounds, compact, Sides};
     use crate::test_rng::Rng;
 
+    /// What a trade-off mode casts of `rays` (made in scan order): keys noted, laid out by
+    /// sides across `axis` as the prepare phase does it, chosen and compacted, with each
+    /// supported kernel (all giving the same rays). Returned per chunk, the rays in front
+    /// in scan order, then those behind in scan order; across no axis, the rays kept in
+    /// scan order.
+    fn thinned(
+        rays: &[Ray],
+        origin: [f64; 3],
+        mode: RayMode,
+        extent: &Extent,
+        bufs: &mut Buffers,
+        axis: Option<[f64; 3]>,
+    ) -> Vec<Ray> {
+        let mut got: Option<Vec<Ray>> = None;
+        for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+            let cells = CellKeys::new(origin, cell_factor(mode));
+            let halves = Sides { origin, axis };
+            let mut laid = rays.to_vec();
+            let mut sides = Vec::new();
+            let (keys, orders) = bufs.notes(rays.len());
+            cells.keys(kernel, rays, keys);
+            for ((made, out), order) in (rays.chunks(RAY_CHUNK))
+                .zip(laid.chunks_mut(RAY_CHUNK))
+                .zip(orders.iter_mut())
+            {
+                let (counts, o) = halves.lay_out(made, out);
+                sides.push(counts);
+                *order = o;
+            }
+            let (kept, orders) = thin_out(&mut laid, origin, mode, extent, bufs);
+            let sum = compact(&mut laid, &mut sides, orders, &kept, kernel);
+            let cast: Vec<Ray> = (laid.chunks(RAY_CHUNK).zip(&sides))
+                .flat_map(|(c, &[front, back])| {
+                    let (f, b) = (front as usize, back as usize);
+                    c[..f].iter().chain(c[c.len() - b..].iter().rev()).copied()
+                })
+                .collect();
+            let (e, want) = (sum.extent(), bounds(&cast, origin));
+            assert_eq!(
+                (e.lo, e.hi, e.cut_rays),
+                (want.lo, want.hi, want.cut_rays),
+                "{mode:?} {kernel:?}"
+            );
+            let fields = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
+            if let Some(g) = &got {
+                assert!(fields(g) == fields(&cast), "{mode:?}: {kernel:?} differs");
+            }
+            got = Some(cast);
+        }
+        got.expect("the scalar kernel runs anywhere")
+    }
+
     /// The bit-set path keeps exactly the rays, in the order and with the ends, that the
-    /// hash set in scan order keeps, on any number of threads; rays on the box's faces and
-    /// repeated cells included.
+    /// hash set in scan order keeps, on any number of threads; rays on the box's faces,
+    /// repeated cells and skipped points included; the hash partitions too.
     #[test]
     fn dense_firsts_keep_what_the_scan_order_hash_keeps() {
         let mut rng = Rng(11);
         let origin = [3.5, -2.25, 0.5];
         let mut rays: Vec<Ray> = (0..60_000)
             .map(|i| {
+                if i % 97 == 0 {
+                    return Ray::new([0.0; 3], SKIPPED, false);
+                }
                 // Ends on a coarse lattice (many repeats, some exactly on cell faces).
                 let end = [0, 1, 2].map(|a| origin[a] + (rng.f() * 20.0 - 10.0).round() / 2.0);
                 Ray::new(end, 0, i % 3 != 0)
             })
             .collect();
         rays.push(Ray::new(origin, 0, true));
+        let made: Vec<Ray> = rays.iter().copied().filter(|r| r.key != SKIPPED).collect();
         let extent = bounds(&rays, origin);
         let mut bufs = Buffers::default();
         for mode in [
@@ -494,10 +728,10 @@ mod tests {
             RayMode::Subsample { factor: 1 },
             RayMode::Subsample { factor: 4 },
         ] {
-            let mut want = rays.clone();
+            let mut want = made.clone();
             thin_hashed(&mut want, origin, mode);
             assert!(
-                want.len() < rays.len() / 2 && want.len() > 1000,
+                want.len() < made.len() / 2 && want.len() > 1000,
                 "{mode:?}: {}",
                 want.len()
             );
@@ -507,70 +741,58 @@ mod tests {
                     .build()
                     .unwrap();
                 // Buffers left by the modes and thread counts before.
-                let got = pool.install(|| thinned(&rays, origin, mode, &extent, &mut bufs));
+                let got = pool.install(|| thinned(&rays, origin, mode, &extent, &mut bufs, None));
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(ends(&got) == ends(&want), "{mode:?} on {threads} threads");
             }
         }
         // A box too large for bit sets takes the partitioned hash sets: the same rays.
-        assert!(CellBox::new(&extent, 64).is_none());
-        assert!(CellBox::new(&extent, 1).is_some());
-        let mut want = rays.clone();
-        thin_hashed(&mut want, origin, RayMode::Subsample { factor: 64 });
+        let cells = |f| CellKeys::new(origin, f);
+        assert!(CellBox::new(&extent, &cells(64)).is_none());
+        assert!(CellBox::new(&extent, &cells(1)).is_some());
         for (mode, factor) in [
             (RayMode::Subsample { factor: 4 }, 4),
             (RayMode::UniqueEnd, 1),
         ] {
-            let mut w = rays.clone();
-            thin_hashed(&mut w, origin, mode);
+            let mut want = made.clone();
+            thin_hashed(&mut want, origin, mode);
             for threads in [1, 3] {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let mut bufs = Buffers::default();
-                sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
-                pool.install(|| firsts_hashed(&rays, origin, factor, &bufs.keep));
-                let centre = mode == RayMode::UniqueEnd;
-                let got = kept_rays(&rays, &bufs.keep, centre);
+                let keys: Vec<u64> = rays.iter().map(|r| cells(factor).key(r)).collect();
+                let keep: Vec<AtomicBool> = keys.iter().map(|_| AtomicBool::new(false)).collect();
+                pool.install(|| firsts_hashed(&keys, &keep));
+                let got: Vec<Ray> = (rays.iter().zip(&keep))
+                    .filter(|(r, k)| r.key != SKIPPED && k.load(Ordering::Relaxed))
+                    .map(|(r, _)| {
+                        if mode == RayMode::UniqueEnd {
+                            to_centre(r)
+                        } else {
+                            *r
+                        }
+                    })
+                    .collect();
                 let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit)).collect::<Vec<_>>();
                 assert!(
-                    ends(&got) == ends(&w),
+                    ends(&got) == ends(&want),
                     "{mode:?} hashed on {threads} threads"
                 );
             }
         }
+        let mut want = made.clone();
+        thin_hashed(&mut want, origin, RayMode::Subsample { factor: 64 });
         let mode = RayMode::Subsample { factor: 64 };
-        let got = thinned(&rays, origin, mode, &extent, &mut Buffers::default());
+        let got = thinned(&rays, origin, mode, &extent, &mut Buffers::default(), None);
         assert_eq!(got.len(), want.len());
     }
 
-    /// The rays `thin_out` keeps, in scan order, as it keeps them.
-    fn thinned(
-        rays: &[Ray],
-        origin: [f64; 3],
-        mode: RayMode,
-        extent: &Extent,
-        bufs: &mut Buffers,
-    ) -> Vec<Ray> {
-        let mut rays = rays.to_vec();
-        let kept = thin_out(&mut rays, origin, mode, extent, bufs);
-        kept_rays(&rays, kept.keep, kept.centre)
-    }
-
-    /// The rays `keep` marks, in scan order, as kept (`centre`: unique-end's).
-    fn kept_rays(rays: &[Ray], keep: &[AtomicBool], centre: bool) -> Vec<Ray> {
-        let kept = Kept { keep, centre };
-        (rays.iter().enumerate())
-            .filter_map(|(i, r)| kept.ray(i, r))
-            .collect()
-    }
-
-    /// The layout by sides drops the rays a mode drops as it lays out the others, and sums
-    /// their extent: the same rays and extent as the rays kept, on either side.
+    /// Laid out by sides, a mode casts the same rays, with the same extent (checked in
+    /// `thinned`), as in scan order: dropped rays leave the layout, kept ones keep their
+    /// side and order.
     #[test]
     fn the_layout_keeps_what_the_mode_keeps() {
-        use crate::integrate::prepare::{Sides, RAY_CHUNK};
         let mut rng = Rng(13);
         let origin = [0.5, 1.5, -0.5];
         let rays: Vec<Ray> = (0..20_000)
@@ -584,30 +806,24 @@ mod tests {
             v.sort_by(|a, b| a.partial_cmp(b).unwrap());
             v
         };
-        for mode in [RayMode::UniqueEnd, RayMode::Bundle { threshold: 2 }] {
-            let want = thinned(&rays, origin, mode, &extent, &mut Buffers::default());
+        let axis = [0.6, 0.8, 0.0];
+        for mode in [
+            RayMode::UniqueEnd,
+            RayMode::Bundle { threshold: 2 },
+            RayMode::Subsample { factor: 2 },
+        ] {
+            let mut bufs = Buffers::default();
+            let want = thinned(&rays, origin, mode, &extent, &mut bufs, None);
             assert!(want.len() < rays.len() / 2, "{mode:?}");
-            for axis in [None, Some([0.6, 0.8, 0.0])] {
-                let (mut got, mut bufs, mut sides) = (rays.clone(), Buffers::default(), vec![]);
-                let kept = thin_out(&mut got, origin, mode, &extent, &mut bufs);
-                let halves = Sides { origin, axis };
-                let sum = halves.lay_out_kept(&mut got, &mut sides, |i, r| kept.ray(i, r));
-                let laid: Vec<Ray> = (got.chunks(RAY_CHUNK).zip(&sides))
-                    .flat_map(|(c, &[front, back])| {
-                        let (f, b) = (front as usize, back as usize);
-                        c[..f].iter().chain(&c[c.len() - b..]).copied()
-                    })
-                    .collect();
-                let pairs = |v: &[Ray]| sort(v.iter().map(|r| (r.end, r.hit)).collect());
-                assert!(pairs(&laid) == pairs(&want), "{mode:?}, axis {axis:?}");
-                let (e, b) = (sum.extent(), bounds(&want, origin));
-                assert_eq!((e.lo, e.hi, e.cut_rays), (b.lo, b.hi, b.cut_rays));
-            }
+            let got = thinned(&rays, origin, mode, &extent, &mut bufs, Some(axis));
+            let pairs = |v: &[Ray]| sort(v.iter().map(|r| (r.end, r.hit)).collect());
+            assert!(pairs(&got) == pairs(&want), "{mode:?}");
         }
     }
 
     /// Bundles: the same groups and means as the sort-based reference (which sums a group
-    /// in another order: equal to rounding), and exactly the same rays on any thread count.
+    /// in another order: equal to rounding), and exactly the same rays on any thread count,
+    /// by the counting sort and by the hash partitions.
     #[test]
     fn bundles_match_the_sorted_reference_on_any_thread_count() {
         let mut rng = Rng(12);
@@ -637,8 +853,8 @@ mod tests {
                     .build()
                     .unwrap()
             };
-            let one =
-                pool(1).install(|| thinned(&rays, origin, mode, &extent, &mut Buffers::default()));
+            let mut bufs = Buffers::default();
+            let one = pool(1).install(|| thinned(&rays, origin, mode, &extent, &mut bufs, None));
             let (w, g) = (sorted(&want), sorted(&one));
             assert_eq!(w.len(), g.len(), "threshold {threshold}");
             for (a, b) in w.iter().zip(&g) {
@@ -660,27 +876,33 @@ mod tests {
                     rays.len()
                 );
             }
+            let fields = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
             for n in [2, 3, 5] {
-                let got = pool(n)
-                    .install(|| thinned(&rays, origin, mode, &extent, &mut Buffers::default()));
-                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
+                let got =
+                    pool(n).install(|| thinned(&rays, origin, mode, &extent, &mut bufs, None));
                 assert!(
-                    ends(&got) == ends(&one),
+                    fields(&got) == fields(&one),
                     "threshold {threshold} on {n} threads"
                 );
             }
             // The partitioned hash tables, which boxes too large for the counting sort
             // take, bundle exactly the same rays.
-            assert!(CellBox::new(&extent, 1).is_some());
+            let cells = CellKeys::new(origin, 1);
+            assert!(CellBox::new(&extent, &cells).is_some());
+            let keys: Vec<u64> = rays.iter().map(|r| cells.key(r)).collect();
+            let places: Vec<u16> = (0..rays.len()).map(|i| (i % RAY_CHUNK) as u16).collect();
             for n in [1, 3] {
                 let mut got = rays.clone();
-                let mut bufs = Buffers::default();
-                sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
-                pool(n).install(|| bundle(&mut got, origin, threshold, &bufs.keep));
-                let got = kept_rays(&got, &bufs.keep, false);
-                let ends = |v: &[Ray]| v.iter().map(|r| (r.end, r.hit, r.key)).collect::<Vec<_>>();
+                let keep: Vec<AtomicBool> = keys.iter().map(|_| AtomicBool::new(false)).collect();
+                let layout = Layout { places: &places };
+                let means = pool(n).install(|| bundle(&got, &layout, threshold, &keys, &keep));
+                set_means(&mut got, &layout, origin, means);
+                let got: Vec<Ray> = (got.iter().zip(&keep))
+                    .filter(|(_, k)| k.load(Ordering::Relaxed))
+                    .map(|(r, _)| *r)
+                    .collect();
                 assert!(
-                    ends(&got) == ends(&one),
+                    fields(&got) == fields(&one),
                     "hashed, threshold {threshold} on {n} threads"
                 );
             }

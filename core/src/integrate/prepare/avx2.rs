@@ -1,6 +1,7 @@
-//! Ray making on AVX2: four points at a time, bit for bit as [`RayMaker::make`].
+//! Ray making on AVX2: four points at a time, bit for bit as [`RayMaker::make`]; and the
+//! extent of rays, bit for bit as [`ExtentSum::of`].
 
-use super::{Ray, RayMaker, SKIPPED};
+use super::{ExtentSum, Ray, RayMaker, SKIPPED};
 use std::arch::x86_64::*;
 
 /// `out[i] = m.make(&pts[i])` for four points at a time, with `make`'s f64 operations in
@@ -106,4 +107,63 @@ fn deinterleave(p4: &[[f32; 3]]) -> [__m128; 3] {
         _mm_permute_ps::<0b10_11_00_01>(y),
         _mm_permute_ps::<0b11_00_01_10>(z),
     ]
+}
+
+/// [`ExtentSum::of`] on AVX2, bit for bit: the same two sums over alternate rays, with a
+/// sum's three axes in the lanes of one vector (the fourth lane, the key and hit flag
+/// read as a float, is ignored).
+#[target_feature(enable = "avx2")]
+pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
+    struct Acc {
+        lo: __m256d,
+        hi: __m256d,
+        len: __m256d,
+        cut: u64,
+        skipped: u64,
+    }
+    let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
+    let sign = _mm256_set1_pd(-0.0);
+    let new = || Acc {
+        lo: o,
+        hi: o,
+        len: _mm256_setzero_pd(),
+        cut: 0,
+        skipped: 0,
+    };
+    let add = |s: &mut Acc, r: &Ray| {
+        if r.key == SKIPPED {
+            s.skipped += 1;
+            return;
+        }
+        // SAFETY: a `repr(C)` ray is 32 initialised bytes, the end first.
+        let v = unsafe { _mm256_loadu_pd(std::ptr::from_ref(r).cast::<f64>()) };
+        s.lo = _mm256_min_pd(s.lo, v);
+        s.hi = _mm256_max_pd(s.hi, v);
+        s.len = _mm256_add_pd(s.len, _mm256_andnot_pd(sign, _mm256_sub_pd(v, o)));
+        s.cut += u64::from(!r.hit);
+    };
+    let (mut even, mut odd) = (new(), new());
+    let mut pairs = rays.chunks_exact(2);
+    for p in &mut pairs {
+        add(&mut even, &p[0]);
+        add(&mut odd, &p[1]);
+    }
+    pairs.remainder().iter().for_each(|r| add(&mut even, r));
+    let out = |s: Acc| {
+        let lanes = |v: __m256d| {
+            let mut a = [0.0f64; 4];
+            // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.
+            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), v) };
+            [a[0], a[1], a[2]]
+        };
+        ExtentSum {
+            origin,
+            lo: lanes(s.lo),
+            hi: lanes(s.hi),
+            cut: s.cut,
+            length: lanes(s.len),
+            skipped: s.skipped,
+        }
+    };
+    ExtentSum::join(out(even), out(odd))
 }

@@ -1,10 +1,10 @@
 //! Phase 1, prepare: a frame's points become rays in voxel units (pose, face snap,
 //! max-range cut), laid out by the sides of the sensor ([`Sides`]) as they are made, with
-//! the frame's extent summed up in the same pass ([`ExtentSum`]); the trade-off modes thin
-//! them ([`super::thin`]); the sparse walk gets them sorted by direction
-//! ([`order_by_direction`]).
+//! the frame's extent summed up in the same pass ([`ExtentSum`]); the trade-off modes
+//! choose from notes of the same pass ([`super::thin`]) and drop the rest from the layout
+//! ([`compact`]); the sparse walk gets them sorted by direction ([`order_by_direction`]).
 
-use super::thin::{thin_out, Buffers};
+use super::thin::{cell_factor, thin_out, Buffers, CellKeys, Kept};
 use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
 use crate::kernel::Kernel;
@@ -79,18 +79,26 @@ pub(in crate::integrate) fn spread16(x: u32) -> u32 {
     (x | x << 1) & 0x5555_5555
 }
 
-/// Put the rays in the sparse walk's order: gaps of skipped points dropped, sorted by
-/// direction, so that neighbouring rays walk neighbouring memory.
-pub(super) fn order_by_direction(rays: &mut Vec<Ray>, ray_count: u64, origin: [f64; 3]) {
-    if ray_count < rays.len() as u64 {
-        rays.retain(|r| r.key != SKIPPED);
+/// Put the rays in the sparse walk's order: gaps of skipped points and dropped rays
+/// closed, sorted by direction, so that neighbouring rays walk neighbouring memory.
+pub(super) fn order_by_direction(rays: &mut Vec<Ray>, sides: &[[u32; 2]], origin: [f64; 3]) {
+    let mut to = 0;
+    for (c, &[front, back]) in sides.iter().enumerate() {
+        let at = c * RAY_CHUNK;
+        let len = (rays.len() - at).min(RAY_CHUNK);
+        let (front, back) = (front as usize, back as usize);
+        rays.copy_within(at..at + front, to);
+        rays.copy_within(at + len - back..at + len, to + front);
+        to += front + back;
     }
+    rays.truncate(to);
     set_direction_keys(rays, origin);
     rays.par_sort_unstable_by_key(|r| r.key);
 }
 
 /// Fill `rays` from the frame, laid out by `halves` with the counts per chunk in `sides`;
-/// returns the number of non-finite points skipped and the rays' extent.
+/// returns the number of non-finite points skipped and the rays' extent. A trade-off mode
+/// then drops rays from the layout ([`compact`]).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn prepare_rays(
     rays: &mut Vec<Ray>,
@@ -105,46 +113,170 @@ pub(super) fn prepare_rays(
     thin: &mut Buffers,
 ) -> (u64, Extent) {
     let maker = RayMaker::new(frame, tf, origin, range_units, kernel);
-    // One pass writes the rays and sums up their extent: a frame's rays (16 MB for 500k
-    // points) outgrow the cache, and passes of their own to count the skipped points and
-    // take the bounds cost a third of the prepare phase (structured 500k 6 m: 7.8 ms, of
-    // which 1.4 ms bounds and 0.5 ms counting, 2 threads). For the same reason the rays
-    // are laid out as they are made. `rays` keeps its length from frame to frame, so
-    // `resize` writes only where this frame has more points than the last.
+    // One pass writes the rays, lays them out and sums up their extent: a frame's rays
+    // (16 MB for 500k points) outgrow the cache, and passes of their own to count the
+    // skipped points and take the bounds cost a third of the prepare phase (structured
+    // 500k 6 m: 7.8 ms, of which 1.4 ms bounds and 0.5 ms counting, 2 threads). `rays`
+    // keeps its length from frame to frame, so `resize` writes only where this frame has
+    // more points than the last.
     let n = frame.points.len();
     rays.truncate(n);
     rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
     sides.clear();
     sides.resize(n.div_ceil(RAY_CHUNK), [0; 2]);
-    // The trade-off modes keep the first ray of a kind in scan order, so they see the rays
-    // in scan order (one thread's layout) and lay them out after.
-    let made_by = match mode {
-        RayMode::Exact => halves,
-        _ => Sides {
-            axis: None,
-            ..halves
-        },
-    };
-    let sums = rays
+    let chunks = rays
         .par_chunks_mut(RAY_CHUNK)
         .zip(frame.points.par_chunks(RAY_CHUNK))
-        .zip(sides.par_iter_mut())
-        .map_init(Vec::new, |made, ((out, pts), side)| {
-            let (counts, sum) = made_by.make(&maker, pts, out, made);
-            *side = counts;
-            sum
-        })
-        .reduce(|| ExtentSum::new(origin), ExtentSum::join);
+        .zip(sides.par_iter_mut());
+    let sums = if mode == RayMode::Exact {
+        chunks
+            .map_init(Vec::new, |made, ((out, pts), side)| {
+                let (counts, _, sum) = halves.make(&maker, pts, out, made, None);
+                *side = counts;
+                sum
+            })
+            .reduce(|| ExtentSum::new(origin), ExtentSum::join)
+    } else {
+        // The trade-off modes choose rays in scan order: the same pass notes each ray's
+        // cell, in scan order, and where the layout put it, so that choosing reads 8 bytes
+        // a ray instead of the ray, and dropping rays is a compaction of the layout.
+        let cells = CellKeys::new(origin, cell_factor(mode));
+        let (keys, orders) = thin.notes(n);
+        chunks
+            .zip(keys.par_chunks_mut(RAY_CHUNK))
+            .zip(orders.par_iter_mut())
+            .map_init(Vec::new, |made, ((((out, pts), side), keys), order)| {
+                let note = Some((&cells, keys));
+                let (counts, o, sum) = halves.make(&maker, pts, out, made, note);
+                (*side, *order) = (counts, o);
+                sum
+            })
+            .reduce(|| ExtentSum::new(origin), ExtentSum::join)
+    };
     let skipped = sums.skipped;
     if mode == RayMode::Exact {
         return (skipped, sums.extent());
     }
-    if skipped > 0 {
-        rays.retain(|r| r.key != SKIPPED);
-    }
-    let kept = thin_out(rays, origin, mode, &sums.extent(), thin);
-    let sum = halves.lay_out_kept(rays, sides, |i, r| kept.ray(i, r));
+    let (kept, orders) = thin_out(rays, origin, mode, &sums.extent(), thin);
+    let sum = compact(rays, sides, orders, &kept, kernel);
     (skipped, sum.extent())
+}
+
+/// Drop from the layout of each chunk the rays `kept` does not keep (a bundle's mean is
+/// already in its first ray's place), keeping the order of the others; `orders` says
+/// which ray of the scan lies where ([`ChunkOrder`]). `sides` gets the new counts (what
+/// lies between is left as it was, not rays); returns the extent of the rays kept.
+pub(super) fn compact(
+    rays: &mut [Ray],
+    sides: &mut [[u32; 2]],
+    orders: &[ChunkOrder],
+    kept: &Kept<'_>,
+    kernel: Kernel,
+) -> ExtentSum {
+    let origin = kept.origin();
+    rays.par_chunks_mut(RAY_CHUNK)
+        .zip(sides.par_iter_mut())
+        .zip(orders.par_iter())
+        .enumerate()
+        .map(|(c, ((chunk, side), order))| {
+            let keep = kept.mask(c * RAY_CHUNK, chunk.len());
+            *side = compact_chunk(chunk, order, &keep, kept);
+            ExtentSum::join(
+                ExtentSum::of(origin, &chunk[..side[0] as usize], kernel),
+                ExtentSum::of(origin, &chunk[chunk.len() - side[1] as usize..], kernel),
+            )
+        })
+        .reduce(|| ExtentSum::new(origin), ExtentSum::join)
+}
+
+/// [`compact`] of one chunk, given which rays of its scan are kept; returns how many it
+/// keeps in front and behind.
+fn compact_chunk(
+    chunk: &mut [Ray],
+    order: &ChunkOrder,
+    keep: &[u64; RAY_CHUNK / 64],
+    kept: &Kept<'_>,
+) -> [u32; 2] {
+    let len = chunk.len();
+    let low = |b: usize| (1u64 << b) - 1;
+    // Front rays lie from the chunk's start in scan order, back rays from its end in
+    // reverse. Each side moves only its rays kept, towards its end: the one that is ray
+    // `j` of the scan lies after (before) the side's rays scanned before it.
+    let mut front = 0;
+    let mut before = 0;
+    for (&side, &keep) in order.front.iter().zip(keep) {
+        for b in Ones(side & keep) {
+            let from = before + (side & low(b)).count_ones() as usize;
+            chunk[front] = kept.finish(&chunk[from]);
+            front += 1;
+        }
+        before += side.count_ones() as usize;
+    }
+    let mut back = 0;
+    let mut before = 0;
+    for (&side, &keep) in order.back.iter().zip(keep) {
+        for b in Ones(side & keep) {
+            let from = len - 1 - (before + (side & low(b)).count_ones() as usize);
+            chunk[len - 1 - back] = kept.finish(&chunk[from]);
+            back += 1;
+        }
+        before += side.count_ones() as usize;
+    }
+    [front as u32, back as u32]
+}
+
+/// The places of a word's set bits, lowest first.
+struct Ones(u64);
+
+impl Iterator for Ones {
+    type Item = usize;
+
+    #[inline]
+    fn next(&mut self) -> Option<usize> {
+        let b = (self.0 != 0).then(|| self.0.trailing_zeros() as usize);
+        self.0 &= self.0.wrapping_sub(1);
+        b
+    }
+}
+
+/// Which rays of a chunk, by their place in the scan, a layout by [`Sides`] put in front
+/// and which behind (bit `j` of word `j / 64`); the rays of skipped points in neither.
+#[derive(Clone, Copy, Debug, Default)]
+pub(in crate::integrate) struct ChunkOrder {
+    pub(in crate::integrate) front: [u64; RAY_CHUNK / 64],
+    pub(in crate::integrate) back: [u64; RAY_CHUNK / 64],
+}
+
+impl ChunkOrder {
+    /// All of a chunk's `len` rays in front, in scan order.
+    fn all_front(len: usize) -> Self {
+        let mut o = ChunkOrder::default();
+        for (w, m) in o.front.iter_mut().enumerate() {
+            let bits = len.saturating_sub(w * 64).min(64);
+            *m = if bits == 64 { !0 } else { (1u64 << bits) - 1 };
+        }
+        o
+    }
+
+    /// Where the layout put each ray of the chunk's scan (as long as the chunk): the
+    /// place within the chunk of each but the skipped points' rays.
+    pub(in crate::integrate) fn places(&self, out: &mut [u16]) {
+        let len = out.len();
+        let mut k = 0;
+        for (w, &m) in self.front.iter().enumerate() {
+            for b in Ones(m) {
+                out[w * 64 + b] = k;
+                k += 1;
+            }
+        }
+        let mut k = len as u16;
+        for (w, &m) in self.back.iter().enumerate() {
+            for b in Ones(m) {
+                k -= 1;
+                out[w * 64 + b] = k;
+            }
+        }
+    }
 }
 
 /// The two sides of a plane through the sensor, across one of its axes: the one that
@@ -201,73 +333,73 @@ impl Sides {
     }
 
     /// Make the rays to `pts` into `out`, as long, laid out; returns how many lie in front
-    /// and behind, and their extent. `made` is scratch.
+    /// and behind, where the layout put each, and their extent. With `note`, each ray's
+    /// cell key goes into its slice (as long as `pts`). `made` is scratch.
     pub(in crate::integrate) fn make(
         &self,
         maker: &RayMaker,
         pts: &[[f32; 3]],
         out: &mut [Ray],
         made: &mut Vec<Ray>,
-    ) -> ([u32; 2], ExtentSum) {
+        note: Option<(&CellKeys, &mut [u64])>,
+    ) -> ([u32; 2], ChunkOrder, ExtentSum) {
+        let keys = |rays: &[Ray], note: Option<(&CellKeys, &mut [u64])>| {
+            if let Some((cells, keys)) = note {
+                cells.keys(maker.kernel, rays, keys);
+            }
+        };
         if self.axis.is_some() {
             made.resize(out.len(), Ray::new([0.0; 3], SKIPPED, false));
             maker.make_all(made, pts);
-            return (self.lay_out(made, out), ExtentSum::of(self.origin, made));
+            keys(made, note);
+            let (counts, order) = self.lay_out(made, out);
+            return (
+                counts,
+                order,
+                ExtentSum::of(self.origin, made, maker.kernel),
+            );
         }
         // All in front: in place, unless points were skipped.
         maker.make_all(out, pts);
-        let sum = ExtentSum::of(self.origin, out);
+        keys(out, note);
+        let sum = ExtentSum::of(self.origin, out, maker.kernel);
         if sum.skipped == 0 {
-            return ([out.len() as u32, 0], sum);
+            return ([out.len() as u32, 0], ChunkOrder::all_front(out.len()), sum);
         }
-        (self.lay_out_in_place(out, made), sum)
+        let (counts, order) = self.lay_out_in_place(out, made);
+        (counts, order, sum)
     }
 
     /// Lay the rays `made` out into `out`, as long; returns how many lie in front and
-    /// behind. The rays of skipped points leave gaps.
-    pub(in crate::integrate) fn lay_out(&self, made: &[Ray], out: &mut [Ray]) -> [u32; 2] {
+    /// behind, and where each went. The rays of skipped points leave gaps.
+    pub(in crate::integrate) fn lay_out(
+        &self,
+        made: &[Ray],
+        out: &mut [Ray],
+    ) -> ([u32; 2], ChunkOrder) {
         let (o, x) = (self.origin, self.axis.unwrap_or([0.0; 3]));
         let (mut front, mut back) = (0, out.len());
-        for r in made.iter().filter(|r| r.key != SKIPPED) {
-            let d = [0, 1, 2].map(|a| r.end[a] - o[a]);
-            let behind = d[0] * x[0] + d[1] * x[1] + d[2] * x[2] < 0.0;
-            // A select, not a branch: the side is a coin flip in many scans. A ray is left
-            // to place, so `front < back`.
-            out[if behind { back - 1 } else { front }] = *r;
-            front += usize::from(!behind);
-            back -= usize::from(behind);
+        let mut order = ChunkOrder::default();
+        for (w, block) in made.chunks(64).enumerate() {
+            // The words of `order` built in registers: or-ing into memory made a chain of
+            // loads and stores through the whole loop.
+            let (mut ahead, mut made) = (0u64, 0u64);
+            for (b, r) in block.iter().enumerate().filter(|(_, r)| r.key != SKIPPED) {
+                let d = [0, 1, 2].map(|a| r.end[a] - o[a]);
+                let behind = d[0] * x[0] + d[1] * x[1] + d[2] * x[2] < 0.0;
+                // A select, not a branch: the side is a coin flip in many scans. A ray is
+                // left to place, so `front < back`.
+                out[if behind { back - 1 } else { front }] = *r;
+                front += usize::from(!behind);
+                back -= usize::from(behind);
+                ahead |= u64::from(!behind) << b;
+                made |= 1 << b;
+            }
+            order.front[w] = ahead;
+            order.back[w] = made & !ahead;
         }
         out[front..back].fill(Ray::new([0.0; 3], SKIPPED, false));
-        [front as u32, (out.len() - back) as u32]
-    }
-
-    /// Lay out in place, chunk by chunk, the rays `kept` keeps (given each ray's index
-    /// and the ray, it returns the ray as kept, or `None`); the others leave gaps. `sides`
-    /// gets each chunk's counts; returns the extent of the rays kept.
-    pub(in crate::integrate) fn lay_out_kept(
-        &self,
-        rays: &mut [Ray],
-        sides: &mut Vec<[u32; 2]>,
-        kept: impl Fn(usize, &Ray) -> Option<Ray> + Sync,
-    ) -> ExtentSum {
-        sides.clear();
-        sides.resize(rays.len().div_ceil(RAY_CHUNK), [0; 2]);
-        rays.par_chunks_mut(RAY_CHUNK)
-            .zip(sides.par_iter_mut())
-            .enumerate()
-            .map_init(Vec::new, |scratch, (c, (chunk, side))| {
-                scratch.clear();
-                let at = c * RAY_CHUNK;
-                scratch.extend(
-                    chunk
-                        .iter()
-                        .enumerate()
-                        .filter_map(|(i, r)| kept(at + i, r)),
-                );
-                *side = self.lay_out(scratch, chunk);
-                ExtentSum::of(self.origin, scratch)
-            })
-            .reduce(|| ExtentSum::new(self.origin), ExtentSum::join)
+        ([front as u32, (out.len() - back) as u32], order)
     }
 
     /// [`Sides::lay_out`] of `chunk` into itself, through `scratch`.
@@ -275,7 +407,7 @@ impl Sides {
         &self,
         chunk: &mut [Ray],
         scratch: &mut Vec<Ray>,
-    ) -> [u32; 2] {
+    ) -> ([u32; 2], ChunkOrder) {
         scratch.clear();
         scratch.extend_from_slice(chunk);
         self.lay_out(scratch, chunk)
@@ -370,7 +502,7 @@ impl RayMaker {
 #[cfg(test)]
 pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
-        .map(|c| ExtentSum::of(origin, c))
+        .map(|c| ExtentSum::of_scalar(origin, c))
         .reduce(|| ExtentSum::new(origin), ExtentSum::join)
         .extent()
 }
@@ -384,7 +516,9 @@ pub(in crate::integrate) struct ExtentSum {
     pub(in crate::integrate) lo: [f64; 3],
     pub(in crate::integrate) hi: [f64; 3],
     pub(in crate::integrate) cut: u64,
-    pub(in crate::integrate) length: f64,
+    /// The rays' lengths along each axis (a sum per axis: one sum was a chain of adds
+    /// that took most of the pass).
+    pub(in crate::integrate) length: [f64; 3],
     pub(in crate::integrate) skipped: u64,
 }
 
@@ -395,16 +529,33 @@ impl ExtentSum {
             lo: origin,
             hi: origin,
             cut: 0,
-            length: 0.0,
+            length: [0.0; 3],
             skipped: 0,
         }
     }
 
-    /// The sum over `rays`.
-    pub(in crate::integrate) fn of(origin: [f64; 3], rays: &[Ray]) -> Self {
-        let mut sum = ExtentSum::new(origin);
-        rays.iter().for_each(|r| sum.add(r));
-        sum
+    /// The sum over `rays`, with `kernel`'s vectors where it has them.
+    pub(in crate::integrate) fn of(origin: [f64; 3], rays: &[Ray], kernel: Kernel) -> Self {
+        match kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
+            // AVX2 (`Kernel::supported`), which is all `extent_of` needs.
+            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::extent_of(origin, rays) },
+            _ => Self::of_scalar(origin, rays),
+        }
+    }
+
+    /// [`Self::of`] without vectors.
+    pub(in crate::integrate) fn of_scalar(origin: [f64; 3], rays: &[Ray]) -> Self {
+        // Two sums over alternate rays, so that two chains of dependent operations overlap.
+        let mut s = [ExtentSum::new(origin); 2];
+        let mut pairs = rays.chunks_exact(2);
+        for p in &mut pairs {
+            s[0].add(&p[0]);
+            s[1].add(&p[1]);
+        }
+        pairs.remainder().iter().for_each(|r| s[0].add(r));
+        ExtentSum::join(s[0], s[1])
     }
 
     #[inline]
@@ -416,7 +567,7 @@ impl ExtentSum {
         for a in 0..3 {
             self.lo[a] = self.lo[a].min(r.end[a]);
             self.hi[a] = self.hi[a].max(r.end[a]);
-            self.length += (r.end[a] - self.origin[a]).abs();
+            self.length[a] += (r.end[a] - self.origin[a]).abs();
         }
         self.cut += u64::from(!r.hit);
     }
@@ -427,7 +578,7 @@ impl ExtentSum {
             lo: [0, 1, 2].map(|i| a.lo[i].min(b.lo[i])),
             hi: [0, 1, 2].map(|i| a.hi[i].max(b.hi[i])),
             cut: a.cut + b.cut,
-            length: a.length + b.length,
+            length: [0, 1, 2].map(|i| a.length[i] + b.length[i]),
             skipped: a.skipped + b.skipped,
         }
     }
@@ -439,7 +590,7 @@ impl ExtentSum {
             lo: voxel(self.lo),
             hi: voxel(self.hi),
             cut_rays: self.cut,
-            steps: self.length,
+            steps: self.length.iter().sum(),
         }
     }
 }

@@ -1,0 +1,44 @@
+//! Cell keys on AVX2: four rays at a time, bit for bit as [`CellKeys::key`].
+
+use super::{CellKeys, Ray};
+use std::arch::x86_64::*;
+
+/// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
+/// multiple of four. The rest is left to the caller.
+#[target_feature(enable = "avx2")]
+pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
+    const _: () = assert!(std::mem::size_of::<Ray>() == 32);
+    let n = rays.len().min(out.len()) / 4 * 4;
+    let f = _mm256_set1_pd(c.f);
+    let base = c.base.map(|b| _mm256_set1_pd(b));
+    let field = _mm256_set1_epi64x(CellKeys::FIELD as i64);
+    let low32 = _mm256_set1_epi64x(0xffff_ffff);
+    let top = _mm256_set1_epi64x(i64::MIN);
+    for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
+        let p = r4.as_ptr().cast::<f64>();
+        // SAFETY: four `repr(C)` rays of 32 bytes, every byte initialised (explicit
+        // padding): load `j` reads ray `j` whole, as x, y, z and the word of key and hit.
+        let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
+        let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1)); // x0 x1 z0 z1, y0 y1 w0 w1
+        let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3)); // x2 x3 z2 z3, y2 y3 w2 w3
+        let x = _mm256_permute2f128_pd::<0x20>(t0, t2);
+        let y = _mm256_permute2f128_pd::<0x20>(t1, t3);
+        let z = _mm256_permute2f128_pd::<0x31>(t0, t2);
+        // The key (bits 0-31) and the hit flag (bit 32) of each ray.
+        let w = _mm256_castpd_si256(_mm256_permute2f128_pd::<0x31>(t1, t3));
+        let [kx, ky, kz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
+            let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, f)), base[a]);
+            // Fields of rays within max range fit 21 bits (see `CellKeys`): exact in i32.
+            _mm256_and_si256(_mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell)), field)
+        });
+        let hit = _mm256_and_si256(_mm256_slli_epi64::<31>(w), top);
+        let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
+        let key = _mm256_or_si256(
+            _mm256_or_si256(kx, _mm256_slli_epi64::<21>(ky)),
+            _mm256_or_si256(_mm256_slli_epi64::<42>(kz), _mm256_or_si256(hit, skipped)),
+        );
+        // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
+        unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), key) };
+    }
+    n
+}
