@@ -17,7 +17,7 @@
 //! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
 //! Both sum a group's ends in scan order, so the mean is the same on any thread count.
 
-use super::prepare::{direction_key, ChunkOrder, Extent, Ray, RAY_CHUNK, SKIPPED};
+use super::prepare::{direction_key, ChunkOrder, Extent, Ones, Ray, RAY_CHUNK, SKIPPED};
 use super::RayMode;
 use crate::kernel::Kernel;
 use hashbrown::{HashMap, HashSet};
@@ -134,12 +134,36 @@ pub(in crate::integrate) struct Kept<'a> {
 }
 
 impl Kept<'_> {
-    /// Whether each of the `len` rays of the scan from `at`, a chunk, is kept: ray
-    /// `at + j` as bit `j % 64` of word `j / 64`.
+    /// Whether each of the `len` rays of the scan from `at`, a chunk laid out as `order`
+    /// says, is kept: ray `at + j` as bit `j % 64` of word `j / 64`.
     #[inline]
-    pub(in crate::integrate) fn mask(&self, at: usize, len: usize) -> [u64; RAY_CHUNK / 64] {
+    pub(in crate::integrate) fn mask(
+        &self,
+        at: usize,
+        len: usize,
+        order: &ChunkOrder,
+    ) -> [u64; RAY_CHUNK / 64] {
         let mut m = [0u64; RAY_CHUNK / 64];
         match self.keep {
+            Keep::Placed(keep) => {
+                let flag = |p: usize| u64::from(keep[at + p].load(Ordering::Relaxed));
+                // Each side's rays in scan order take its places in turn, front from the
+                // chunk's start, back from its end.
+                let mut p = 0;
+                for (w, &side) in order.front.iter().enumerate() {
+                    for b in Ones(side) {
+                        m[w] |= flag(p) << b;
+                        p += 1;
+                    }
+                }
+                let mut p = len;
+                for (w, &side) in order.back.iter().enumerate() {
+                    for b in Ones(side) {
+                        p -= 1;
+                        m[w] |= flag(p) << b;
+                    }
+                }
+            }
             Keep::Flags(keep) => {
                 for (j, k) in keep[at..at + len].iter().enumerate() {
                     m[j / 64] |= u64::from(k.load(Ordering::Relaxed)) << (j % 64);
@@ -183,6 +207,8 @@ impl Kept<'_> {
 enum Keep<'a> {
     /// A flag per ray of the scan.
     Flags(&'a [AtomicBool]),
+    /// A flag per place of the layout (bundle's).
+    Placed(&'a [AtomicBool]),
     /// [`firsts_dense`]'s notes: each ray's cell bit, [`FIRST`] if it is the first of its
     /// run (of `per` rays) to see it, and per run the cells of the runs up to it; a ray is
     /// kept if first in its run and not seen by the runs before.
@@ -212,19 +238,32 @@ pub(super) fn thin_out<'b>(
     let boxed = CellBox::new(extent, &cells);
     match mode {
         RayMode::Bundle { threshold } => {
-            // Out of `bufs` while the others are written.
-            let mut places = std::mem::take(&mut bufs.places);
-            sized(&mut places, rays.len(), || 0);
-            (places.par_chunks_mut(RAY_CHUNK))
-                .zip(bufs.orders.par_iter())
-                .for_each(|(p, o)| o.places(p));
-            let layout = Layout { places: &places };
             let means = match boxed {
-                Some(b) => bundle_dense(rays, &layout, threshold, &b, bufs),
-                None => bundle(rays, &layout, threshold, &bufs.keys, &bufs.keep),
+                Some(b) => {
+                    // Out of `bufs` while the others are written.
+                    let orders = std::mem::take(&mut bufs.orders);
+                    let means = bundle_dense(rays, &orders, threshold, &b, bufs);
+                    bufs.orders = orders;
+                    means
+                }
+                None => {
+                    sized(&mut bufs.places, rays.len(), || 0);
+                    (bufs.places.par_chunks_mut(RAY_CHUNK))
+                        .zip(bufs.orders.par_iter())
+                        .for_each(|(p, o)| o.places(p));
+                    let layout = Layout {
+                        places: &bufs.places,
+                    };
+                    bundle(rays, &layout, threshold, &bufs.keys, &bufs.keep)
+                }
             };
-            set_means(rays, &layout, origin, means);
-            bufs.places = places;
+            set_means(rays, origin, means);
+            let kept = Kept {
+                keep: Keep::Placed(&bufs.keep),
+                centre: false,
+                origin,
+            };
+            return (kept, &bufs.orders);
         }
         RayMode::Subsample { .. } | RayMode::UniqueEnd => {
             if let Some(b) = boxed {
@@ -316,13 +355,14 @@ fn firsts_hashed(keys: &[u64], keep: &[AtomicBool]) {
     });
 }
 
-/// A bundled group: its first ray (place in the scan) and the mean of its ends.
+/// A bundled group: its first ray's place in the layout and the mean of its ends.
 type Mean = (u32, [f64; 3]);
 
 /// Bundle: the rays ending in one voxel (and alike in hitting) form a group; a group of
 /// more than `threshold` becomes one ray to the mean of their ends, in the place of its
 /// first ray; smaller groups keep their rays. Grouped by partition as [`firsts_hashed`]:
 /// a group's ends are summed in scan order, so the mean is the same on any thread count.
+/// Whether each ray is kept goes into `keep` by its place in the layout.
 fn bundle(
     rays: &[Ray],
     layout: &Layout<'_>,
@@ -352,11 +392,15 @@ fn bundle(
             }
             for (&(_, i, _), &g) in in_partition(&runs, p).zip(&of_ray) {
                 let (first, n, _) = groups[g as usize];
-                keep[i as usize].store(n <= threshold || i == first, Ordering::Relaxed);
+                let place = layout.place(i as usize);
+                keep[place].store(n <= threshold || i == first, Ordering::Relaxed);
             }
             (groups.into_iter())
                 .filter(|&(_, n, _)| n > threshold)
-                .map(|(first, n, sum)| (first, sum.map(|c| c / f64::from(n))))
+                .map(|(first, n, sum)| {
+                    let mean = sum.map(|c| c / f64::from(n));
+                    (layout.place(first as usize) as u32, mean)
+                })
                 .collect()
         })
         .collect()
@@ -372,7 +416,7 @@ const BUCKET_BITS: u32 = 12;
 /// its own. A group's ends are summed in scan order, as [`bundle`] sums them.
 fn bundle_dense(
     rays: &[Ray],
-    layout: &Layout<'_>,
+    orders: &[ChunkOrder],
     threshold: u32,
     cells: &CellBox,
     bufs: &mut Buffers,
@@ -387,11 +431,7 @@ fn bundle_dense(
         .map(|(bits, keys)| {
             let mut c = vec![0u32; buckets];
             for (b, &k) in bits.iter_mut().zip(keys) {
-                *b = if k == NONE {
-                    u32::MAX
-                } else {
-                    cells.bit(k) as u32
-                };
+                *b = if k == NONE { u32::MAX } else { cells.bit(k) as u32 };
                 if k != NONE {
                     c[(*b >> BUCKET_BITS) as usize] += 1;
                 }
@@ -411,18 +451,29 @@ fn bundle_dense(
     }
     starts.push(at);
     let m = at as usize;
-    // Stable scatter: (cell bit, ray) in bucket order; distinct runs write distinct places.
+    // Stable scatter: (cell bit, ray's place in the layout) in bucket order, the rays of
+    // a bucket in scan order; distinct runs write distinct places. A run is whole chunks,
+    // and a chunk's rays take the places of their side in scan order.
     sized(&mut bufs.sorted, m, || AtomicU64::new(0));
     let sorted = &bufs.sorted;
     (bufs.bits.par_chunks(per))
         .zip(counts.par_iter_mut())
         .enumerate()
         .for_each(|(j, (bits, at))| {
-            for (i, &b) in bits.iter().enumerate().filter(|&(_, &b)| b != u32::MAX) {
-                let slot = &mut at[(b >> BUCKET_BITS) as usize];
-                let item = u64::from(b) << 32 | (j * per + i) as u64;
-                sorted[*slot as usize].store(item, Ordering::Relaxed);
-                *slot += 1;
+            for (c, bits) in bits.chunks(RAY_CHUNK).enumerate() {
+                let start = j * per + c * RAY_CHUNK;
+                let order = &orders[start / RAY_CHUNK];
+                let (mut front, mut back) = (0, bits.len());
+                for (i, &b) in bits.iter().enumerate().filter(|&(_, &b)| b != u32::MAX) {
+                    let ahead = order.front[i / 64] >> (i % 64) & 1 != 0;
+                    let place = if ahead { front } else { back - 1 };
+                    front += usize::from(ahead);
+                    back -= usize::from(!ahead);
+                    let slot = &mut at[(b >> BUCKET_BITS) as usize];
+                    let item = u64::from(b) << 32 | (start + place) as u64;
+                    sorted[*slot as usize].store(item, Ordering::Relaxed);
+                    *slot += 1;
+                }
             }
         });
     // Per task, the bundled groups as (first ray, mean end). The tasks' buckets hold
@@ -460,20 +511,15 @@ fn bundle_dense(
                         first[low(x)] = x as u32;
                     }
                     *c += 1;
+                    // The next pass reads the end of each ray it bundles.
+                    crate::prefetch::prefetch(rays, x as u32 as usize);
                 }
                 for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
-                    let l = low(x);
-                    if count[l] > threshold {
-                        // The next pass reads the end of each ray it bundles.
-                        crate::prefetch::prefetch(rays, layout.place(x as u32 as usize));
-                    }
-                }
-                for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
-                    let (l, i) = (low(x), x as u32);
+                    let (l, p) = (low(x), x as u32);
                     let bundled = count[l] > threshold;
-                    keep[i as usize].store(!bundled || i == first[l], Ordering::Relaxed);
+                    keep[p as usize].store(!bundled || p == first[l], Ordering::Relaxed);
                     if bundled {
-                        let e = rays[layout.place(i as usize)].end;
+                        let e = rays[p as usize].end;
                         (0..3).for_each(|a| sum[l][a] += e[a]);
                     }
                 }
@@ -502,9 +548,9 @@ fn scan_runs(n: usize) -> (usize, usize) {
 }
 
 /// A bundle's first ray becomes the ray to the mean.
-fn set_means(rays: &mut [Ray], layout: &Layout<'_>, origin: [f64; 3], means: Vec<Vec<Mean>>) {
+fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
     for (first, end) in means.into_iter().flatten() {
-        let r = &mut rays[layout.place(first as usize)];
+        let r = &mut rays[first as usize];
         let d = [end[0] - origin[0], end[1] - origin[1], end[2] - origin[2]];
         *r = Ray::new(end, direction_key(d), r.hit);
     }
@@ -896,7 +942,7 @@ mod tests {
                 let keep: Vec<AtomicBool> = keys.iter().map(|_| AtomicBool::new(false)).collect();
                 let layout = Layout { places: &places };
                 let means = pool(n).install(|| bundle(&got, &layout, threshold, &keys, &keep));
-                set_means(&mut got, &layout, origin, means);
+                set_means(&mut got, origin, means);
                 let got: Vec<Ray> = (got.iter().zip(&keep))
                     .filter(|(_, k)| k.load(Ordering::Relaxed))
                     .map(|(r, _)| *r)

@@ -179,7 +179,7 @@ pub(super) fn compact(
         .zip(orders.par_iter())
         .enumerate()
         .map(|(c, ((chunk, side), order))| {
-            let keep = kept.mask(c * RAY_CHUNK, chunk.len());
+            let keep = kept.mask(c * RAY_CHUNK, chunk.len(), order);
             *side = compact_chunk(chunk, order, &keep, kept);
             ExtentSum::join(
                 ExtentSum::of(origin, &chunk[..side[0] as usize], kernel),
@@ -226,7 +226,7 @@ fn compact_chunk(
 }
 
 /// The places of a word's set bits, lowest first.
-struct Ones(u64);
+pub(in crate::integrate) struct Ones(pub(in crate::integrate) u64);
 
 impl Iterator for Ones {
     type Item = usize;
