@@ -431,7 +431,11 @@ fn bundle_dense(
         .map(|(bits, keys)| {
             let mut c = vec![0u32; buckets];
             for (b, &k) in bits.iter_mut().zip(keys) {
-                *b = if k == NONE { u32::MAX } else { cells.bit(k) as u32 };
+                *b = if k == NONE {
+                    u32::MAX
+                } else {
+                    cells.bit(k) as u32
+                };
                 if k != NONE {
                     c[(*b >> BUCKET_BITS) as usize] += 1;
                 }
