@@ -157,72 +157,71 @@ pub(super) fn prepare_rays(
     if mode == RayMode::Exact {
         return (skipped, sums.extent());
     }
-    let (kept, orders) = thin_out(rays, origin, mode, &sums.extent(), thin);
-    let sum = compact(rays, sides, orders, &kept, kernel);
-    (skipped, sum.extent())
+    let mut extent = sums.extent();
+    let (kept, orders) = thin_out(rays, origin, mode, &extent, thin);
+    let cut = compact(rays, sides, orders, &kept);
+    // The box of all rays holds those kept (a kept ray moves only within its end voxel);
+    // the walk's length is taken as the share of rays kept.
+    let made = (n as u64 - skipped).max(1) as f64;
+    extent.steps *= ray_count(sides) as f64 / made;
+    extent.cut_rays = cut;
+    (skipped, extent)
 }
 
 /// Drop from the layout of each chunk the rays `kept` does not keep (a bundle's mean is
-/// already in its first ray's place), keeping the order of the others; `orders` says
-/// which ray of the scan lies where ([`ChunkOrder`]). `sides` gets the new counts (what
-/// lies between is left as it was, not rays); returns the extent of the rays kept.
+/// already in its first ray's place); `orders` says which ray of the scan lies where
+/// ([`ChunkOrder`]). `sides` gets the new counts (what lies between is left as it was,
+/// not rays); returns how many rays kept are cut at max range.
 pub(super) fn compact(
     rays: &mut [Ray],
     sides: &mut [[u32; 2]],
     orders: &[ChunkOrder],
     kept: &Kept<'_>,
-    kernel: Kernel,
-) -> ExtentSum {
-    let origin = kept.origin();
+) -> u64 {
     rays.par_chunks_mut(RAY_CHUNK)
         .zip(sides.par_iter_mut())
         .zip(orders.par_iter())
         .enumerate()
         .map(|(c, ((chunk, side), order))| {
-            let keep = kept.mask(c * RAY_CHUNK, chunk.len(), order);
-            *side = compact_chunk(chunk, order, &keep, kept);
-            ExtentSum::join(
-                ExtentSum::of(origin, &chunk[..side[0] as usize], kernel),
-                ExtentSum::of(origin, &chunk[chunk.len() - side[1] as usize..], kernel),
-            )
+            let (places, cut) = kept.by_place(c * RAY_CHUNK, chunk.len(), order);
+            *side = places.map(|p| p.iter().map(|w| w.count_ones()).sum());
+            let len = chunk.len();
+            fill_holes(&places[0], |p| p, chunk);
+            fill_holes(&places[1], |p| len - 1 - p, chunk);
+            if kept.centres() {
+                let [front, back] = side.map(|n| n as usize);
+                let (ahead, behind) = chunk.split_at_mut(len - back);
+                for r in ahead[..front].iter_mut().chain(behind) {
+                    *r = kept.finish(r);
+                }
+            }
+            cut
         })
-        .reduce(|| ExtentSum::new(origin), ExtentSum::join)
+        .sum()
 }
 
-/// [`compact`] of one chunk, given which rays of its scan are kept; returns how many it
-/// keeps in front and behind.
-fn compact_chunk(
-    chunk: &mut [Ray],
-    order: &ChunkOrder,
-    keep: &[u64; RAY_CHUNK / 64],
-    kept: &Kept<'_>,
-) -> [u32; 2] {
-    let len = chunk.len();
-    let low = |b: usize| (1u64 << b) - 1;
-    // Front rays lie from the chunk's start in scan order, back rays from its end in
-    // reverse. Each side moves only its rays kept, towards its end: the one that is ray
-    // `j` of the scan lies after (before) the side's rays scanned before it.
-    let mut front = 0;
-    let mut before = 0;
-    for (&side, &keep) in order.front.iter().zip(keep) {
-        for b in Ones(side & keep) {
-            let from = before + (side & low(b)).count_ones() as usize;
-            chunk[front] = kept.finish(&chunk[from]);
-            front += 1;
+/// The rays a side of a chunk keeps, to the side's first places: `keep` has bit `p` for
+/// each ray kept at the side's place `p`, which is `at(p)` in the chunk. The kept rays
+/// past the first places fill the holes there, in order: the walk's result does not
+/// depend on the order of the rays, and a ray moves only if a hole is left for it.
+fn fill_holes(keep: &[u64; RAY_CHUNK / 64], at: impl Fn(usize) -> usize, chunk: &mut [Ray]) {
+    let n: usize = keep.iter().map(|w| w.count_ones() as usize).sum();
+    let first = |w: usize| {
+        let bits = n.saturating_sub(w * 64).min(64);
+        if bits == 64 {
+            !0
+        } else {
+            (1u64 << bits) - 1
         }
-        before += side.count_ones() as usize;
+    };
+    let ones = |m: [u64; RAY_CHUNK / 64]| {
+        (0..RAY_CHUNK / 64).flat_map(move |w| Ones(m[w]).map(move |b| w * 64 + b))
+    };
+    let holes = ones(std::array::from_fn(|w| !keep[w] & first(w)));
+    let moved = ones(std::array::from_fn(|w| keep[w] & !first(w)));
+    for (h, m) in holes.zip(moved) {
+        chunk[at(h)] = chunk[at(m)];
     }
-    let mut back = 0;
-    let mut before = 0;
-    for (&side, &keep) in order.back.iter().zip(keep) {
-        for b in Ones(side & keep) {
-            let from = len - 1 - (before + (side & low(b)).count_ones() as usize);
-            chunk[len - 1 - back] = kept.finish(&chunk[from]);
-            back += 1;
-        }
-        before += side.count_ones() as usize;
-    }
-    [front as u32, back as u32]
 }
 
 /// The places of a word's set bits, lowest first.
@@ -245,6 +244,8 @@ impl Iterator for Ones {
 pub(in crate::integrate) struct ChunkOrder {
     pub(in crate::integrate) front: [u64; RAY_CHUNK / 64],
     pub(in crate::integrate) back: [u64; RAY_CHUNK / 64],
+    /// The rays cut at max range (noted for the trade-off modes only).
+    pub(in crate::integrate) cut: [u64; RAY_CHUNK / 64],
 }
 
 impl ChunkOrder {
