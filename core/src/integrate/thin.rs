@@ -50,8 +50,10 @@ pub(in crate::integrate) struct Buffers {
     keep: Vec<AtomicBool>,
     /// Bundle's [`Layout`].
     places: Vec<u16>,
-    /// [`firsts_dense`]'s bit sets, one per run.
+    /// [`firsts_dense`]'s bit sets, one per run: all zeros between frames, unless
+    /// `marked` says which run marked them (runs, rays per run).
     sets: Vec<Vec<u64>>,
+    marked: Option<(usize, usize)>,
 }
 
 impl Buffers {
@@ -60,6 +62,28 @@ impl Buffers {
         sized(&mut self.keys, n, || NONE);
         sized(&mut self.orders, n.div_ceil(RAY_CHUNK), ChunkOrder::default);
         (&mut self.keys, &mut self.orders)
+    }
+}
+
+impl Buffers {
+    /// Zero the bit sets again, once the frame's choice is made: by the bits the rays
+    /// marked where they are few for the set, so that a small frame in a large box does
+    /// not clear the whole box.
+    pub(in crate::integrate) fn clean(&mut self) {
+        let Some((runs, per)) = self.marked.take() else {
+            return;
+        };
+        (self.sets[..runs].par_iter_mut())
+            .zip(self.bits.par_chunks(per))
+            .for_each(|(set, noted)| {
+                if noted.len() * 8 >= set.len() {
+                    set.fill(0);
+                } else {
+                    noted
+                        .iter()
+                        .for_each(|&n| set[(n & !FIRST) as usize / 64] = 0);
+                }
+            });
     }
 }
 
@@ -150,11 +174,12 @@ impl Kept<'_> {
             Keep::Firsts { noted, seen, per } => {
                 let noted = &noted[at..at + len];
                 // A chunk lies in one run; the first run has no runs before it.
-                match (at / per).checked_sub(1).map(|j| &seen[j]) {
-                    None => by_place(order, len, |j, _| noted[j] & FIRST != 0),
-                    Some(earlier) => by_place(order, len, |j, _| {
+                match &seen[..at / per] {
+                    [] => by_place(order, len, |j, _| noted[j] & FIRST != 0),
+                    earlier => by_place(order, len, |j, _| {
                         let (n, b) = (noted[j], (noted[j] & !FIRST) as usize);
-                        n & FIRST != 0 && earlier[b / 64] >> (b % 64) & 1 == 0
+                        let unseen = |s: &Vec<u64>| s[b / 64] >> (b % 64) & 1 == 0;
+                        n & FIRST != 0 && earlier.iter().all(unseen)
                     }),
                 }
             }
@@ -211,8 +236,8 @@ enum Keep<'a> {
     /// A flag per place of the layout (bundle's).
     Placed(&'a [AtomicBool]),
     /// [`firsts_dense`]'s notes: each ray's cell bit, [`FIRST`] if it is the first of its
-    /// run (of `per` rays) to see it, and per run the cells of the runs up to it; a ray is
-    /// kept if first in its run and not seen by the runs before.
+    /// run (of `per` rays) to see it, and per run the cells it saw; a ray is kept if first
+    /// in its run and not seen by the runs before.
     Firsts {
         noted: &'a [u32],
         seen: &'a [Vec<u64>],
@@ -604,21 +629,25 @@ impl CellBox {
 
 /// Which rays are the first of their cell in scan order, as [`Keep::Firsts`] reads it;
 /// returns the runs and their length. The rays are cut into one run per thread; each run
-/// notes its own firsts, marking them in a bit set of its own, and the sets become the
-/// cells of all runs up to each, by which the runs after the first drop the rays an
-/// earlier run saw. The first pass notes each ray's bit, so the second reads 4 bytes a
-/// ray instead of the key.
+/// notes its own firsts, marking them in a bit set of its own, by which the runs after
+/// the first then drop the rays an earlier run saw. The first pass notes each ray's bit,
+/// so the second reads 4 bytes a ray instead of the key. The sets are left marked for
+/// [`Buffers::clean`].
 fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
     let n = bufs.keys.len();
     let (runs, per) = scan_runs(n);
     let words = cells.bits().div_ceil(64);
     sized(&mut bufs.bits, n, || 0);
     bufs.sets.resize_with(runs.max(bufs.sets.len()), Vec::new);
+    if bufs.marked.take().is_some() {
+        // Not cleaned after the last frame (it was cut short): clear whole.
+        bufs.sets.iter_mut().for_each(|s| s.fill(0));
+    }
     (bufs.bits.par_chunks_mut(per))
         .zip(bufs.keys.par_chunks(per))
         .zip(bufs.sets[..runs].par_iter_mut())
         .for_each(|((noted, keys), set)| {
-            set.clear();
+            // All zeros: only a longer set has new words to zero.
             set.resize(words, 0);
             for (n, &k) in noted.iter_mut().zip(keys) {
                 if k == NONE {
@@ -631,15 +660,7 @@ fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
                 set[w] |= m;
             }
         });
-    let seen = &mut bufs.sets[..runs];
-    // seen[j] becomes the cells of runs 0..=j.
-    for j in 1..seen.len() {
-        let (before, rest) = seen.split_at_mut(j);
-        rest[0]
-            .par_iter_mut()
-            .zip(before[j - 1].par_iter())
-            .for_each(|(w, p)| *w |= p);
-    }
+    bufs.marked = Some((runs, per));
     (runs, per)
 }
 
@@ -735,6 +756,10 @@ mod tests {
             }
             let (kept, orders) = thin_out(&mut laid, origin, mode, extent, bufs);
             let cut = compact(&mut laid, &mut sides, orders, &kept);
+            // Every other call leaves its sets marked, for the next to clear.
+            if rays.len() % 2 == 0 {
+                bufs.clean();
+            }
             let cast: Vec<Ray> = (laid.chunks(RAY_CHUNK).zip(&sides))
                 .flat_map(|(c, &[front, back])| {
                     let (f, b) = (front as usize, back as usize);
