@@ -757,7 +757,7 @@ mod tests {
             let (kept, orders) = thin_out(&mut laid, origin, mode, extent, bufs);
             let cut = compact(&mut laid, &mut sides, orders, &kept);
             // Every other call leaves its sets marked, for the next to clear.
-            if rays.len() % 2 == 0 {
+            if rays.len().is_multiple_of(2) {
                 bufs.clean();
             }
             let cast: Vec<Ray> = (laid.chunks(RAY_CHUNK).zip(&sides))
