@@ -886,6 +886,44 @@ mod tests {
         assert_eq!(got.len(), want.len());
     }
 
+    /// A small frame in a large box clears its sets by the bits it marked: the frames after
+    /// it choose as with fresh buffers.
+    #[test]
+    fn sets_cleared_by_their_bits_leave_nothing_behind() {
+        let mut rng = Rng(14);
+        let origin = [0.5; 3];
+        let frame = |rng: &mut Rng| -> Vec<Ray> {
+            (0..2000)
+                .map(|i| {
+                    // Repeats within the frame: ends on a lattice of 4 voxels.
+                    let end = [0, 1, 2].map(|_| (rng.f() * 25.0).floor() * 4.0 - 50.0);
+                    Ray::new(end, 0, i % 2 == 0)
+                })
+                .collect()
+        };
+        let mut bufs = Buffers::default();
+        for _ in 0..4 {
+            let rays = frame(&mut rng);
+            let extent = bounds(&rays, origin);
+            let cells = CellKeys::new(origin, 1);
+            // A box of about 100^3 voxels, each of two bits, against 1000 rays a run.
+            let b = CellBox::new(&extent, &cells).unwrap();
+            assert!(b.bits() / 64 > 1000 * 8, "{}", b.bits());
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let mode = RayMode::UniqueEnd;
+                let got = pool.install(|| thinned(&rays, origin, mode, &extent, &mut bufs, None));
+                let mut fresh = Buffers::default();
+                let want = pool.install(|| thinned(&rays, origin, mode, &extent, &mut fresh, None));
+                assert!(got.len() < rays.len() && got.len() > 1000, "{}", got.len());
+                assert_eq!(as_set(&got), as_set(&want));
+            }
+        }
+    }
+
     /// Laid out by sides, a mode casts the same rays, with the same extent (checked in
     /// `thinned`), as in scan order: dropped rays leave the layout, kept ones keep their
     /// side and order.
