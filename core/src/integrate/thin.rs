@@ -27,12 +27,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 #[cfg(target_arch = "x86_64")]
 mod avx2;
 
-/// Most cells (times two, hit or not) a frame's box may have for the bit sets of
-/// subsample and unique-end: 2^24 bits, 2 MiB per thread. Larger sets missed the cache on
-/// most rays and took longer than the hash partitions.
-pub(super) const DENSE_CELL_BITS: u64 = 1 << 24;
-/// Most cells (as above) for bundle's counting sort by cell (bit indices below 2^31).
-const BUNDLE_CELL_BITS: u64 = 1 << 25;
+/// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
+/// bits, 4 MiB per thread (and bit indices below 2^31).
+pub(super) const DENSE_CELL_BITS: u64 = 1 << 25;
 
 /// The key of a skipped point's ray: no cell's ([`CellKeys`] fields never are all ones).
 const NONE: u64 = u64::MAX;
@@ -264,11 +261,7 @@ pub(super) fn thin_out<'b>(
 ) -> (Kept<'b>, &'b [ChunkOrder]) {
     sized(&mut bufs.keep, rays.len(), || AtomicBool::new(false));
     let cells = CellKeys::new(origin, cell_factor(mode));
-    let limit = match mode {
-        RayMode::Bundle { .. } => BUNDLE_CELL_BITS,
-        _ => DENSE_CELL_BITS,
-    };
-    let boxed = CellBox::new(extent, &cells, limit);
+    let boxed = CellBox::new(extent, &cells);
     match mode {
         RayMode::Bundle { threshold } => {
             let means = match boxed {
@@ -601,8 +594,8 @@ struct CellBox {
 }
 
 impl CellBox {
-    /// `None` when the box's cells need more than `limit` bits.
-    fn new(extent: &Extent, cells: &CellKeys, limit: u64) -> Option<Self> {
+    /// `None` when the box's cells need more than [`DENSE_CELL_BITS`] bits.
+    fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
         let f = cells.f as i64;
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
         let lo = [0, 1, 2].map(|a| i64::from(lo[a]) * f - cells.base[a] as i64);
@@ -612,7 +605,7 @@ impl CellBox {
             .checked_mul(dims[1])
             .and_then(|c| c.checked_mul(dims[2]))?;
         let hit_bit = u64::from(extent.cut_rays > 0);
-        (n.checked_mul(1 << hit_bit)? <= limit).then_some(CellBox { lo, dims, hit_bit })
+        (n.checked_mul(1 << hit_bit)? <= DENSE_CELL_BITS).then_some(CellBox { lo, dims, hit_bit })
     }
 
     fn bits(&self) -> usize {
@@ -853,8 +846,8 @@ mod tests {
         }
         // A box too large for bit sets takes the partitioned hash sets: the same rays.
         let cells = |f| CellKeys::new(origin, f);
-        assert!(CellBox::new(&extent, &cells(64), DENSE_CELL_BITS).is_none());
-        assert!(CellBox::new(&extent, &cells(1), DENSE_CELL_BITS).is_some());
+        assert!(CellBox::new(&extent, &cells(64)).is_none());
+        assert!(CellBox::new(&extent, &cells(1)).is_some());
         for (mode, factor) in [
             (RayMode::Subsample { factor: 4 }, 4),
             (RayMode::UniqueEnd, 1),
@@ -914,7 +907,7 @@ mod tests {
             let extent = bounds(&rays, origin);
             let cells = CellKeys::new(origin, 1);
             // A box of about 100^3 voxels, each of two bits, against 1000 rays a run.
-            let b = CellBox::new(&extent, &cells, DENSE_CELL_BITS).unwrap();
+            let b = CellBox::new(&extent, &cells).unwrap();
             assert!(b.bits() / 64 > 1000 * 8, "{}", b.bits());
             for threads in [1, 2] {
                 let pool = rayon::ThreadPoolBuilder::new()
@@ -1031,7 +1024,7 @@ mod tests {
             // The partitioned hash tables, which boxes too large for the counting sort
             // take, bundle exactly the same rays.
             let cells = CellKeys::new(origin, 1);
-            assert!(CellBox::new(&extent, &cells, BUNDLE_CELL_BITS).is_some());
+            assert!(CellBox::new(&extent, &cells).is_some());
             let keys: Vec<u64> = rays.iter().map(|r| cells.key(r)).collect();
             let places: Vec<u16> = (0..rays.len()).map(|i| (i % RAY_CHUNK) as u16).collect();
             for n in [1, 3] {
