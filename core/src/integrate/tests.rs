@@ -803,6 +803,32 @@ fn bad_frames_are_rejected_and_change_nothing() {
     assert_eq!(snapshot(&map), before);
 }
 
+/// Frames with no rays to thin (no points, or only non-finite ones) integrate in every
+/// mode and on any thread count, casting nothing.
+#[test]
+fn trade_off_modes_take_frames_without_rays() {
+    let nan = [f32::NAN; 3];
+    for points in [vec![], vec![nan; 3], vec![nan; 5000]] {
+        for mode in [
+            RayMode::UniqueEnd,
+            RayMode::Subsample { factor: 2 },
+            RayMode::Bundle { threshold: 2 },
+        ] {
+            for threads in [1, 2] {
+                let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+                let frame = Frame {
+                    pose: Isometry3::identity(),
+                    points: &points,
+                };
+                let r = integrator(threads, 10.0, mode)
+                    .integrate(&mut map, &frame)
+                    .unwrap();
+                assert_eq!((r.rays, r.skipped_nonfinite), (0, points.len() as u64));
+            }
+        }
+    }
+}
+
 #[test]
 fn trade_off_modes_cast_fewer_rays_and_stay_close() {
     let mut rng = Rng(5);

@@ -570,7 +570,7 @@ fn bundle_dense(
 /// and how long.
 fn scan_runs(n: usize) -> (usize, usize) {
     let runs = rayon::current_num_threads().min(n / 4096).max(1);
-    let per = n.div_ceil(runs).next_multiple_of(RAY_CHUNK);
+    let per = n.div_ceil(runs).next_multiple_of(RAY_CHUNK).max(RAY_CHUNK);
     (n.div_ceil(per).max(1), per)
 }
 
