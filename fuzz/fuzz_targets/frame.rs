@@ -1,10 +1,10 @@
 //! Arbitrary bytes as a frame: the first 80 as the header's fields, the rest as points.
-//! Validation, then integration of what it accepts into a small map, must never panic;
-//! a rejected frame leaves the map as it was.
+//! Validation, then integration of what it accepts into a small map (in the ray mode the
+//! second byte picks), must never panic; a rejected frame leaves the map as it was.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 use voxmap_ipc::FrameHeader;
 
 fn u64_at(b: &[u8], i: usize) -> u64 {
@@ -40,20 +40,32 @@ fuzz_target!(|data: &[u8]| {
         return;
     };
     let mut map = OccupancyMap::new(0.25, SensorModel::default()).unwrap();
-    // One integrator for every input: making one starts its thread pool.
-    static INTEG: std::sync::OnceLock<std::sync::Mutex<Integrator>> = std::sync::OnceLock::new();
-    let mut integ = INTEG
-        .get_or_init(|| {
-            std::sync::Mutex::new(
-                Integrator::new(IntegratorConfig {
-                    threads: 1,
-                    max_range: 4.0,
-                    pin_threads: false,
-                    ..Default::default()
-                })
-                .unwrap(),
-            )
-        })
+    // One integrator per mode for every input: making one starts its thread pool.
+    const MODES: [RayMode; 4] = [
+        RayMode::Exact,
+        RayMode::Subsample { factor: 2 },
+        RayMode::Bundle { threshold: 2 },
+        RayMode::UniqueEnd,
+    ];
+    static INTEG: std::sync::OnceLock<Vec<std::sync::Mutex<Integrator>>> =
+        std::sync::OnceLock::new();
+    let integs = INTEG.get_or_init(|| {
+        MODES
+            .iter()
+            .map(|&mode| {
+                std::sync::Mutex::new(
+                    Integrator::new(IntegratorConfig {
+                        threads: 1,
+                        max_range: 4.0,
+                        pin_threads: false,
+                        mode,
+                    })
+                    .unwrap(),
+                )
+            })
+            .collect()
+    });
+    let mut integ = integs[usize::from(h[1] & 3)]
         .lock()
         .unwrap_or_else(|e| e.into_inner());
     if integ
