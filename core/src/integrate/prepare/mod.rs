@@ -160,7 +160,6 @@ pub(super) fn prepare_rays(
     let mut extent = sums.extent();
     let (kept, orders) = thin_out(rays, origin, mode, &extent, thin);
     let cut = compact(rays, sides, orders, &kept);
-    thin.clean();
     // The box of all rays holds those kept (a kept ray moves only within its end voxel);
     // the walk's length is taken as the share of rays kept.
     let made = (n as u64 - skipped).max(1) as f64;
