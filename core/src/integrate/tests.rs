@@ -803,6 +803,34 @@ fn bad_frames_are_rejected_and_change_nothing() {
     assert_eq!(snapshot(&map), before);
 }
 
+/// A bundle no group exceeds casts every ray: the same rays, cut rays and map as exact,
+/// on either thread count (the cut rays counted from the masks the making pass notes).
+#[test]
+fn a_bundle_that_merges_nothing_casts_what_exact_casts() {
+    let mut rng = Rng(6);
+    // Points out to 4 m against a 2.5 m range: many rays are cut.
+    let pts: Vec<_> = (0..30_000).map(|_| rng.ball(4.0)).collect();
+    let frame = Frame {
+        pose: Isometry3::identity(),
+        points: &pts,
+    };
+    for threads in [1, 2] {
+        let run = |mode| {
+            let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
+            let r = integrator(threads, 2.5, mode)
+                .integrate(&mut map, &frame)
+                .unwrap();
+            (r.rays, r.cut_rays, snapshot(&map))
+        };
+        let exact = run(RayMode::Exact);
+        assert!(exact.1 > 1000, "{}", exact.1);
+        let all = run(RayMode::Bundle {
+            threshold: 1_000_000,
+        });
+        assert!(all == exact, "{threads} threads");
+    }
+}
+
 /// Frames with no rays to thin (no points, or only non-finite ones) integrate in every
 /// mode and on any thread count, casting nothing.
 #[test]

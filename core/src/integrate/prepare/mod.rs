@@ -335,7 +335,8 @@ impl Sides {
 
     /// Make the rays to `pts` into `out`, as long, laid out; returns how many lie in front
     /// and behind, where the layout put each, and their extent. With `note`, each ray's
-    /// cell key goes into its slice (as long as `pts`). `made` is scratch.
+    /// cell key goes into its slice (as long as `pts`) and the cut rays into the order's
+    /// `cut`. `made` is scratch.
     pub(in crate::integrate) fn make(
         &self,
         maker: &RayMaker,
@@ -344,31 +345,35 @@ impl Sides {
         made: &mut Vec<Ray>,
         note: Option<(&CellKeys, &mut [u64])>,
     ) -> ([u32; 2], ChunkOrder, ExtentSum) {
-        let keys = |rays: &[Ray], note: Option<(&CellKeys, &mut [u64])>| {
+        // With `note`: the cell keys, and which rays are cut, in scan order.
+        let notes = |rays: &[Ray], note: Option<(&CellKeys, &mut [u64])>| {
+            let mut cut = [0u64; RAY_CHUNK / 64];
             if let Some((cells, keys)) = note {
                 cells.keys(maker.kernel, rays, keys);
+                for (j, r) in rays.iter().enumerate() {
+                    cut[j / 64] |= u64::from(r.key != SKIPPED && !r.hit) << (j % 64);
+                }
             }
+            cut
         };
         if self.axis.is_some() {
             made.resize(out.len(), Ray::new([0.0; 3], SKIPPED, false));
             maker.make_all(made, pts);
-            keys(made, note);
+            let cut = notes(made, note);
             let (counts, order) = self.lay_out(made, out);
-            return (
-                counts,
-                order,
-                ExtentSum::of(self.origin, made, maker.kernel),
-            );
+            let sum = ExtentSum::of(self.origin, made, maker.kernel);
+            return (counts, ChunkOrder { cut, ..order }, sum);
         }
         // All in front: in place, unless points were skipped.
         maker.make_all(out, pts);
-        keys(out, note);
+        let cut = notes(out, note);
         let sum = ExtentSum::of(self.origin, out, maker.kernel);
         if sum.skipped == 0 {
-            return ([out.len() as u32, 0], ChunkOrder::all_front(out.len()), sum);
+            let order = ChunkOrder::all_front(out.len());
+            return ([out.len() as u32, 0], ChunkOrder { cut, ..order }, sum);
         }
         let (counts, order) = self.lay_out_in_place(out, made);
-        (counts, order, sum)
+        (counts, ChunkOrder { cut, ..order }, sum)
     }
 
     /// Lay the rays `made` out into `out`, as long; returns how many lie in front and
