@@ -17,6 +17,9 @@
 //! monotonically from the one to the other.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
+use super::Packed;
+use crate::coord::VoxelCoord;
+use crate::integrate::marks::BrickCache;
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
 use crate::raycast::T_ONE;
@@ -138,12 +141,15 @@ struct Feed<'r> {
     lim: [usize; 4],
     spare: [Range<usize>; 4],
     spare_left: usize,
+    /// Whether all lanes take the next rays of lane 0's range in turn.
+    shared: bool,
 }
 
 impl Feed<'_> {
     /// Lane `l`'s next ray: from its range, else a spare range, else half of what the
     /// lane with the most left has (as the AVX-512 walk shares).
     fn next(&mut self, l: usize) -> Option<&Ray> {
+        let l = if self.shared { 0 } else { l };
         if self.cur[l] >= self.lim[l] {
             if self.spare_left > 0 {
                 self.spare_left -= 1;
@@ -174,6 +180,12 @@ impl Feed<'_> {
 fn to_array(v: __m256i) -> [i64; 4] {
     // SAFETY: __m256i and [i64; 4] are both 32 plain bytes; every bit pattern is valid.
     unsafe { std::mem::transmute(v) }
+}
+
+#[inline(always)]
+fn from_array(a: [i64; 4]) -> __m256i {
+    // SAFETY: as in `to_array`.
+    unsafe { std::mem::transmute(a) }
 }
 
 /// Bit `l` set for each lane `l` whose 64 bits are all ones in `m`.
@@ -297,22 +309,236 @@ pub(super) fn walk_dense(
         Axis::new(origin[2], strides[2], lo.z, dbox.n[2]),
     ];
     let start = dbox.index(origin_voxel);
-    let sink = dbox.sink() as i64;
+    let sink = dbox.sink();
     let (free, hits) = bits.words_mut();
     let [r0, r1, r2, r3, r4, r5, r6, r7] = ranges;
-    let mut feed = Feed {
+    let feed = Feed {
         rays,
         cur: [r0.start, r1.start, r2.start, r3.start],
         lim: [r0.end, r1.end, r2.end, r3.end],
         spare: [r7, r6, r5, r4],
         spare_left: 4,
+        shared: false,
     };
+    walk(
+        &mut DenseMarks {
+            free,
+            hits,
+            start,
+            sink,
+        },
+        &axes,
+        origin,
+        start,
+        feed,
+    )
+}
+
+/// Walk `rays` from `origin` four at a time, OR-ing their marks into the frame's tables
+/// through `cache`; returns voxels visited. The same marks and count as
+/// `super::sparse::walk_rays`. The rays are sorted by direction and the lanes take the
+/// next ones in turn, so they walk side by side and find the bricks they flush in `cache`
+/// and in the CPU's caches. See [`SparseMarks`] for how marks are kept.
+#[target_feature(enable = "avx2")]
+pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
+    let v = crate::coord::units_to_voxel(origin).expect("origin checked");
+    let packed = Packed::around(v);
+    // No box: a ray's fields stay inside `Packed`'s (`Packed::around`), so every end is
+    // "inside" bounds no coordinate reaches.
+    let axes: [Axis; 3] = std::array::from_fn(|a| {
+        Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33)
+    });
+    let feed = Feed {
+        rays,
+        cur: [0; 4],
+        lim: [rays.len(), 0, 0, 0],
+        spare: Default::default(),
+        spare_left: 0,
+        shared: true,
+    };
+    let start = packed.pack(v);
+    let mut marks = SparseMarks {
+        cache,
+        packed,
+        start: v,
+        words: vec![[0; 8]; 4 * RING].into_boxed_slice(),
+        keys: vec![0; 4 * RING].into_boxed_slice(),
+        entry: _mm256_setr_epi64x(0, RING as i64, 2 * RING as i64, 3 * RING as i64),
+        plane: _mm256_setzero_si256(),
+    };
+    walk(&mut marks, &axes, origin, start, feed)
+}
+
+/// Where a lane walk keeps the marks of the voxels its lanes visit. Voxels are `u64`
+/// indices with fixed strides per axis (see [`Axis::new`]): bit indices into a dense box,
+/// or [`Packed`] voxels.
+trait Marks {
+    /// Most steps walked between two [`Marks::burst_done`].
+    const BURST: i64;
+    /// The voxel index lanes without a ray sit on (their increments are 0).
+    fn idle(&self) -> u64;
+    /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each
+    /// voxel before the step; `live` all ones in the lanes that walk a ray.
+    ///
+    /// # Safety
+    /// Every live lane's `k` steps stay on its ray (`k` is at most its steps left), and
+    /// the CPU has AVX2.
+    unsafe fn steps(
+        &mut self,
+        k: i64,
+        t: &mut [__m256i; 3],
+        p: &mut __m256i,
+        fixed: &Fixed,
+        live: __m256i,
+    );
+    /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
+    /// rays at voxels `p`; those in `hit` hit there.
+    fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
+    /// A ray ended in the origin's voxel, which it hit.
+    fn hit_at_start(&mut self);
+}
+
+/// The dense walk's marks: bits of the thread's grid over the frame's box.
+struct DenseMarks<'a> {
+    free: &'a mut [u64],
+    hits: &'a mut [u64],
+    start: u64,
+    sink: u64,
+}
+
+impl Marks for DenseMarks<'_> {
+    const BURST: i64 = i64::MAX;
+
+    fn idle(&self) -> u64 {
+        self.sink
+    }
+
+    #[inline]
+    unsafe fn steps(
+        &mut self,
+        k: i64,
+        t: &mut [__m256i; 3],
+        p: &mut __m256i,
+        fixed: &Fixed,
+        _: __m256i,
+    ) {
+        // SAFETY: every lane's voxels are in the box: the origin's voxel and each ray's
+        // end voxel were checked to be (`Queue::fill`), a lane stops at its ray's end (the
+        // caller's promise), and a walk moves along each axis monotonically from the one
+        // to the other. Lanes without a ray sit on the sink, increments 0.
+        unsafe { walk_steps(k, t, p, fixed, self.free) };
+    }
+
+    fn burst_done(&mut self, p: [i64; 4], _: u32, hit: u32) {
+        for l in BitIter(u64::from(hit)) {
+            set_bit(self.hits, p[l] as u64);
+        }
+    }
+
+    fn hit_at_start(&mut self) {
+        set_bit(self.hits, self.start);
+    }
+}
+
+/// Brick entries per lane of [`SparseMarks`]: a burst crosses at most one brick a step.
+const RING: usize = 128;
+
+/// The sparse walk's marks. Each lane keeps the marks of its current z plane in a vector
+/// lane, and stores it on every step, with the voxel, to the plane's word of its current
+/// brick entry; when it leaves a brick it moves on to its next entry. So a step has no
+/// branch for the lanes that changed plane or brick, the one-ray walk's costliest
+/// (mispredicted) branch besides the axis choice. After each burst of steps, the
+/// bricks each lane finished are OR-ed into the frame's tables.
+struct SparseMarks<'c, 'a> {
+    cache: &'c mut BrickCache<'a>,
+    packed: Packed,
+    start: VoxelCoord,
+    /// Lane `l`'s entries are `l * RING..(l + 1) * RING`: 8 words (z planes) of a brick,
+    /// and a voxel of the brick (packed).
+    words: Box<[[u64; 8]]>,
+    keys: Box<[u64]>,
+    /// Per lane its current entry, and its current plane's marks, bit `x | y << 3`.
+    entry: __m256i,
+    plane: __m256i,
+}
+
+impl Marks for SparseMarks<'_, '_> {
+    const BURST: i64 = RING as i64 - 1;
+
+    fn idle(&self) -> u64 {
+        self.packed.pack(self.start)
+    }
+
+    #[inline]
+    unsafe fn steps(
+        &mut self,
+        k: i64,
+        t: &mut [__m256i; 3],
+        p: &mut __m256i,
+        fixed: &Fixed,
+        live: __m256i,
+    ) {
+        debug_assert!(k <= Self::BURST);
+        let at = (self.words.as_mut_ptr().cast(), self.keys.as_mut_ptr());
+        // SAFETY: a lane starts a burst at its first entry (`burst_done`) and moves to the
+        // next at most once a step, so in `k < RING` steps it stays in its `RING` entries;
+        // the CPU has AVX2 (the caller's promise).
+        unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
+    }
+
+    fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
+        let entry = to_array(self.entry);
+        let mut plane = to_array(self.plane);
+        for (l, &e) in entry.iter().enumerate() {
+            let (first, cur) = (l * RING, e as usize);
+            let done = ended >> l & 1 != 0;
+            // The bricks the lane left, and its current one if its ray ended. A ray's last
+            // step may enter a brick only to end there: nothing free to mark, and a slot
+            // would give the map an empty leaf.
+            for j in first..cur + usize::from(done) {
+                if self.words[j].iter().fold(0, |a, &w| a | w) != 0 {
+                    let brick = self.packed.unpack(self.keys[j]).shr(3);
+                    self.cache.or_free(brick, &self.words[j]);
+                    self.words[j] = [0; 8];
+                }
+            }
+            if done {
+                plane[l] = 0;
+            } else if cur != first {
+                self.words[first] = std::mem::take(&mut self.words[cur]);
+                self.keys[first] = self.keys[cur];
+            }
+        }
+        for l in BitIter(u64::from(hit)) {
+            self.cache.set_hit(self.packed.unpack(p[l] as u64));
+        }
+        self.entry = from_array(std::array::from_fn(|l| (l * RING) as i64));
+        self.plane = from_array(plane);
+    }
+
+    fn hit_at_start(&mut self) {
+        self.cache.set_hit(self.start);
+    }
+}
+
+/// Walk the lanes' rays from `feed`, telling `marks` the voxels each lane visits; returns
+/// voxels visited. Voxel indices start at `start` (the origin's voxel) and change by the
+/// axes' strides per step.
+#[target_feature(enable = "avx2")]
+fn walk<M: Marks>(
+    marks: &mut M,
+    axes: &[Axis; 3],
+    origin: [f64; 3],
+    start: u64,
+    mut feed: Feed<'_>,
+) -> u64 {
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let never = _mm256_set1_epi64x(NEVER);
     let iota = _mm256_setr_epi64x(0, 1, 2, 3);
     let start_v = _mm256_set1_epi64x(start as i64);
+    let idle = _mm256_set1_epi64x(marks.idle() as i64);
     // Lane state: per axis next crossing, and the ray's constants; the voxel. A lane
-    // without a ray sits on the sink bit and does not move (no increments): the loop
+    // without a ray sits on the idle voxel and does not move (no increments): the loop
     // needs no lane mask.
     let zero = _mm256_setzero_si256();
     let mut t = [never; 3];
@@ -321,7 +547,7 @@ pub(super) fn walk_dense(
         last: [zero; 3],
         inc: [zero; 3],
     };
-    let mut p = _mm256_set1_epi64x(sink);
+    let mut p = idle;
     let mut rem = [i64::MAX; 4];
     // Lane l's ray hits: bit l.
     let mut hit = 0u32;
@@ -333,12 +559,12 @@ pub(super) fn walk_dense(
         // start voxel are done here (a hit at most).
         for l in BitIter(u64::from(need)) {
             let q = &mut queues[l];
-            while let Some(j) = q.pop(&mut feed, l, &axes, origin) {
+            while let Some(j) = q.pop(&mut feed, l, axes, origin) {
                 let n = q.n[j];
                 steps += n as u64 + 1;
                 if n == 0 {
                     if q.hit[j] {
-                        set_bit(hits, start);
+                        marks.hit_at_start();
                     }
                     continue;
                 }
@@ -367,47 +593,49 @@ pub(super) fn walk_dense(
         }
         let done = need & !live;
         if done != 0 {
-            // Lanes whose rays ran out: to the sink, still.
-            let m = _mm256_cmpgt_epi64(
-                _mm256_and_si256(
-                    _mm256_set1_epi64x(i64::from(done)),
-                    _mm256_setr_epi64x(1, 2, 4, 8),
-                ),
-                zero,
-            );
+            // Lanes whose rays ran out: to the idle voxel, still.
+            let m = lane_mask(done);
             let axes = t.iter_mut().zip(&mut fixed.d).zip(&mut fixed.inc);
             for ((t, d), inc) in axes {
                 *t = _mm256_blendv_epi8(*t, never, m);
                 *d = _mm256_andnot_si256(m, *d);
                 *inc = _mm256_andnot_si256(m, *inc);
             }
-            p = _mm256_blendv_epi8(p, _mm256_set1_epi64x(sink), m);
+            p = _mm256_blendv_epi8(p, idle, m);
             for l in BitIter(u64::from(done)) {
                 rem[l] = i64::MAX;
             }
         }
         // Every lane walks as many steps as the live lane with the fewest left, so the
         // loop tests no lane for its end.
-        let k = rem.iter().copied().min().unwrap_or(0);
-        // SAFETY: every lane's voxels are in the box: the origin's voxel and each ray's
-        // end voxel were checked to be (`Queue::fill`), a lane stops at its ray's end (k
-        // is at most its steps left), and a walk moves along each axis monotonically
-        // from the one to the other. Lanes without a ray sit on the sink, increments 0.
-        unsafe { walk_steps(k, &mut t, &mut p, &fixed, free) };
+        let k = rem.iter().copied().min().unwrap_or(0).min(M::BURST);
+        // SAFETY: k is at most every live lane's steps left; the CPU has AVX2, which
+        // this function requires.
+        unsafe { marks.steps(k, &mut t, &mut p, &fixed, lane_mask(live)) };
         // Which lanes ended, without a branch per lane: which one is a coin toss.
         let mut ended = 0;
         for (l, rem) in rem.iter_mut().enumerate() {
             *rem -= k;
             ended |= u32::from(*rem == 0) << l;
         }
-        let pos = to_array(p);
-        for l in BitIter(u64::from(ended & hit)) {
-            set_bit(hits, pos[l] as u64);
-        }
+        marks.burst_done(to_array(p), ended, ended & hit);
         live &= !ended;
         need = ended;
     }
     steps
+}
+
+/// All ones in lane `l` for each bit `l` of `lanes`.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lane_mask(lanes: u32) -> __m256i {
+    _mm256_cmpgt_epi64(
+        _mm256_and_si256(
+            _mm256_set1_epi64x(i64::from(lanes)),
+            _mm256_setr_epi64x(1, 2, 4, 8),
+        ),
+        _mm256_setzero_si256(),
+    )
 }
 
 /// Each lane's per-ray constants: per axis, between crossings, last crossing, index
@@ -416,6 +644,35 @@ struct Fixed {
     d: [__m256i; 3],
     last: [__m256i; 3],
     inc: [__m256i; 3],
+}
+
+/// One step of every lane from next crossings `t` (ties x, y, z): the new crossings and
+/// the index increment. Each axis's next crossing (never after its last) is computed off
+/// the compare chain, as `Dda::step` does.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn step(t: [__m256i; 3], fixed: &Fixed) -> ([__m256i; 3], __m256i) {
+    let never = _mm256_set1_epi64x(NEVER);
+    let [tx, ty, tz] = t;
+    let [dx, dy, dz] = fixed.d;
+    let [lx, ly, lz] = fixed.last;
+    let [mx, my, mz] = fixed.inc;
+    let gxy = _mm256_cmpgt_epi64(tx, ty);
+    let gxz = _mm256_cmpgt_epi64(tx, tz);
+    let gyz = _mm256_cmpgt_epi64(ty, tz);
+    let nx = _mm256_blendv_epi8(_mm256_add_epi64(tx, dx), never, _mm256_cmpeq_epi64(tx, lx));
+    let ny = _mm256_blendv_epi8(_mm256_add_epi64(ty, dy), never, _mm256_cmpeq_epi64(ty, ly));
+    let nz = _mm256_blendv_epi8(_mm256_add_epi64(tz, dz), never, _mm256_cmpeq_epi64(tz, lz));
+    // Not x: y where its crossing is not after z's, else z.
+    let not_x = _mm256_or_si256(gxy, gxz);
+    (
+        [
+            _mm256_blendv_epi8(nx, tx, not_x),
+            _mm256_blendv_epi8(ty, ny, _mm256_andnot_si256(gyz, not_x)),
+            _mm256_blendv_epi8(tz, nz, _mm256_and_si256(gyz, not_x)),
+        ],
+        _mm256_blendv_epi8(mx, _mm256_blendv_epi8(my, mz, gyz), not_x),
+    )
 }
 
 /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each voxel
@@ -435,11 +692,7 @@ unsafe fn walk_steps(
     fixed: &Fixed,
     free: &mut [u64],
 ) {
-    let never = _mm256_set1_epi64x(NEVER);
-    let [mut tx, mut ty, mut tz] = *t;
-    let [dx, dy, dz] = fixed.d;
-    let [lx, ly, lz] = fixed.last;
-    let [mx, my, mz] = fixed.inc;
+    let mut tv = *t;
     let mut pv = *p;
     for _ in 0..k {
         for q in to_array(pv) {
@@ -448,26 +701,73 @@ unsafe fn walk_steps(
             let w = unsafe { free.get_unchecked_mut(word) };
             *w |= bit;
         }
-        // Step: the axis whose crossing comes first (ties x, y, z). Each axis's next
-        // crossing (never after its last) is computed off the compare chain, as
-        // `Dda::step` does.
-        let gxy = _mm256_cmpgt_epi64(tx, ty);
-        let gxz = _mm256_cmpgt_epi64(tx, tz);
-        let gyz = _mm256_cmpgt_epi64(ty, tz);
-        let nx = _mm256_blendv_epi8(_mm256_add_epi64(tx, dx), never, _mm256_cmpeq_epi64(tx, lx));
-        let ny = _mm256_blendv_epi8(_mm256_add_epi64(ty, dy), never, _mm256_cmpeq_epi64(ty, ly));
-        let nz = _mm256_blendv_epi8(_mm256_add_epi64(tz, dz), never, _mm256_cmpeq_epi64(tz, lz));
-        // Not x: y where its crossing is not after z's, else z.
-        let not_x = _mm256_or_si256(gxy, gxz);
-        tx = _mm256_blendv_epi8(nx, tx, not_x);
-        ty = _mm256_blendv_epi8(ty, ny, _mm256_andnot_si256(gyz, not_x));
-        tz = _mm256_blendv_epi8(tz, nz, _mm256_and_si256(gyz, not_x));
-        pv = _mm256_add_epi64(
-            pv,
-            _mm256_blendv_epi8(mx, _mm256_blendv_epi8(my, mz, gyz), not_x),
-        );
+        let (next, inc) = step(tv, fixed);
+        tv = next;
+        pv = _mm256_add_epi64(pv, inc);
     }
-    (*t, *p) = ([tx, ty, tz], pv);
+    (*t, *p) = (tv, pv);
+}
+
+/// The sparse walk's `k` steps from crossings `t` and [`Packed`] voxels `p`, for
+/// [`SparseMarks`]: each step ORs the lane's voxel into its `plane` (live lanes only),
+/// stores the plane and the voxel in the lane's `entry` of `at` (words, keys), and moves
+/// the lane to its next entry when the step leaves the brick. Not inlined, as `walk_steps`.
+///
+/// # Safety
+/// Every live lane's `entry` must stay inside `at`'s entries for `k` steps (it moves at
+/// most once a step); idle lanes have increments 0.
+#[inline(never)]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn sparse_steps(
+    k: i64,
+    t: &mut [__m256i; 3],
+    p: &mut __m256i,
+    fixed: &Fixed,
+    live: __m256i,
+    entry: &mut __m256i,
+    plane: &mut __m256i,
+    (words, keys): (*mut u64, *mut u64),
+) {
+    const _: () = assert!(Packed::F == 21);
+    let seven = _mm256_set1_epi64x(7);
+    let row = _mm256_set1_epi64x(7 << 3);
+    let brick = _mm256_set1_epi64x(Packed::BRICK as i64);
+    let z_field = _mm256_set1_epi64x(Packed::Z_FIELD as i64);
+    let one = _mm256_and_si256(live, _mm256_set1_epi64x(1));
+    let zero = _mm256_setzero_si256();
+    let (mut tv, mut pv, mut e, mut pl) = (*t, *p, *entry, *plane);
+    for _ in 0..k {
+        let xy = _mm256_or_si256(
+            _mm256_and_si256(pv, seven),
+            _mm256_and_si256(_mm256_srli_epi64::<18>(pv), row),
+        );
+        pl = _mm256_or_si256(pl, _mm256_sllv_epi64(one, xy));
+        let word = _mm256_add_epi64(
+            _mm256_slli_epi64::<3>(e),
+            _mm256_and_si256(_mm256_srli_epi64::<42>(pv), seven),
+        );
+        let (wa, pa, va) = (to_array(word), to_array(pl), to_array(pv));
+        for l in 0..4 {
+            // SAFETY: the lane's entry is inside `at` (the caller's promise), and `word`
+            // is 8 entry + z with z < 8.
+            unsafe {
+                *words.add(wa[l] as usize) = pa[l] as u64;
+                *keys.add((wa[l] >> 3) as usize) = va[l] as u64;
+            }
+        }
+        let (next, inc) = step(tv, fixed);
+        tv = next;
+        let was = pv;
+        pv = _mm256_add_epi64(pv, inc);
+        let moved = _mm256_xor_si256(was, pv);
+        let same_brick = _mm256_cmpeq_epi64(_mm256_and_si256(moved, brick), zero);
+        let same_plane = _mm256_cmpeq_epi64(_mm256_and_si256(moved, z_field), zero);
+        pl = _mm256_and_si256(pl, _mm256_and_si256(same_brick, same_plane));
+        // Lanes that left their brick (all ones, -1) move to their next entry.
+        e = _mm256_sub_epi64(e, _mm256_xor_si256(same_brick, _mm256_set1_epi64x(-1)));
+    }
+    (*t, *p, *entry, *plane) = (tv, pv, e, pl);
 }
 
 /// A walk stepped outside its box: a bug, stopped before any read outside the marks.

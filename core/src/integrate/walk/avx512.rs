@@ -320,8 +320,6 @@ impl SparseLanes<'_, '_> {
     }
 }
 
-/// Bits of the z field of a [`Packed`] voxel.
-const Z_FIELD: u64 = !0 << (2 * Packed::F);
 
 /// A sparse walk's per-lane registers.
 #[derive(Clone, Copy)]
@@ -363,7 +361,7 @@ impl Lanes for SparseLanes<'_, '_> {
         let left =
             _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
         let done =
-            left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Z_FIELD as i64));
+            left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::Z_FIELD as i64));
         // Lanes that left their plane store it: word z of the lane's buffer.
         let word = _mm512_add_epi64(
             _mm512_slli_epi64::<3>(r.buffer),

@@ -162,6 +162,14 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
                 })
                 .sum()
         }
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx2 => {
+            rays.par_chunks(RAY_CHUNK)
+                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                // (`Kernel::supported`), which is all `walk_sparse` needs.
+                .map(|chunk| unsafe { avx2::walk_sparse(&mut marks.cache(), origin, chunk) })
+                .sum()
+        }
         _ => {
             let _ = steps;
             rays.par_chunks(RAY_CHUNK)
@@ -187,6 +195,8 @@ impl Packed {
     const STRIDES: [i64; 3] = [1, 1 << Self::F, 1 << (2 * Self::F)];
     /// Bits of a field above its low 3.
     const BRICK: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
+    /// Bits of the z field.
+    const Z_FIELD: u64 = !0 << (2 * Self::F);
 
     /// Packing for rays that start at `v`. Rays end within max range of their start, so
     /// no field under- or overflows.
