@@ -345,9 +345,8 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
     let packed = Packed::around(v);
     // No box: a ray's fields stay inside `Packed`'s (`Packed::around`), so every end is
     // "inside" bounds no coordinate reaches.
-    let axes: [Axis; 3] = std::array::from_fn(|a| {
-        Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33)
-    });
+    let axes: [Axis; 3] =
+        std::array::from_fn(|a| Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33));
     let feed = Feed {
         rays,
         cur: [0; 4],
@@ -361,7 +360,7 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
         cache,
         packed,
         start: v,
-        words: vec![[0; 8]; 4 * RING].into_boxed_slice(),
+        words: vec![Entry::default(); 4 * RING].into_boxed_slice(),
         keys: vec![0; 4 * RING].into_boxed_slice(),
         entry: _mm256_setr_epi64x(0, RING as i64, 2 * RING as i64, 3 * RING as i64),
         plane: _mm256_setzero_si256(),
@@ -393,7 +392,10 @@ trait Marks {
     );
     /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
     /// rays at voxels `p`; those in `hit` hit there.
-    fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
+    ///
+    /// # Safety
+    /// The CPU has AVX2.
+    unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
     /// A ray ended in the origin's voxel, which it hit.
     fn hit_at_start(&mut self);
 }
@@ -429,7 +431,7 @@ impl Marks for DenseMarks<'_> {
         unsafe { walk_steps(k, t, p, fixed, self.free) };
     }
 
-    fn burst_done(&mut self, p: [i64; 4], _: u32, hit: u32) {
+    unsafe fn burst_done(&mut self, p: [i64; 4], _: u32, hit: u32) {
         for l in BitIter(u64::from(hit)) {
             set_bit(self.hits, p[l] as u64);
         }
@@ -443,6 +445,11 @@ impl Marks for DenseMarks<'_> {
 /// Brick entries per lane of [`SparseMarks`]: a burst crosses at most one brick a step.
 const RING: usize = 128;
 
+/// A brick's marks in [`SparseMarks`]: word z holds plane z, bit `x | y << 3`.
+#[derive(Clone, Default)]
+#[repr(C, align(64))]
+struct Entry([u64; 8]);
+
 /// The sparse walk's marks. Each lane keeps the marks of its current z plane in a vector
 /// lane, and stores it on every step, with the voxel, to the plane's word of its current
 /// brick entry; when it leaves a brick it moves on to its next entry. So a step has no
@@ -455,7 +462,7 @@ struct SparseMarks<'c, 'a> {
     start: VoxelCoord,
     /// Lane `l`'s entries are `l * RING..(l + 1) * RING`: 8 words (z planes) of a brick,
     /// and a voxel of the brick (packed).
-    words: Box<[[u64; 8]]>,
+    words: Box<[Entry]>,
     keys: Box<[u64]>,
     /// Per lane its current entry, and its current plane's marks, bit `x | y << 3`.
     entry: __m256i,
@@ -486,7 +493,8 @@ impl Marks for SparseMarks<'_, '_> {
         unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
     }
 
-    fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
+    #[target_feature(enable = "avx2")]
+    unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
         let entry = to_array(self.entry);
         let mut plane = to_array(self.plane);
         for (l, &e) in entry.iter().enumerate() {
@@ -496,17 +504,34 @@ impl Marks for SparseMarks<'_, '_> {
             // step may enter a brick only to end there: nothing free to mark, and a slot
             // would give the map an empty leaf.
             for j in first..cur + usize::from(done) {
-                if self.words[j].iter().fold(0, |a, &w| a | w) != 0 {
+                let words = &mut self.words[j].0;
+                let at = words.as_mut_ptr().cast::<__m256i>();
+                // SAFETY: `words` is 8 u64, two 32-byte vectors, aligned to 64 (`Entry`).
+                let (lo, hi) = unsafe { (_mm256_load_si256(at), _mm256_load_si256(at.add(1))) };
+                let marks = _mm256_or_si256(lo, hi);
+                if _mm256_testz_si256(marks, marks) == 0 {
                     let brick = self.packed.unpack(self.keys[j]).shr(3);
-                    self.cache.or_free(brick, &self.words[j]);
-                    self.words[j] = [0; 8];
+                    let free = &self.cache.slot_for(brick).free;
+                    // SAFETY: `free` is eight AtomicU64, 64 bytes of the same layout as
+                    // `words`, at the start of a `Slot`, which is aligned to 64. Only the
+                    // task holding this cache's table accesses the table's slots until it
+                    // is released (see `FrameMarks`), so this plain read-modify-write races
+                    // with nothing, as `Slot::or_free`'s does not.
+                    unsafe {
+                        let to = free.as_ptr().cast::<__m256i>().cast_mut();
+                        _mm256_store_si256(to, _mm256_or_si256(_mm256_load_si256(to), lo));
+                        let to = to.add(1);
+                        _mm256_store_si256(to, _mm256_or_si256(_mm256_load_si256(to), hi));
+                    }
+                    *words = [0; 8];
                 }
             }
             if done {
                 plane[l] = 0;
             } else if cur != first {
+                // Its current brick goes on in its first entry. (Its key needs no copy:
+                // the next burst's first step stores it again.)
                 self.words[first] = std::mem::take(&mut self.words[cur]);
-                self.keys[first] = self.keys[cur];
             }
         }
         for l in BitIter(u64::from(hit)) {
@@ -618,7 +643,8 @@ fn walk<M: Marks>(
             *rem -= k;
             ended |= u32::from(*rem == 0) << l;
         }
-        marks.burst_done(to_array(p), ended, ended & hit);
+        // SAFETY: this function requires AVX2.
+        unsafe { marks.burst_done(to_array(p), ended, ended & hit) };
         live &= !ended;
         need = ended;
     }

@@ -320,7 +320,6 @@ impl SparseLanes<'_, '_> {
     }
 }
 
-
 /// A sparse walk's per-lane registers.
 #[derive(Clone, Copy)]
 struct SparseRegs {
@@ -360,8 +359,8 @@ impl Lanes for SparseLanes<'_, '_> {
         let moved = _mm512_xor_si512(was, p);
         let left =
             _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
-        let done =
-            left | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::Z_FIELD as i64));
+        let done = left
+            | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::Z_FIELD as i64));
         // Lanes that left their plane store it: word z of the lane's buffer.
         let word = _mm512_add_epi64(
             _mm512_slli_epi64::<3>(r.buffer),
