@@ -148,12 +148,16 @@ impl<V: GridValue> LeafPool<V> {
 
     /// Apply `f` to each listed leaf, in parallel across chunks, and sum what it returns.
     /// `items` must be sorted by leaf index with no index twice; each leaf is then borrowed
-    /// mutably exactly once.
+    /// mutably exactly once. `ahead` is told of each item a few before `f` takes it (to
+    /// prefetch what `f` will read for it).
     pub fn par_update<T: Sync>(
         &mut self,
         items: &[(u32, T)],
+        ahead: impl Fn(&T) + Sync,
         f: impl Fn(&mut Leaf<V>, &T) -> u64 + Sync,
     ) -> u64 {
+        /// Items told to `ahead` before their turn.
+        const AHEAD: usize = 8;
         use rayon::prelude::*;
         assert!(
             items.windows(2).all(|w| w[0].0 < w[1].0),
@@ -183,8 +187,15 @@ impl<V: GridValue> LeafPool<V> {
         work.into_par_iter()
             .with_max_len(8)
             .map(|(span, run)| {
+                run.iter().take(AHEAD).for_each(|(_, t)| ahead(t));
                 run.iter()
-                    .map(|(i, t)| f(&mut span[*i as usize % UPDATE_SPAN], t))
+                    .enumerate()
+                    .map(|(k, (i, t))| {
+                        if let Some((_, t)) = run.get(k + AHEAD) {
+                            ahead(t);
+                        }
+                        f(&mut span[*i as usize % UPDATE_SPAN], t)
+                    })
                     .sum::<u64>()
             })
             .sum()
@@ -648,11 +659,15 @@ mod tests {
             .step_by(3)
             .map(|&i| (i, (i % 100) as i8))
             .collect();
-        let n = g.leaf_pool_mut().par_update(&items, |leaf, &v| {
-            leaf.values[0] += v;
-            leaf.active.set(0);
-            1
-        });
+        let n = g.leaf_pool_mut().par_update(
+            &items,
+            |_| (),
+            |leaf, &v| {
+                leaf.values[0] += v;
+                leaf.active.set(0);
+                1
+            },
+        );
         assert_eq!(n, items.len() as u64);
         for (k, &li) in idx.iter().enumerate() {
             let want = if k % 3 == 0 {

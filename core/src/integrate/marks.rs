@@ -36,6 +36,14 @@ impl Slot {
         }
     }
 
+    /// Ask for the slot's two cache lines to be loaded, for a loop that reads it a few
+    /// iterations later. Only speed changes.
+    #[inline]
+    pub(in crate::integrate) fn prefetch(&self) {
+        crate::prefetch::prefetch(std::slice::from_ref(&self.free), 0);
+        crate::prefetch::prefetch(std::slice::from_ref(&self.hit), 0);
+    }
+
     /// OR `other`'s marks into this one's. Only between phases, when no walk writes.
     pub(in crate::integrate) fn absorb(&self, other: &Slot) {
         let pairs = self.free.iter().zip(&other.free);

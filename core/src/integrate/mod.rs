@@ -426,12 +426,11 @@ impl Integrator {
             let t3 = Instant::now();
             // Update.
             report.touched_leaves = items.len() as u64;
-            report.touched_voxels = map
-                .grid_mut()
-                .leaf_pool_mut()
-                .par_update(&items, |leaf, &(slot, fresh)| {
-                    update::apply(kernel, leaf, marks.slot(slot), &q, fresh)
-                });
+            report.touched_voxels = map.grid_mut().leaf_pool_mut().par_update(
+                &items,
+                |&(slot, _)| marks.slot(slot).prefetch(),
+                |leaf, &(slot, fresh)| update::apply(kernel, leaf, marks.slot(slot), &q, fresh),
+            );
             marks.clear_used();
             let t4 = Instant::now();
             report.times = PhaseTimes {

@@ -293,11 +293,16 @@ fn observing_a_word_at_once_equals_bit_by_bit() {
             max: 60,
             ..default
         };
+        // Every value at or above the threshold, a first miss's too.
+        let low = QuantizedModel {
+            threshold: default.min,
+            ..default
+        };
         let mut rng = Rng(7);
         let word = |rng: &mut Rng| {
             (rng.f() * 2f64.powi(32)) as u64 | ((rng.f() * 2f64.powi(32)) as u64) << 32
         };
-        for q in [default, wide, narrow] {
+        for q in [default, wide, narrow, low] {
             for k in 0..2000 {
                 let (free, hit) = (word(&mut rng), word(&mut rng) & word(&mut rng));
                 // Some words with a half (or all) unobserved.

@@ -485,29 +485,34 @@ pub fn decode_map_with_field(
         }
         items.push((i as u32, rec));
     }
-    let out_of_range = grid.leaf_pool_mut().par_update(&items, |leaf, rec| {
-        let mut bad = false;
-        for w in 0..8 {
-            let word = u64::from_le_bytes(rec[MASK_AT + 8 * w..][..8].try_into().expect("8 bytes"));
-            leaf.active.words[w] = word;
-            let vals = &rec[VALUES_AT + 64 * w..][..64];
-            // The leaf's occupied marks (`Leaf::marked`), in the same pass.
-            let mut occupied = 0u64;
-            for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
-                .iter_mut()
-                .zip(vals)
-                .enumerate()
-            {
-                let known = word >> b & 1 != 0;
-                let v = v as i8;
-                bad |= known & !(q.min..=q.max).contains(&v);
-                occupied |= u64::from(known & (v >= q.threshold)) << b;
-                *out = if known { v } else { 0 };
+    let out_of_range = grid.leaf_pool_mut().par_update(
+        &items,
+        |_| (),
+        |leaf, rec| {
+            let mut bad = false;
+            for w in 0..8 {
+                let word =
+                    u64::from_le_bytes(rec[MASK_AT + 8 * w..][..8].try_into().expect("8 bytes"));
+                leaf.active.words[w] = word;
+                let vals = &rec[VALUES_AT + 64 * w..][..64];
+                // The leaf's occupied marks (`Leaf::marked`), in the same pass.
+                let mut occupied = 0u64;
+                for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
+                    .iter_mut()
+                    .zip(vals)
+                    .enumerate()
+                {
+                    let known = word >> b & 1 != 0;
+                    let v = v as i8;
+                    bad |= known & !(q.min..=q.max).contains(&v);
+                    occupied |= u64::from(known & (v >= q.threshold)) << b;
+                    *out = if known { v } else { 0 };
+                }
+                leaf.marked.words[w] = occupied;
             }
-            leaf.marked.words[w] = occupied;
-        }
-        u64::from(bad)
-    });
+            u64::from(bad)
+        },
+    );
     if out_of_range > 0 {
         return Err(bad("log-odds value outside the clamping range"));
     }
