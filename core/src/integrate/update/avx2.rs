@@ -13,8 +13,8 @@ pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh:
 }
 
 /// [`Observe`] with byte vectors: AVX2 has no byte-masked store, so each half of the word
-/// is blended (the observed bytes new, the others as they were) and stored whole; a fresh
-/// word's bytes are a first hit's or miss's value, or zero ([`observe_fresh`]). The same values and marks as one at a time: an i8 add
+/// is blended (the observed bytes new, the others as they were, or zero when `FRESH`, which
+/// they are) and stored whole. The same values and marks as one at a time: an i8 add
 /// saturates only beyond the clamps, which are within i8.
 pub(in crate::integrate) struct Avx2;
 
@@ -57,10 +57,6 @@ pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
     hit: u64,
     q: &QuantizedModel,
 ) -> u64 {
-    if FRESH {
-        // SAFETY: the caller's promise.
-        return unsafe { observe_fresh(values, any, hit, q) };
-    }
     let (miss_d, hit_d) = (_mm256_set1_epi8(q.miss), _mm256_set1_epi8(q.hit));
     let (lo, hi) = (_mm256_set1_epi8(q.min), _mm256_set1_epi8(q.max));
     let threshold = _mm256_set1_epi8(q.threshold);
@@ -73,8 +69,12 @@ pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
             continue;
         }
         let delta = _mm256_blendv_epi8(miss_d, hit_d, bytes_of(hit_h));
-        // SAFETY: reads 32 bytes of `values` from `32 * half`.
-        let old = unsafe { _mm256_loadu_si256(at.cast()) };
+        let old = if FRESH {
+            _mm256_setzero_si256()
+        } else {
+            // SAFETY: reads 32 bytes of `values` from `32 * half`.
+            unsafe { _mm256_loadu_si256(at.cast()) }
+        };
         let new = _mm256_max_epi8(_mm256_min_epi8(_mm256_adds_epi8(old, delta), hi), lo);
         let new = _mm256_blendv_epi8(old, new, bytes_of(any_h));
         // SAFETY: writes 32 bytes of `values` from `32 * half`.
@@ -84,34 +84,4 @@ pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
         occupied |= u64::from(!below & any_h) << shift;
     }
     occupied
-}
-
-/// [`observe`] of a fresh leaf's word, all zero: each observed voxel takes the value of a
-/// first hit or a first miss, so no add, clamp or compare is needed per byte. (Where a
-/// frame creates most of its leaves, as at 60 m, most words are fresh ones.)
-///
-/// # Safety
-/// The CPU must have AVX2.
-#[target_feature(enable = "avx2")]
-unsafe fn observe_fresh(values: &mut [i8; 64], any: u64, hit: u64, q: &QuantizedModel) -> u64 {
-    let (first_hit, first_miss) = (q.update(0, true), q.update(0, false));
-    let (h, m) = (_mm256_set1_epi8(first_hit), _mm256_set1_epi8(first_miss));
-    for half in 0..2 {
-        let shift = 32 * half as u32;
-        let (any_h, hit_h) = ((any >> shift) as u32, (hit >> shift) as u32);
-        if any_h == 0 {
-            continue;
-        }
-        let new = _mm256_and_si256(bytes_of(any_h), _mm256_blendv_epi8(m, h, bytes_of(hit_h)));
-        // SAFETY: writes 32 bytes of `values` from `32 * half`.
-        unsafe { _mm256_storeu_si256(values[32 * half..].as_mut_ptr().cast(), new) };
-    }
-    // `hit` is within `any` (a voxel both crossed and hit counts as hit).
-    let hits = if first_hit >= q.threshold { hit } else { 0 };
-    let misses = if first_miss >= q.threshold {
-        any & !hit
-    } else {
-        0
-    };
-    hits | misses
 }
