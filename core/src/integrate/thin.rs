@@ -63,9 +63,7 @@ impl Buffers {
         sized(&mut self.orders, n.div_ceil(RAY_CHUNK), ChunkOrder::default);
         (&mut self.keys, &mut self.orders)
     }
-}
 
-impl Buffers {
     /// Zero the bit sets the last frame marked, before `bits` is written again: by the bits
     /// its rays marked where they are few for the set, so that a small frame in a large
     /// box does not clear the whole box. Done just before the sets are used, not after

@@ -206,14 +206,7 @@ pub(super) fn compact(
 /// depend on the order of the rays, and a ray moves only if a hole is left for it.
 fn fill_holes(keep: &[u64; RAY_CHUNK / 64], at: impl Fn(usize) -> usize, chunk: &mut [Ray]) {
     let n: usize = keep.iter().map(|w| w.count_ones() as usize).sum();
-    let first = |w: usize| {
-        let bits = n.saturating_sub(w * 64).min(64);
-        if bits == 64 {
-            !0
-        } else {
-            (1u64 << bits) - 1
-        }
-    };
+    let first = |w: usize| first_bits(n, w);
     let ones = |m: [u64; RAY_CHUNK / 64]| {
         (0..RAY_CHUNK / 64).flat_map(move |w| Ones(m[w]).map(move |b| w * 64 + b))
     };
@@ -221,6 +214,15 @@ fn fill_holes(keep: &[u64; RAY_CHUNK / 64], at: impl Fn(usize) -> usize, chunk: 
     let moved = ones(std::array::from_fn(|w| keep[w] & !first(w)));
     for (h, m) in holes.zip(moved) {
         chunk[at(h)] = chunk[at(m)];
+    }
+}
+
+/// Word `w` of a chunk's mask of its first `n` places.
+fn first_bits(n: usize, w: usize) -> u64 {
+    match n.saturating_sub(w * 64) {
+        0 => 0,
+        bits @ 1..64 => (1u64 << bits) - 1,
+        _ => !0,
     }
 }
 
@@ -251,12 +253,10 @@ pub(in crate::integrate) struct ChunkOrder {
 impl ChunkOrder {
     /// All of a chunk's `len` rays in front, in scan order.
     fn all_front(len: usize) -> Self {
-        let mut o = ChunkOrder::default();
-        for (w, m) in o.front.iter_mut().enumerate() {
-            let bits = len.saturating_sub(w * 64).min(64);
-            *m = if bits == 64 { !0 } else { (1u64 << bits) - 1 };
+        ChunkOrder {
+            front: std::array::from_fn(|w| first_bits(len, w)),
+            ..ChunkOrder::default()
         }
-        o
     }
 
     /// Where the layout put each ray of the chunk's scan (as long as the chunk): the

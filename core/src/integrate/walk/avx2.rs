@@ -1,7 +1,11 @@
-//! The dense raycast walk on AVX2: four rays at once, one per 64-bit lane. (The sparse
-//! walk stays scalar under this kernel: a four-lane version, its brick words kept per
-//! lane, walked the random 500k 60 m frame's rays 35-50% slower than one ray at a time;
-//! see `docs/design.md`.)
+//! The raycast walks on AVX2: four rays at once, one per 64-bit lane. One walk
+//! ([`walk`]), two ways to keep marks ([`Marks`]):
+//! - dense ([`walk_dense`]): a voxel is its bit index in the thread's [`DenseBits`], so a
+//!   step is one add and a mark one OR into memory that stays in cache;
+//! - sparse ([`walk_sparse`]): a voxel is [`Packed`]; each lane stores its current plane's
+//!   marks, and the voxel, to its current brick's entry on every step, and moves to its
+//!   next entry when it leaves the brick, so a step has no branch ([`SparseMarks`]); the
+//!   bricks are OR-ed into the frame's tables after each burst of steps.
 //!
 //! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters, no compress and
 //! no conversion from doubles to 64-bit integers, so this is not the AVX-512 walk
@@ -12,14 +16,14 @@
 //! fewest left (so the loop tests no lane for its end), and marks are written lane by lane
 //! in scalar code, without being read first (see [`walk_dense`]).
 //! Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and end
-//! voxel as `super::dense::walk_rays`. The walk stays inside the box because the origin's
-//! voxel and every end voxel are checked to be in it: a walk moves along each axis
-//! monotonically from the one to the other.
+//! voxel as `super::dense::walk_rays` and `super::sparse::walk_rays`. The dense walk stays
+//! inside the box because the origin's voxel and every end voxel are checked to be in it:
+//! a walk moves along each axis monotonically from the one to the other.
 
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::Packed;
 use crate::coord::VoxelCoord;
-use crate::integrate::marks::BrickCache;
+use crate::integrate::marks::{BrickCache, Slot};
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
 use crate::raycast::T_ONE;
@@ -364,6 +368,7 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
         keys: vec![0; 4 * RING].into_boxed_slice(),
         entry: _mm256_setr_epi64x(0, RING as i64, 2 * RING as i64, 3 * RING as i64),
         plane: _mm256_setzero_si256(),
+        flush: Vec::with_capacity(4 * RING),
     };
     walk(&mut marks, &axes, origin, start, feed)
 }
@@ -467,6 +472,8 @@ struct SparseMarks<'c, 'a> {
     /// Per lane its current entry, and its current plane's marks, bit `x | y << 3`.
     entry: __m256i,
     plane: __m256i,
+    /// The bricks a burst finished: their slots and entries.
+    flush: Vec<(&'a Slot, usize)>,
 }
 
 impl Marks for SparseMarks<'_, '_> {
@@ -497,36 +504,47 @@ impl Marks for SparseMarks<'_, '_> {
     unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
         let entry = to_array(self.entry);
         let mut plane = to_array(self.plane);
+        // Look up every finished brick's slot and prefetch it, then OR them all, so that
+        // their cache misses overlap.
+        let mut flush = std::mem::take(&mut self.flush);
         for (l, &e) in entry.iter().enumerate() {
             let (first, cur) = (l * RING, e as usize);
-            let done = ended >> l & 1 != 0;
             // The bricks the lane left, and its current one if its ray ended. A ray's last
             // step may enter a brick only to end there: nothing free to mark, and a slot
             // would give the map an empty leaf.
-            for j in first..cur + usize::from(done) {
-                let words = &mut self.words[j].0;
-                let at = words.as_mut_ptr().cast::<__m256i>();
-                // SAFETY: `words` is 8 u64, two 32-byte vectors, aligned to 64 (`Entry`).
-                let (lo, hi) = unsafe { (_mm256_load_si256(at), _mm256_load_si256(at.add(1))) };
-                let marks = _mm256_or_si256(lo, hi);
-                if _mm256_testz_si256(marks, marks) == 0 {
-                    let brick = self.packed.unpack(self.keys[j]).shr(3);
-                    let free = &self.cache.slot_for(brick).free;
-                    // SAFETY: `free` is eight AtomicU64, 64 bytes of the same layout as
-                    // `words`, at the start of a `Slot`, which is aligned to 64. Only the
-                    // task holding this cache's table accesses the table's slots until it
-                    // is released (see `FrameMarks`), so this plain read-modify-write races
-                    // with nothing, as `Slot::or_free`'s does not.
-                    unsafe {
-                        let to = free.as_ptr().cast::<__m256i>().cast_mut();
-                        _mm256_store_si256(to, _mm256_or_si256(_mm256_load_si256(to), lo));
-                        let to = to.add(1);
-                        _mm256_store_si256(to, _mm256_or_si256(_mm256_load_si256(to), hi));
-                    }
-                    *words = [0; 8];
+            for j in first..cur + usize::from(ended >> l & 1 != 0) {
+                let words = &self.words[j].0;
+                if words.iter().fold(0, |a, &w| a | w) != 0 {
+                    let slot = self.cache.slot_for(self.packed.unpack(self.keys[j]).shr(3));
+                    crate::prefetch::prefetch(std::slice::from_ref(&slot.free), 0);
+                    flush.push((slot, j));
                 }
             }
-            if done {
+        }
+        for &(slot, j) in &flush {
+            let at = self.words[j].0.as_mut_ptr().cast::<__m256i>();
+            let to = slot.free.as_ptr().cast::<__m256i>().cast_mut();
+            // SAFETY: an `Entry` is 8 u64, two 32-byte vectors, aligned to 64. `free` is
+            // eight AtomicU64 of the same layout, at the start of a `Slot`, which is
+            // aligned to 64. Only the task holding this cache's table accesses the table's
+            // slots until it is released (see `FrameMarks`), so this plain
+            // read-modify-write races with nothing, as `Slot::or_free`'s does not.
+            unsafe {
+                for k in 0..2 {
+                    let (at, to) = (at.add(k), to.add(k));
+                    _mm256_store_si256(
+                        to,
+                        _mm256_or_si256(_mm256_load_si256(to), _mm256_load_si256(at)),
+                    );
+                    _mm256_store_si256(at, _mm256_setzero_si256());
+                }
+            }
+        }
+        flush.clear();
+        self.flush = flush;
+        for (l, &e) in entry.iter().enumerate() {
+            let (first, cur) = (l * RING, e as usize);
+            if ended >> l & 1 != 0 {
                 plane[l] = 0;
             } else if cur != first {
                 // Its current brick goes on in its first entry. (Its key needs no copy:

@@ -1,13 +1,14 @@
 //! Phase 2, walk: every ray from the sensor origin through the voxels it crosses, with the
 //! exact DDA ([`crate::raycast::Dda`]), its marks set in per-frame memory. Two walks with
-//! the same result, each scalar and on AVX-512, chosen in one place ([`plan`], [`run`]):
+//! the same result, each scalar, on AVX2 and on AVX-512, chosen in one place ([`plan`],
+//! [`run`]):
 //!
 //! | walk | marks kept in | file |
 //! |---|---|---|
 //! | dense, one ray at a time | the thread's bit grid over the frame's box ([`dense::DenseBits`]) | `dense.rs` ([`dense::walk_rays`]) |
-//! | dense, eight rays at a time | the same | `avx512.rs` (`avx512::walk_dense`) |
+//! | dense, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_dense`) / `avx512.rs` (`avx512::walk_dense`) |
 //! | sparse, one ray at a time | the frame's brick tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
-//! | sparse, eight rays at a time | the same | `avx512.rs` (`avx512::walk_sparse`) |
+//! | sparse, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_sparse`) / `avx512.rs` (`avx512::walk_sparse`) |
 //!
 //! `integrate::tests::dense_and_sparse_walks_agree` checks every walk of every kernel the CPU
 //! has against the others, map and counts. The kernel is the integrator's
