@@ -196,7 +196,8 @@ impl Packed {
     const STRIDES: [i64; 3] = [1, 1 << Self::F, 1 << (2 * Self::F)];
     /// Bits of a field above its low 3.
     const BRICK: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
-    /// Bits of the z field.
+    /// Bits of the z field (for the vector walks).
+    #[cfg(target_arch = "x86_64")]
     const Z_FIELD: u64 = !0 << (2 * Self::F);
 
     /// Packing for rays that start at `v`. Rays end within max range of their start, so
