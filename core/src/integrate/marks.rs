@@ -290,48 +290,54 @@ impl FrameMarks {
         self.slots.get(s)
     }
 
-    /// Every touched brick as (origin voxel, slot), in (z, y, x) order of cells and, within
-    /// a cell, of bricks; a brick with slots in several tables gets the others' marks ORed
-    /// into the first. Call between a frame's phases, when no cache is live.
-    pub(in crate::integrate) fn bricks_in_order(
-        &self,
-    ) -> impl Iterator<Item = (VoxelCoord, u32)> + '_ {
+    /// Every touched brick as (origin voxel, slot), per coarse cell in (z, y, x) order of
+    /// cells and, within a cell, of bricks; a brick with slots in several tables gets the
+    /// others' marks ORed into the first. The cells are read in parallel. Call between a
+    /// frame's phases, when no cache is live.
+    pub(in crate::integrate) fn bricks_in_order(&self) -> Vec<Vec<(VoxelCoord, u32)>> {
+        (0..self.ncells)
+            .into_par_iter()
+            .map(|c| self.cell_bricks(c))
+            .collect()
+    }
+
+    /// The touched bricks of coarse cell `c`, as [`FrameMarks::bricks_in_order`] lists them.
+    fn cell_bricks(&self, c: usize) -> Vec<(VoxelCoord, u32)> {
         let [dx, dy, _] = self.cells_dim;
         let (n, tables) = (self.ncells, self.taken.len());
         let m = (1 << CELL_LOG2) - 1;
-        (0..n)
-            .filter_map(move |c| {
-                let entries: Vec<&CellEntries> = (0..tables)
-                    .filter_map(|l| match self.cells[l * n + c].load(Relaxed) {
-                        0 => None,
-                        b => Some(self.entries.get(b - 1)),
-                    })
-                    .collect();
-                (!entries.is_empty()).then_some((c, entries))
+        let entries: Vec<&CellEntries> = (0..tables)
+            .filter_map(|l| match self.cells[l * n + c].load(Relaxed) {
+                0 => None,
+                b => Some(self.entries.get(b - 1)),
             })
-            .flat_map(move |(c, entries)| {
-                let cell = VoxelCoord::new(
-                    (c % dx) as i32,
-                    (c / dx % dy) as i32,
-                    (c / (dx * dy)) as i32,
+            .collect();
+        if entries.is_empty() {
+            return Vec::new();
+        }
+        let cell = VoxelCoord::new(
+            (c % dx) as i32,
+            (c / dx % dy) as i32,
+            (c / (dx * dy)) as i32,
+        );
+        let base = self.lo + cell.shl(3 + CELL_LOG2);
+        (0..CELL_ENTRIES)
+            .filter_map(|e| {
+                let mut ids = entries
+                    .iter()
+                    .map(|b| b.0[e].load(Relaxed))
+                    .filter(|&s| s != 0);
+                let first = ids.next()? - 1;
+                let slot = self.slots.get(first);
+                ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
+                let at = VoxelCoord::new(
+                    (e & m) as i32,
+                    (e >> CELL_LOG2 & m) as i32,
+                    (e >> (2 * CELL_LOG2)) as i32,
                 );
-                let base = self.lo + cell.shl(3 + CELL_LOG2);
-                (0..CELL_ENTRIES).filter_map(move |e| {
-                    let mut ids = entries
-                        .iter()
-                        .map(|b| b.0[e].load(Relaxed))
-                        .filter(|&s| s != 0);
-                    let first = ids.next()? - 1;
-                    let slot = self.slots.get(first);
-                    ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
-                    let at = VoxelCoord::new(
-                        (e & m) as i32,
-                        (e >> CELL_LOG2 & m) as i32,
-                        (e >> (2 * CELL_LOG2)) as i32,
-                    );
-                    Some((base + at.shl(3), first))
-                })
+                Some((base + at.shl(3), first))
             })
+            .collect()
     }
 
     /// Zero everything this frame used, keeping the memory for the next.

@@ -1,6 +1,7 @@
 //! Phase 3, merge: the dense walk's per-thread grids are folded into the frame's mark
 //! tables (`walk::dense::fold_into`), then every touched brick gets its map leaf, created
-//! if new, in one sequential pass in space order ([`attach_leaves`]).
+//! if new, in one sequential pass in space order ([`attach_leaves`]) over the bricks the
+//! tables list in parallel.
 
 use super::marks::FrameMarks;
 use crate::coord::VoxelCoord;
@@ -16,10 +17,12 @@ pub(super) fn attach_leaves(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(
     let mut items = Vec::with_capacity(marks.used_slots() as usize);
     // Internal-node-major order, so consecutive bricks share the cached internal node and
     // new leaves are laid out in space order.
-    items.extend(marks.bricks_in_order().map(|(o, s)| {
-        let l = grid.leaf_index_or_insert(o, Some(&mut hint));
-        (l, (s, l >= first_new))
-    }));
+    for cell in marks.bricks_in_order() {
+        items.extend(cell.into_iter().map(|(o, s)| {
+            let l = grid.leaf_index_or_insert(o, Some(&mut hint));
+            (l, (s, l >= first_new))
+        }));
+    }
     if !items.windows(2).all(|w| w[0].0 < w[1].0) {
         items.par_sort_unstable_by_key(|&(l, _)| l);
     }

@@ -353,7 +353,7 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
         "a dropped cache frees its table"
     );
     drop(b);
-    let bricks: Vec<_> = marks.bricks_in_order().collect();
+    let bricks: Vec<_> = marks.bricks_in_order().concat();
     let origins: Vec<_> = bricks.iter().map(|&(o, _)| o).collect();
     assert_eq!(origins, [only_a.shl(3), shared.shl(3), only_b.shl(3)]);
     let words = |s: u32| {
