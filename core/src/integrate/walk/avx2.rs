@@ -492,11 +492,12 @@ impl Marks for SparseMarks<'_, '_> {
         fixed: &Fixed,
         live: __m256i,
     ) {
-        debug_assert!(k <= Self::BURST);
+        // Checked, not assumed: the writes below rely on it (once a burst, not a step).
+        assert!(k <= Self::BURST, "a burst longer than the ring");
         let at = (self.words.as_mut_ptr().cast(), self.keys.as_mut_ptr());
         // SAFETY: a lane starts a burst at its first entry (`burst_done`) and moves to the
-        // next at most once a step, so in `k < RING` steps it stays in its `RING` entries;
-        // the CPU has AVX2 (the caller's promise).
+        // next at most once a step, so in `k < RING` steps (checked above) it stays in its
+        // `RING` entries; the CPU has AVX2 (the caller's promise).
         unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
     }
 
@@ -760,8 +761,9 @@ unsafe fn walk_steps(
 /// the lane to its next entry when the step leaves the brick. Not inlined, as `walk_steps`.
 ///
 /// # Safety
-/// Every live lane's `entry` must stay inside `at`'s entries for `k` steps (it moves at
-/// most once a step); idle lanes have increments 0.
+/// Every lane's `entry` must stay inside `at`'s entries for `k` steps: a live lane moves
+/// to its next at most once a step, an idle lane (increments 0) not at all. The CPU must
+/// have AVX2.
 #[inline(never)]
 #[target_feature(enable = "avx2")]
 #[allow(clippy::too_many_arguments)]
