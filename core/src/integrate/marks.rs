@@ -17,8 +17,9 @@ pub(in crate::integrate) const SLOT_CHUNK: usize = HUGE_PAGE / std::mem::size_of
 pub(in crate::integrate) const ENTRIES_CHUNK: usize =
     HUGE_PAGE / std::mem::size_of::<CellEntries>();
 
-/// Free and hit marks of one 8x8x8 brick, bit `x | y << 3 | z << 6` as in a leaf. Each
-/// half a cache line, aligned, so the vector walks OR whole lines with aligned accesses.
+/// Free and hit marks of one 8x8x8 brick, bit `x | y << 3 | z << 6` as in a leaf. Aligned
+/// to 64 bytes, so each of the two is one cache line and the vector walks OR it with
+/// aligned accesses.
 #[derive(bytemuck::Zeroable)]
 #[repr(C, align(64))]
 pub(in crate::integrate) struct Slot {
