@@ -84,7 +84,7 @@ pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usiz
 }
 
 /// Four points' x, y and z, each as four floats: three loads and nine shuffles (three
-/// gathers were slower on AMD Zen 4).
+/// gathers were slower on AMD Zen 5).
 #[inline]
 #[target_feature(enable = "avx2")]
 fn deinterleave(p4: &[[f32; 3]]) -> [__m128; 3] {

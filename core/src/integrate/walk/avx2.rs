@@ -288,7 +288,7 @@ impl Queue {
 /// count as `super::dense::walk_rays`. Marks are written without being read first (unlike
 /// `avx512::test_first`'s frames): lane by lane in scalar code, the test's mispredicted
 /// branches cost more than the writes (random 500k 6 m 28.3 -> 23.5-24.5 ms, structured
-/// 21.9 -> 20.1, on AMD Zen 4).
+/// 21.9 -> 20.1, on AMD Zen 5).
 #[target_feature(enable = "avx2")]
 pub(super) fn walk_dense(
     bits: &mut DenseBits,
