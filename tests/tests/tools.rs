@@ -439,6 +439,10 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         assert!(u(r, "memory_bytes") > 0);
         // A room seen from inside: a small box, walked dense.
         assert_eq!(r["walk"], "dense", "{r}");
+        // Thinning is part of the prepare phase, and only a trade-off mode thins.
+        let thin = f(r, "thin_ms");
+        assert_eq!(thin == 0.0, r["mode"] == "exact", "{r}");
+        assert!(thin <= f(r, "prepare_ms"), "{r}");
     }
     // Same map for any thread count; one ray per end voxel casts fewer rays.
     for mode in ["exact", "unique_end"] {

@@ -173,6 +173,9 @@ impl IntegrateError {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PhaseTimes {
     pub prepare: Duration,
+    /// Of `prepare`: a trade-off mode choosing its rays and dropping the others from the
+    /// layout (zero in exact mode), what the mode costs before its walk saves anything.
+    pub thin: Duration,
     pub raycast: Duration,
     pub merge: Duration,
     pub update: Duration,
@@ -360,7 +363,7 @@ impl Integrator {
             let t0 = Instant::now();
             // Prepare.
             let halves = Sides::new(frame, origin, rayon::current_num_threads());
-            let (skipped, extent) = prepare::prepare_rays(
+            let (skipped, extent, thin_time) = prepare::prepare_rays(
                 rays,
                 sides,
                 halves,
@@ -435,6 +438,7 @@ impl Integrator {
             let t4 = Instant::now();
             report.times = PhaseTimes {
                 prepare: t1 - t0,
+                thin: thin_time,
                 raycast: t2 - t1,
                 merge: t3 - t2,
                 update: t4 - t3,

@@ -320,7 +320,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         "voxel_steps": r.voxel_steps, "occupied": counts.occupied, "free": counts.free,
                         "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
                         "mpoints_per_s": mpts, "ns_per_step_per_thread": ns_step, "bytes_per_touched_voxel": bpv,
-                        "prepare_ms": ms(p.prepare), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
+                        "prepare_ms": ms(p.prepare), "thin_ms": ms(p.thin), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
                         "paper_vdb_par_12t_ms": paper,
                     });
                     if let (Some(e), true) = (exact_counts, mode != RayMode::Exact) {
@@ -342,6 +342,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     );
                     if let Some(g) = &agreement {
                         println!("{:<22}    vs exact: {}", "", g.line());
+                    }
+                    if mode != RayMode::Exact {
+                        println!(
+                            "{:<22}    thinning (choosing and dropping rays, part of prep): {:.2} ms, {:.0}% of the frame",
+                            "",
+                            ms(p.thin),
+                            100.0 * ms(p.thin) / med.max(1e-9)
+                        );
                     }
                 }
             }
@@ -664,6 +672,7 @@ fn median_phases(p: &mut [PhaseTimes]) -> PhaseTimes {
     };
     PhaseTimes {
         prepare: pick(|t| t.prepare),
+        thin: pick(|t| t.thin),
         raycast: pick(|t| t.raycast),
         merge: pick(|t| t.merge),
         update: pick(|t| t.update),

@@ -97,8 +97,9 @@ pub(super) fn order_by_direction(rays: &mut Vec<Ray>, sides: &[[u32; 2]], origin
 }
 
 /// Fill `rays` from the frame, laid out by `halves` with the counts per chunk in `sides`;
-/// returns the number of non-finite points skipped and the rays' extent. A trade-off mode
-/// then drops rays from the layout ([`compact`]).
+/// returns the number of non-finite points skipped, the rays' extent, and the time a
+/// trade-off mode took to choose its rays and drop the others from the layout
+/// ([`compact`]).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn prepare_rays(
     rays: &mut Vec<Ray>,
@@ -111,7 +112,7 @@ pub(super) fn prepare_rays(
     mode: RayMode,
     kernel: Kernel,
     thin: &mut Buffers,
-) -> (u64, Extent) {
+) -> (u64, Extent, std::time::Duration) {
     let maker = RayMaker::new(frame, tf, origin, range_units, kernel);
     // One pass writes the rays, lays them out and sums up their extent: a frame's rays
     // (16 MB for 500k points) outgrow the cache, and passes of their own to count the
@@ -155,17 +156,19 @@ pub(super) fn prepare_rays(
     };
     let skipped = sums.skipped;
     if mode == RayMode::Exact {
-        return (skipped, sums.extent());
+        return (skipped, sums.extent(), std::time::Duration::ZERO);
     }
     let mut extent = sums.extent();
+    let t = std::time::Instant::now();
     let (kept, orders) = thin_out(rays, origin, mode, &extent, thin);
     let cut = compact(rays, sides, orders, &kept);
+    let thinned = t.elapsed();
     // The box of all rays holds those kept (a kept ray moves only within its end voxel);
     // the walk's length is taken as the share of rays kept.
     let made = (n as u64 - skipped).max(1) as f64;
     extent.steps *= ray_count(sides) as f64 / made;
     extent.cut_rays = cut;
-    (skipped, extent)
+    (skipped, extent, thinned)
 }
 
 /// Drop from the layout of each chunk the rays `kept` does not keep (a bundle's mean is
