@@ -219,12 +219,7 @@ impl Dda {
             }
             // Crossings to the leaf's face: the last of them leaves the leaf.
             let k = if s > 0 { 8 - (v & 7) } else { (v & 7) + 1 } as u64;
-            let e = t.saturating_add(d.saturating_mul(k - 1));
-            if e > l {
-                u64::MAX
-            } else {
-                e
-            }
+            kth_crossing(t, d, l, k)
         };
         LeafWalk {
             origin: crate::tree::leaf_origin(self.voxel()),
@@ -246,23 +241,30 @@ impl Dda {
     /// `t` or before, the later axes' only before: counted with a division per axis.
     pub fn after_crossing(&self, t: u64, axis: usize) -> Dda {
         let made = |t0: u64, d: u64, last: u64, upto: bool| -> u64 {
-            let lim = if upto { t } else { t.wrapping_sub(1) };
-            if t0 == u64::MAX || d == 0 || (!upto && t == 0) || t0 > lim.min(last) {
-                0
-            } else {
-                (lim.min(last) - t0) / d + 1
+            match (upto, t) {
+                (false, 0) => 0,
+                (true, _) => crossings_by(t0, d, last, t),
+                (false, _) => crossings_by(t0, d, last, t - 1),
             }
         };
-        let cx = made(self.tx, self.dx, self.lx, true);
-        let cy = made(self.ty, self.dy, self.ly, axis >= 1);
-        let cz = made(self.tz, self.dz, self.lz, axis >= 2);
+        self.after([
+            made(self.tx, self.dx, self.lx, true),
+            made(self.ty, self.dy, self.ly, axis >= 1),
+            made(self.tz, self.dz, self.lz, axis >= 2),
+        ])
+    }
+
+    /// The state after `made[a]` more crossings of each axis `a`: the state [`Dda::step`]s
+    /// from this one reach if those are the crossings they take first (each count at most
+    /// the axis's crossings left).
+    pub(crate) fn after(&self, made: [u64; 3]) -> Dda {
+        let [cx, cy, cz] = made;
         // After its last crossing an axis is done, as `step` marks it.
         let next = |t0: u64, d: u64, last: u64, c: u64| {
-            let t = t0.saturating_add(d.saturating_mul(c));
-            if c > 0 && t > last {
-                u64::MAX
+            if c == 0 {
+                t0
             } else {
-                t
+                kth_crossing(t0, d, last, c + 1)
             }
         };
         // Counts are at most the axis's crossings (< 2^32): no overflow.
@@ -278,9 +280,43 @@ impl Dda {
         }
     }
 
+    /// Per axis: the next crossing (`u64::MAX` for none), between crossings, the last
+    /// crossing and the direction.
+    pub(crate) fn axes(&self) -> ([u64; 3], [u64; 3], [u64; 3], [i32; 3]) {
+        (
+            [self.tx, self.ty, self.tz],
+            [self.dx, self.dy, self.dz],
+            [self.lx, self.ly, self.lz],
+            [self.sx, self.sy, self.sz],
+        )
+    }
+
     #[inline]
     pub fn voxel(&self) -> VoxelCoord {
         VoxelCoord::new(self.x, self.y, self.z)
+    }
+}
+
+/// The `t` of an axis's `k`-th crossing (`k >= 1`; the first at `t0`, then every `d`),
+/// `u64::MAX` if the axis has fewer crossings (its last at `last`).
+#[inline]
+pub(crate) fn kth_crossing(t0: u64, d: u64, last: u64, k: u64) -> u64 {
+    let t = t0.saturating_add(d.saturating_mul(k - 1));
+    if t > last {
+        u64::MAX
+    } else {
+        t
+    }
+}
+
+/// How many of an axis's crossings (the first at `t0`, `u64::MAX` for none, then every
+/// `d` up to `last`) come at `t` or before.
+#[inline]
+pub(crate) fn crossings_by(t0: u64, d: u64, last: u64, t: u64) -> u64 {
+    if t0 == u64::MAX || d == 0 || t0 > t.min(last) {
+        0
+    } else {
+        (t.min(last) - t0) / d + 1
     }
 }
 

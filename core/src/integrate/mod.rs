@@ -198,8 +198,11 @@ pub struct IntegrateReport {
     pub rays: u64,
     /// Rays cut at max range (free space only).
     pub cut_rays: u64,
-    /// Voxels visited by all rays, end voxels included.
+    /// Voxels on all rays, end voxels included.
     pub voxel_steps: u64,
+    /// Of `voxel_steps`, those the dense walk did not walk: inside a box around the sensor
+    /// whose voxels the frame's first rays had all marked already (`walk::covered`).
+    pub covered_steps: u64,
     /// Leaves (8x8x8 bricks) and voxels updated.
     pub touched_leaves: u64,
     pub touched_voxels: u64,
@@ -409,10 +412,12 @@ impl Integrator {
                 rays,
                 sides,
                 steps,
+                bounds: (lo, hi),
                 walk,
                 kernel,
             };
-            report.voxel_steps = walk::run(&input, marks, dense, dense_box.as_ref(), frame_no);
+            (report.voxel_steps, report.covered_steps) =
+                walk::run(&input, marks, dense, dense_box.as_ref(), frame_no);
             let t2 = Instant::now();
             // Merge.
             if let Some(b) = &dense_box {

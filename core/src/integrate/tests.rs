@@ -437,7 +437,12 @@ fn dense_and_sparse_walks_agree() {
         diag.push([c(k), c(k / 2), c(-k / 3)]);
         diag.push([c(-k), c(k / 3), c(0)]);
     }
-    let grids = [(0.1, frames), (q, vec![(sensor, diag)])];
+    // Many rays to lattice points around a voxel centre: ties everywhere, and enough rays
+    // for the dense walk to find a covered box and skip it on the later rays.
+    let lattice: Vec<[f32; 3]> = (0..30_000)
+        .map(|_| std::array::from_fn(|_| ((rng.f() - 0.5) * 60.0).round() as f32 * q as f32))
+        .collect();
+    let grids = [(0.1, frames), (q, vec![(sensor, diag), (sensor, lattice)])];
     let run = |kernel: Kernel, walk: Walk| {
         let mut out = Vec::new();
         for (resolution, frames) in &grids {
@@ -459,6 +464,7 @@ fn dense_and_sparse_walks_agree() {
                     r.touched_leaves,
                     r.touched_voxels,
                     r.dense,
+                    r.covered_steps,
                 ));
             }
             out.push((snapshot(&map), map.grid().leaf_count(), reports));
@@ -467,21 +473,38 @@ fn dense_and_sparse_walks_agree() {
     };
     let sparse = run(Kernel::Scalar, Walk::Sparse);
     assert!(sparse.iter().flat_map(|g| &g.2).all(|r| !r.5));
+    type Report = (u64, u64, u64, u64, u64, bool, u64);
+    let covered_of = |g: &[(_, _, Vec<Report>)]| -> Vec<u64> {
+        g.iter().flat_map(|g| &g.2).map(|r| r.6).collect()
+    };
+    let scalar_covered = covered_of(&run(Kernel::Scalar, Walk::Dense));
     let walks = [Walk::Sparse, Walk::Dense, Walk::DenseTestFirst, Walk::Auto];
     for kernel in kernels("dense_and_sparse_walks_agree") {
         for walk in walks {
             let dense = run(kernel, walk);
             let took_dense: Vec<bool> = dense.iter().flat_map(|g| &g.2).map(|r| r.5).collect();
+            let covered: Vec<u64> = dense.iter().flat_map(|g| &g.2).map(|r| r.6).collect();
             if walk == Walk::Sparse {
                 assert!(!took_dense.contains(&true));
+                assert!(covered.iter().all(|&c| c == 0));
             } else if walk != Walk::Auto {
                 assert_eq!(
                     took_dense,
-                    [true, true, true, true, true, false, true, true, true, true, true, true]
+                    [
+                        true, true, true, true, true, false, true, true, true, true, true, true,
+                        true
+                    ]
                 );
+                // The frames of many rays skip a covered box, the lattice's too, and every
+                // kernel skips the same steps.
+                assert!(
+                    covered[2] > 0 && covered[8] > 0 && covered[12] > 0,
+                    "{covered:?}"
+                );
+                assert_eq!(covered, scalar_covered, "{kernel:?} {walk:?}");
             }
             for (d, s) in dense.iter().zip(&sparse) {
-                let strip = |r: &(u64, u64, u64, u64, u64, bool)| (r.0, r.1, r.2, r.3, r.4);
+                let strip = |r: &Report| (r.0, r.1, r.2, r.3, r.4);
                 assert_eq!(
                     d.2.iter().map(strip).collect::<Vec<_>>(),
                     s.2.iter().map(strip).collect::<Vec<_>>(),

@@ -20,6 +20,7 @@
 //! inside the box because the origin's voxel and every end voxel are checked to be in it:
 //! a walk moves along each axis monotonically from the one to the other.
 
+use super::covered::Covered;
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::Packed;
 use crate::coord::VoxelCoord;
@@ -117,11 +118,7 @@ impl Axis {
         // stay below 2^61 and `d` below 2^60: the 32 x 32-bit products below are exact.
         let d = trunc_u64(_mm256_min_pd(_mm256_mul_pd(inv, one), cap));
         let k = _mm256_sub_epi64(n, _mm256_set1_epi64x(1));
-        let dk = _mm256_add_epi64(
-            _mm256_mul_epu32(d, k),
-            _mm256_slli_epi64::<32>(_mm256_mul_epu32(_mm256_srli_epi64::<32>(d), k)),
-        );
-        let last = _mm256_add_epi64(t0, dk);
+        let last = _mm256_add_epi64(t0, mul_small(d, k));
         let inc = _mm256_blendv_epi8(
             _mm256_sub_epi64(_mm256_setzero_si256(), self.stride),
             self.stride,
@@ -213,8 +210,12 @@ struct Queue {
     inc: [[__m256i; 3]; GROUPS],
     n: [i64; 4 * GROUPS],
     hit: [bool; 4 * GROUPS],
+    /// Each ray's first voxel: the walk's start, or where it leaves the covered box.
+    p0: [i64; 4 * GROUPS],
     len: usize,
     next: usize,
+    /// Steps of the rays set up so far that their walks skip in the covered box.
+    skipped: u64,
 }
 
 impl Queue {
@@ -228,22 +229,18 @@ impl Queue {
             inc: [zero; GROUPS],
             n: [0; 4 * GROUPS],
             hit: [false; 4 * GROUPS],
+            p0: [0; 4 * GROUPS],
             len: 0,
             next: 0,
+            skipped: 0,
         }
     }
 
     /// Lane `l`'s next ray: its entry in the queue; `None` when the lane has no rays left.
     #[inline(always)]
-    fn pop(
-        &mut self,
-        feed: &mut Feed<'_>,
-        l: usize,
-        axes: &[Axis; 3],
-        origin: [f64; 3],
-    ) -> Option<usize> {
+    fn pop(&mut self, feed: &mut Feed<'_>, l: usize, from: &Start<'_>) -> Option<usize> {
         // SAFETY: the CPU has AVX2: `Queue::new`, the only way to make a queue, needs it.
-        if self.next == self.len && !unsafe { self.fill(feed, l, axes, origin) } {
+        if self.next == self.len && !unsafe { self.fill(feed, l, from) } {
             return None;
         }
         self.next += 1;
@@ -253,7 +250,13 @@ impl Queue {
     /// Set up lane `l`'s next rays from `feed`; false if it has none left.
     #[inline(never)]
     #[target_feature(enable = "avx2")]
-    fn fill(&mut self, feed: &mut Feed<'_>, l: usize, axes: &[Axis; 3], origin: [f64; 3]) -> bool {
+    fn fill(&mut self, feed: &mut Feed<'_>, l: usize, from: &Start<'_>) -> bool {
+        let Start {
+            axes,
+            origin,
+            start,
+            covered,
+        } = *from;
         // Entries without a ray end at the origin: no steps.
         let mut ends = [origin; 4 * GROUPS];
         self.len = 0;
@@ -264,28 +267,148 @@ impl Queue {
         }
         self.next = 0;
         let mut inside = _mm256_set1_epi64x(-1);
-        for (g, ends) in ends.chunks_exact(4).enumerate().take(self.len.div_ceil(4)) {
-            let mut n = _mm256_setzero_si256();
+        let groups = self.len.div_ceil(4);
+        let mut n = [[_mm256_setzero_si256(); 3]; GROUPS];
+        for (g, ends) in ends.chunks_exact(4).enumerate().take(groups) {
             for (a, axis) in axes.iter().enumerate() {
                 let e = _mm256_set_pd(ends[3][a], ends[2][a], ends[1][a], ends[0][a]);
                 let [t, d, last, inc, na, ins] = axis.setup(e);
                 (self.t[g][a], self.d[g][a], self.last[g][a], self.inc[g][a]) = (t, d, last, inc);
-                n = _mm256_add_epi64(n, na);
+                n[g][a] = na;
                 inside = _mm256_and_si256(inside, ins);
             }
-            self.n[4 * g..4 * g + 4].copy_from_slice(&to_array(n));
         }
         // The walk's reads and writes stay in the box only if every end voxel does.
         if lanes(inside) != 0b1111 {
             outside_the_box();
         }
+        let start_v = _mm256_set1_epi64x(start as i64);
+        for (g, n) in n.iter().enumerate().take(groups) {
+            let (left, p0) = match covered {
+                Some(c) => self.skip_covered(g, c, start_v, n),
+                None => (add3(n), start_v),
+            };
+            self.n[4 * g..4 * g + 4].copy_from_slice(&to_array(left));
+            self.p0[4 * g..4 * g + 4].copy_from_slice(&to_array(p0));
+        }
         self.len > 0
+    }
+
+    /// Start group `g`'s rays, whose crossings per axis are `n`, where they first leave the
+    /// covered box `c`: the crossings before that made at once (those before its time,
+    /// [`Covered::skip`], bit for bit), their walk from `start` skipped. Returns their
+    /// steps left and the voxels they start from. The crossings made are estimated in
+    /// doubles and then checked against the exact crossing times.
+    #[target_feature(enable = "avx2")]
+    fn skip_covered(
+        &mut self,
+        g: usize,
+        c: &Covered,
+        start: __m256i,
+        n: &[__m256i; 3],
+    ) -> (__m256i, __m256i) {
+        let (zero, one, never) = (
+            _mm256_setzero_si256(),
+            _mm256_set1_epi64x(1),
+            _mm256_set1_epi64x(NEVER),
+        );
+        let (t, d, inc) = (self.t[g], self.d[g], self.inc[g]);
+        let min = |a: __m256i, b: __m256i| _mm256_blendv_epi8(a, b, _mm256_cmpgt_epi64(a, b));
+        // The first crossing out of the box: per axis the one `leave` crossings on, where
+        // the axis has that many (its `n` at least `leave`, so none for an axis without).
+        let mut first = never;
+        for a in 0..3 {
+            let [down, up] = c.leave[a].map(|k| _mm256_set1_epi64x(k as i64));
+            let before = _mm256_sub_epi64(
+                _mm256_blendv_epi8(down, up, _mm256_cmpgt_epi64(inc[a], zero)),
+                one,
+            );
+            let at = _mm256_add_epi64(t[a], mul_small(d[a], before));
+            first = min(
+                first,
+                _mm256_blendv_epi8(never, at, _mm256_cmpgt_epi64(n[a], before)),
+            );
+        }
+        // A ray that never leaves makes all its crossings.
+        let ends_inside = _mm256_cmpeq_epi64(first, never);
+        let (mut p, mut left) = (start, zero);
+        let mut made_all = zero;
+        for a in 0..3 {
+            // Crossings before `first`: t[a] + j d[a] < first for j < k, about
+            // (first - t[a]) / d[a] rounded up, then checked one each way (the estimate
+            // is off by far less than one crossing, so only rounding at a tie can miss).
+            let due = _mm256_cmpgt_epi64(first, t[a]);
+            let q = _mm256_div_pd(approx_pd(_mm256_sub_epi64(first, t[a])), approx_pd(d[a]));
+            let est = _mm256_cvtepi32_epi64(_mm256_cvttpd_epi32(_mm256_ceil_pd(q)));
+            let k = min(
+                _mm256_andnot_si256(_mm256_cmpgt_epi64(zero, est), est),
+                n[a],
+            );
+            let next = _mm256_add_epi64(t[a], mul_small(d[a], k));
+            let more =
+                _mm256_and_si256(_mm256_cmpgt_epi64(n[a], k), _mm256_cmpgt_epi64(first, next));
+            let fewer = _mm256_andnot_si256(
+                _mm256_cmpgt_epi64(first, _mm256_sub_epi64(next, d[a])),
+                _mm256_cmpgt_epi64(k, zero),
+            );
+            // Masks are -1 where set: `more` adds one, `fewer` takes one.
+            let k = _mm256_add_epi64(_mm256_sub_epi64(k, more), fewer);
+            let k = _mm256_blendv_epi8(_mm256_and_si256(k, due), n[a], ends_inside);
+            let next = _mm256_add_epi64(t[a], mul_small(d[a], k));
+            let done =
+                _mm256_andnot_si256(_mm256_cmpeq_epi64(n[a], zero), _mm256_cmpeq_epi64(k, n[a]));
+            self.t[g][a] = _mm256_blendv_epi8(next, never, done);
+            // Increments are a stride, under 2^31, with its sign: a signed 32-bit product.
+            p = _mm256_add_epi64(p, _mm256_mul_epi32(k, inc[a]));
+            left = _mm256_add_epi64(left, _mm256_sub_epi64(n[a], k));
+            made_all = _mm256_add_epi64(made_all, k);
+        }
+        self.skipped += to_array(made_all).iter().sum::<i64>() as u64;
+        (left, p)
     }
 }
 
+/// The sum of three vectors.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn add3(v: &[__m256i; 3]) -> __m256i {
+    _mm256_add_epi64(_mm256_add_epi64(v[0], v[1]), v[2])
+}
+
+/// `a * k` lane by lane, for `k < 2^32` and products below 2^63.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn mul_small(a: __m256i, k: __m256i) -> __m256i {
+    _mm256_add_epi64(
+        _mm256_mul_epu32(a, k),
+        _mm256_slli_epi64::<32>(_mm256_mul_epu32(_mm256_srli_epi64::<32>(a), k)),
+    )
+}
+
+/// `v` as a double, its low 10 bits dropped, for `0 <= v <= 2^62`: an estimate.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn approx_pd(v: __m256i) -> __m256d {
+    // 2^52 as a double: OR-ed with an integer below 2^52 it is 2^52 plus that integer.
+    let magic = _mm256_set1_epi64x(0x4330_0000_0000_0000);
+    let bits = _mm256_or_si256(_mm256_srli_epi64::<10>(v), magic);
+    _mm256_sub_pd(_mm256_castsi256_pd(bits), _mm256_castsi256_pd(magic))
+}
+
+/// Where a lane walk's rays start: the axes' set-up from the origin, the origin's voxel
+/// index, and the covered box whose voxels the rays skip, if any.
+#[derive(Clone, Copy)]
+struct Start<'a> {
+    axes: &'a [Axis; 3],
+    origin: [f64; 3],
+    start: u64,
+    covered: Option<&'a Covered>,
+}
+
 /// Walk the rays `rays[ranges[..]]` from `origin`, four lanes over the eight ranges,
-/// setting their free and hit bits in `bits`; returns voxels visited. The same marks and
-/// count as `super::dense::walk_rays`. Marks are written without being read first (unlike
+/// setting their free and hit bits in `bits`, outside `covered`; returns voxels on the
+/// rays and, of those, the ones skipped in `covered`. The same marks and counts as
+/// `super::dense::walk_rays`. Marks are written without being read first (unlike
 /// `avx512::test_first`'s frames): lane by lane in scalar code, the test's mispredicted
 /// branches cost more than the writes (random 500k 6 m 28.3 -> 23.5-24.5 ms, structured
 /// 21.9 -> 20.1, on AMD Zen 5).
@@ -296,7 +419,8 @@ pub(super) fn walk_dense(
     origin: [f64; 3],
     rays: &[Ray],
     ranges: [Range<usize>; 8],
-) -> u64 {
+    covered: Option<&Covered>,
+) -> (u64, u64) {
     let strides = dbox.strides();
     let origin_voxel = crate::coord::units_to_voxel(origin).expect("origin checked");
     let (lo, d) = (dbox.lo, origin_voxel - dbox.lo);
@@ -324,18 +448,13 @@ pub(super) fn walk_dense(
         spare_left: 4,
         shared: false,
     };
-    walk(
-        &mut DenseMarks {
-            free,
-            hits,
-            start,
-            sink,
-        },
-        &axes,
+    let from = Start {
+        axes: &axes,
         origin,
         start,
-        feed,
-    )
+        covered,
+    };
+    walk(&mut DenseMarks { free, hits, sink }, &from, feed)
 }
 
 /// Walk `rays` from `origin` four at a time, OR-ing their marks into the frame's tables
@@ -370,7 +489,13 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
         plane: _mm256_setzero_si256(),
         flush: Vec::with_capacity(4 * RING),
     };
-    walk(&mut marks, &axes, origin, start, feed)
+    let from = Start {
+        axes: &axes,
+        origin,
+        start,
+        covered: None,
+    };
+    walk(&mut marks, &from, feed).0
 }
 
 /// Where a lane walk keeps the marks of the voxels its lanes visit. Voxels are `u64`
@@ -401,15 +526,14 @@ trait Marks {
     /// # Safety
     /// The CPU has AVX2.
     unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
-    /// A ray ended in the origin's voxel, which it hit.
-    fn hit_at_start(&mut self);
+    /// A ray ended in the voxel its walk starts from, `p`, which it hit.
+    fn hit_at(&mut self, p: u64);
 }
 
 /// The dense walk's marks: bits of the thread's grid over the frame's box.
 struct DenseMarks<'a> {
     free: &'a mut [u64],
     hits: &'a mut [u64],
-    start: u64,
     sink: u64,
 }
 
@@ -442,8 +566,8 @@ impl Marks for DenseMarks<'_> {
         }
     }
 
-    fn hit_at_start(&mut self) {
-        set_bit(self.hits, self.start);
+    fn hit_at(&mut self, p: u64) {
+        set_bit(self.hits, p);
     }
 }
 
@@ -560,26 +684,20 @@ impl Marks for SparseMarks<'_, '_> {
         self.plane = from_array(plane);
     }
 
-    fn hit_at_start(&mut self) {
-        self.cache.set_hit(self.start);
+    fn hit_at(&mut self, p: u64) {
+        self.cache.set_hit(self.packed.unpack(p));
     }
 }
 
 /// Walk the lanes' rays from `feed`, telling `marks` the voxels each lane visits; returns
-/// voxels visited. Voxel indices start at `start` (the origin's voxel) and change by the
-/// axes' strides per step.
+/// voxels on the rays and, of those, the ones skipped in `from.covered`. Voxel indices
+/// start at `from.start` (the origin's voxel), or where a ray leaves the covered box, and
+/// change by the axes' strides per step.
 #[target_feature(enable = "avx2")]
-fn walk<M: Marks>(
-    marks: &mut M,
-    axes: &[Axis; 3],
-    origin: [f64; 3],
-    start: u64,
-    mut feed: Feed<'_>,
-) -> u64 {
+fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let never = _mm256_set1_epi64x(NEVER);
     let iota = _mm256_setr_epi64x(0, 1, 2, 3);
-    let start_v = _mm256_set1_epi64x(start as i64);
     let idle = _mm256_set1_epi64x(marks.idle() as i64);
     // Lane state: per axis next crossing, and the ray's constants; the voxel. A lane
     // without a ray sits on the idle voxel and does not move (no increments): the loop
@@ -603,12 +721,12 @@ fn walk<M: Marks>(
         // start voxel are done here (a hit at most).
         for l in BitIter(u64::from(need)) {
             let q = &mut queues[l];
-            while let Some(j) = q.pop(&mut feed, l, axes, origin) {
+            while let Some(j) = q.pop(&mut feed, l, from) {
                 let n = q.n[j];
                 steps += n as u64 + 1;
                 if n == 0 {
                     if q.hit[j] {
-                        marks.hit_at_start();
+                        marks.hit_at(q.p0[j] as u64);
                     }
                     continue;
                 }
@@ -625,7 +743,7 @@ fn walk<M: Marks>(
                 put(&mut fixed.d, &q.d[g]);
                 put(&mut fixed.last, &q.last[g]);
                 put(&mut fixed.inc, &q.inc[g]);
-                p = _mm256_blendv_epi8(p, start_v, lane);
+                p = _mm256_blendv_epi8(p, _mm256_set1_epi64x(q.p0[j]), lane);
                 rem[l] = n;
                 hit = hit & !(1 << l) | u32::from(q.hit[j]) << l;
                 live |= 1 << l;
@@ -667,7 +785,8 @@ fn walk<M: Marks>(
         live &= !ended;
         need = ended;
     }
-    steps
+    let skipped: u64 = queues.iter().map(|q| q.skipped).sum();
+    (steps + skipped, skipped)
 }
 
 /// All ones in lane `l` for each bit `l` of `lanes`.
@@ -828,7 +947,7 @@ fn outside_the_box() -> ! {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::raycast;
+    use crate::raycast::{self, Dda};
     use crate::test_rng::Rng;
 
     /// One axis of one ray as `raycast::axis` sets it up, in lane form.
@@ -844,6 +963,92 @@ mod tests {
             i64::from(dir) * stride,
             i64::from(n),
         ]
+    }
+
+    /// The four-lane skip of the covered box (`Queue::skip_covered`) makes, ray by ray, the
+    /// crossings `Covered::skip` makes: the same next crossings, steps left and first voxel,
+    /// rays from a voxel centre to lattice points (ties) among them.
+    #[test]
+    fn four_lane_skip_equals_the_scalar_one() {
+        if !is_x86_feature_detected!("avx2") {
+            println!("notice: this CPU has no AVX2; the AVX2 skip is not tested here");
+            return;
+        }
+        let mut rng = Rng(5);
+        let dbox = DenseBox::new(VoxelCoord::new(-64, -64, -64), VoxelCoord::new(63, 63, 63))
+            .expect("a small box");
+        let strides = dbox.strides();
+        let mut checked = 0;
+        for round in 0..400 {
+            let origin: [f64; 3] = if round % 2 == 0 {
+                std::array::from_fn(|_| (rng.f() - 0.5) * 8.0)
+            } else {
+                std::array::from_fn(|_| (rng.f() * 8.0).floor() - 3.5)
+            };
+            let s = crate::coord::units_to_voxel(origin).unwrap();
+            let mut r = || VoxelCoord::from_array(std::array::from_fn(|_| (rng.f() * 20.0) as i32));
+            let lo = s - r();
+            let hi = s + r();
+            let c = Covered::new(s, lo, hi);
+            let rays: Vec<Ray> = (0..37)
+                .map(|i| {
+                    let e: [f64; 3] = if i % 3 == 0 {
+                        std::array::from_fn(|a| origin[a] + ((rng.f() - 0.5) * 80.0).round())
+                    } else {
+                        std::array::from_fn(|a| origin[a] + (rng.f() - 0.5) * 100.0)
+                    };
+                    Ray::new(e, 0, true)
+                })
+                .collect();
+            // SAFETY: AVX2 was detected above.
+            let axes = std::array::from_fn(|a| unsafe {
+                Axis::new(origin[a], strides[a], dbox.lo.to_array()[a], dbox.n[a])
+            });
+            let start = dbox.index(s);
+            let from = Start {
+                axes: &axes,
+                origin,
+                start,
+                covered: Some(&c),
+            };
+            let mut feed = Feed {
+                rays: &rays,
+                cur: [0; 4],
+                lim: [rays.len(), 0, 0, 0],
+                spare: Default::default(),
+                spare_left: 0,
+                shared: true,
+            };
+            // SAFETY: AVX2 was detected above.
+            let mut q = unsafe { Queue::new() };
+            let mut at = 0;
+            // SAFETY: AVX2 was detected above.
+            while unsafe { q.fill(&mut feed, 0, &from) } {
+                for j in 0..q.len {
+                    let dda = Dda::new(origin, rays[at + j].end);
+                    let (t, d, last, dir) = dda.axes();
+                    let made = c.skip(t, d, last, dir);
+                    let want = dda.after(made);
+                    let (t, ..) = want.axes();
+                    let lane = |v: &[__m256i; 3], a: usize| to_array(v[a])[j % 4];
+                    let got_t = [0, 1, 2].map(|a| lane(&q.t[j / 4], a));
+                    let want_t = t.map(|t| {
+                        if t == u64::MAX {
+                            NEVER
+                        } else {
+                            t.min(T_CAP) as i64
+                        }
+                    });
+                    assert_eq!(got_t, want_t, "ray {} from {origin:?}", at + j);
+                    assert_eq!(q.n[j], i64::from(want.steps()));
+                    assert_eq!(q.p0[j] as u64, dbox.index(want.voxel()));
+                    checked += usize::from(made != [0; 3]);
+                }
+                at += q.len;
+            }
+            assert_eq!(at, rays.len());
+        }
+        assert!(checked > 5000, "{checked}");
     }
 
     #[test]
@@ -923,7 +1128,7 @@ mod tests {
             let mut bits = DenseBits::default();
             bits.begin(1, dbox.words());
             // SAFETY: AVX2 was detected above.
-            let steps = unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges) };
+            let (steps, _) = unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges, None) };
             (steps, bits)
         };
         // Inside: a ray along x to voxel (60, 2, 2) marks voxels 2..60 free and 60 hit.

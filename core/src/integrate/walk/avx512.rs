@@ -16,9 +16,9 @@
 //!   brick's into the frame's tables when it leaves the brick, as the one-ray sparse walk
 //!   does.
 
+use super::covered::Covered;
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::Packed;
-use crate::coord::VoxelCoord;
 use crate::integrate::marks::BrickCache;
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
@@ -70,6 +70,7 @@ pub(super) fn test_first(steps_per_voxel: f64) -> bool {
 /// word one after another near the sensor, and each OR then waits for the last: fed
 /// neighbouring rays, the walk ran 2.3x slower (random 500k 6 m, one thread).
 #[target_feature(enable = "avx512f,avx512dq")]
+#[allow(clippy::too_many_arguments)]
 pub(super) fn walk_dense(
     bits: &mut DenseBits,
     dbox: &DenseBox,
@@ -78,7 +79,8 @@ pub(super) fn walk_dense(
     ranges: [Range<usize>; 8],
     refill_at: u32,
     test_first: bool,
-) -> u64 {
+    covered: Option<&Covered>,
+) -> (u64, u64) {
     let start = dbox.index(crate::coord::units_to_voxel(origin).expect("origin checked"));
     let (free, hits) = bits.words_mut();
     let sink = dbox.sink();
@@ -89,17 +91,16 @@ pub(super) fn walk_dense(
         rays,
         Feed::Ranges(ranges),
         refill_at,
+        covered,
     );
     // Each choice is its own compiled loop, so that the loop for long rays with new marks
     // does no more work than before these choices existed (as run-time flags, every loop
     // kept the work of all of them).
     match (refill_at > 1, test_first) {
-        (false, false) => {
-            walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a)
-        }
-        (false, true) => walk::<false, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
-        (true, false) => walk::<true, _>(&mut DenseLanes::<false>::new(free, hits, start, sink), a),
-        (true, true) => walk::<true, _>(&mut DenseLanes::<true>::new(free, hits, start, sink), a),
+        (false, false) => walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, sink), a),
+        (false, true) => walk::<false, _>(&mut DenseLanes::<true>::new(free, hits, sink), a),
+        (true, false) => walk::<true, _>(&mut DenseLanes::<false>::new(free, hits, sink), a),
+        (true, true) => walk::<true, _>(&mut DenseLanes::<true>::new(free, hits, sink), a),
     }
 }
 
@@ -125,7 +126,6 @@ pub(super) fn walk_sparse(
         queued_at: [0; QUEUE_LEN],
         queued_buffer: [0; QUEUE_LEN],
         queued: 0,
-        start: v,
     };
     let a = (
         packed.pack(v),
@@ -134,8 +134,9 @@ pub(super) fn walk_sparse(
         rays,
         Feed::Next(0..rays.len()),
         refill_at,
+        None,
     );
-    let steps = if refill_at > 1 {
+    let (steps, _) = if refill_at > 1 {
         walk::<true, _>(&mut lanes, a)
     } else {
         walk::<false, _>(&mut lanes, a)
@@ -161,8 +162,8 @@ trait Lanes {
     unsafe fn stepped(&mut self, r: &mut Self::Regs, was: __m512i, p: __m512i, live: __mmask8);
     /// The lanes in `end` ended their rays at `p`, those in `hit` in a hit.
     fn ended(&mut self, r: Self::Regs, p: __m512i, end: __mmask8, hit: __mmask8) -> Self::Regs;
-    /// A ray ended in its start voxel, in a hit.
-    fn hit_at_start(&mut self);
+    /// A ray ended in the voxel its walk starts from, `p`, in a hit.
+    fn hit_at(&mut self, p: u64);
 }
 
 /// The dense walk's lanes: bits of the thread's grid over the frame's box; whether marks
@@ -170,21 +171,15 @@ trait Lanes {
 struct DenseLanes<'a, const TEST_FIRST: bool> {
     free: &'a mut [u64],
     hits: &'a mut [u64],
-    start: u64,
     /// A bit past the box that lanes without a ray mark.
     sink: __m512i,
 }
 
 impl<'a, const TEST_FIRST: bool> DenseLanes<'a, TEST_FIRST> {
     #[target_feature(enable = "avx512f")]
-    fn new(free: &'a mut [u64], hits: &'a mut [u64], start: u64, sink: u64) -> Self {
+    fn new(free: &'a mut [u64], hits: &'a mut [u64], sink: u64) -> Self {
         let sink = _mm512_set1_epi64(sink as i64);
-        DenseLanes {
-            free,
-            hits,
-            start,
-            sink,
-        }
+        DenseLanes { free, hits, sink }
     }
 }
 
@@ -250,8 +245,8 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
         }
     }
 
-    fn hit_at_start(&mut self) {
-        set_bit(self.hits, self.start);
+    fn hit_at(&mut self, p: u64) {
+        set_bit(self.hits, p);
     }
 }
 
@@ -279,7 +274,6 @@ struct SparseLanes<'c, 'a> {
     queued_at: [u64; QUEUE_LEN],
     queued_buffer: [u64; QUEUE_LEN],
     queued: usize,
-    start: VoxelCoord,
 }
 
 impl SparseLanes<'_, '_> {
@@ -422,8 +416,8 @@ impl Lanes for SparseLanes<'_, '_> {
         }
     }
 
-    fn hit_at_start(&mut self) {
-        self.cache.set_hit(self.start);
+    fn hit_at(&mut self, p: u64) {
+        self.cache.set_hit(self.packed.unpack(p));
     }
 }
 
@@ -443,8 +437,16 @@ enum Feed {
 #[allow(clippy::type_complexity)]
 fn walk<const WAIT: bool, L: Lanes>(
     lanes: &mut L,
-    (start, strides, origin, rays, feed, refill_at): (u64, [i64; 3], [f64; 3], &[Ray], Feed, u32),
-) -> u64 {
+    (start, strides, origin, rays, feed, refill_at, covered): (
+        u64,
+        [i64; 3],
+        [f64; 3],
+        &[Ray],
+        Feed,
+        u32,
+        Option<&Covered>,
+    ),
+) -> (u64, u64) {
     let zero = _mm512_setzero_si512();
     let one = _mm512_set1_epi64(1);
     let never = _mm512_set1_epi64(-1);
@@ -484,7 +486,7 @@ fn walk<const WAIT: bool, L: Lanes>(
             ),
         ),
     };
-    let mut steps = zero;
+    let (mut steps, mut skipped) = (zero, 0);
     let mut need: __mmask8 = 0xff;
     // Lanes walking a ray.
     let mut live: __mmask8 = 0;
@@ -540,14 +542,25 @@ fn walk<const WAIT: bool, L: Lanes>(
                     ),
                 )
             };
-            let [x, y, z] =
+            let mut set_up =
                 [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
-            let n = _mm512_add_epi64(_mm512_add_epi64(x.n, y.n), z.n);
+            let [x, y, z] = &set_up;
+            let mut n = _mm512_add_epi64(_mm512_add_epi64(x.n, y.n), z.n);
             steps = _mm512_mask_add_epi64(steps, avail, steps, _mm512_add_epi64(n, one));
+            let mut p0 = _mm512_set1_epi64(start as i64);
+            if let Some(c) = covered {
+                let made;
+                (n, p0, made) = skip_covered(c, avail, start, &mut set_up, n);
+                skipped += made;
+            }
+            let [x, y, z] = set_up;
             let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
             let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
             if empty & ray_hit != 0 {
-                lanes.hit_at_start();
+                let p0 = to_array(p0);
+                for l in BitIter(u64::from(empty & ray_hit)) {
+                    lanes.hit_at(p0[l]);
+                }
             }
             let k = avail & !empty;
             tx = _mm512_mask_mov_epi64(tx, k, x.t);
@@ -562,7 +575,7 @@ fn walk<const WAIT: bool, L: Lanes>(
             mx = _mm512_mask_mov_epi64(mx, k, x.inc);
             my = _mm512_mask_mov_epi64(my, k, y.inc);
             mz = _mm512_mask_mov_epi64(mz, k, z.inc);
-            p = _mm512_mask_set1_epi64(p, k, start as i64);
+            p = _mm512_mask_mov_epi64(p, k, p0);
             rem = _mm512_mask_mov_epi64(rem, k, n);
             hit = (hit & !k) | (ray_hit & k);
             live |= k;
@@ -608,7 +621,69 @@ fn walk<const WAIT: bool, L: Lanes>(
         }
         need = ended;
     }
-    to_array(steps).iter().sum()
+    (to_array(steps).iter().sum(), skipped)
+}
+
+/// Start the rays of the lanes in `lanes` where they first leave `c`: the crossings before
+/// that made at once (those before its time, [`Covered::skip`], bit for bit), their
+/// set-ups `axes` moved on, from the voxel `start`. Returns their steps left (of `n`),
+/// each lane's first voxel, and the steps skipped. The crossings made are estimated in
+/// doubles and then checked against the exact crossing times.
+#[inline(never)]
+#[target_feature(enable = "avx512f,avx512dq")]
+fn skip_covered(
+    c: &Covered,
+    lanes: __mmask8,
+    start: u64,
+    axes: &mut [AxisSetup; 3],
+    n: __m512i,
+) -> (__m512i, __m512i, u64) {
+    let (zero, one, never) = (
+        _mm512_setzero_si512(),
+        _mm512_set1_epi64(1),
+        _mm512_set1_epi64(-1),
+    );
+    // The first crossing out of the box: per axis the one `leave` crossings on, where the
+    // axis has that many (its `n` at least `leave`, so none for an axis without).
+    let mut first = never;
+    for (a, x) in axes.iter().enumerate() {
+        let [down, up] = c.leave[a].map(|k| _mm512_set1_epi64(k as i64 - 1));
+        let before = _mm512_mask_blend_epi64(_mm512_cmpgt_epi64_mask(x.inc, zero), down, up);
+        let has = _mm512_cmpgt_epu64_mask(x.n, before);
+        let at = _mm512_add_epi64(x.t, _mm512_mullo_epi64(x.d, before));
+        first = _mm512_mask_min_epu64(first, has, first, at);
+    }
+    // A ray that never leaves makes all its crossings.
+    let ends_inside = _mm512_cmpeq_epi64_mask(first, never);
+    let (mut p, mut made) = (_mm512_set1_epi64(start as i64), zero);
+    for x in axes.iter_mut() {
+        // Crossings before `first`: x.t + j x.d < first for j < k, about
+        // (first - x.t) / x.d rounded up, then checked one each way (the estimate is off
+        // by far less than one crossing, so only rounding at a tie can miss).
+        let due = _mm512_cmpgt_epu64_mask(first, x.t);
+        let q = _mm512_div_pd(
+            _mm512_cvtepu64_pd(_mm512_sub_epi64(first, x.t)),
+            _mm512_cvtepu64_pd(x.d),
+        );
+        const CEIL: i32 = _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC;
+        let est = _mm512_cvttpd_epu64(_mm512_roundscale_pd::<CEIL>(q));
+        let k = _mm512_min_epu64(est, x.n);
+        let next = _mm512_add_epi64(x.t, _mm512_mullo_epi64(x.d, k));
+        let more = _mm512_cmpgt_epu64_mask(x.n, k) & _mm512_cmpgt_epu64_mask(first, next);
+        let fewer = _mm512_cmpgt_epu64_mask(k, zero)
+            & _mm512_cmpge_epu64_mask(_mm512_sub_epi64(next, x.d), first);
+        let k = _mm512_mask_add_epi64(k, more, k, one);
+        let k = _mm512_mask_sub_epi64(k, fewer, k, one);
+        let k = _mm512_mask_mov_epi64(_mm512_maskz_mov_epi64(due, k), ends_inside, x.n);
+        let done = _mm512_cmpeq_epi64_mask(k, x.n) & _mm512_cmpneq_epi64_mask(x.n, zero);
+        let next = _mm512_add_epi64(x.t, _mm512_mullo_epi64(x.d, k));
+        x.t = _mm512_mask_mov_epi64(next, done, never);
+        p = _mm512_add_epi64(p, _mm512_mullo_epi64(k, x.inc));
+        made = _mm512_add_epi64(made, k);
+    }
+    let left = _mm512_sub_epi64(n, made);
+    let skipped = _mm512_reduce_add_epi64(_mm512_maskz_mov_epi64(lanes, made)) as u64;
+    (left, p, skipped)
 }
 
 /// A walk stepped outside its box: a bug, stopped before any read outside the marks.
@@ -651,6 +726,7 @@ struct Axis {
 }
 
 /// One axis of eight rays' set-up, as `Dda::new` computes it (with `between` capped).
+#[derive(Clone, Copy)]
 struct AxisSetup {
     /// Crossings: next, between (capped), last; `t` is `never` for an axis without any.
     t: __m512i,

@@ -7,6 +7,7 @@
 //! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
 //! thread walked which ray.
 
+use super::covered::Covered;
 use crate::coord::VoxelCoord;
 use crate::integrate::marks::FrameMarks;
 use crate::integrate::prepare::Ray;
@@ -121,23 +122,31 @@ pub(super) fn set_bit(words: &mut [u64], index: u64) {
 }
 
 /// Walk the rays `rays[ranges[l]]` from `origin` one at a time, setting their free and hit
-/// bits in `bits`; returns voxels visited. The dense walk where the build has no AVX-512:
-/// the same voxels as `avx512::walk_dense`. As in the sparse walk, all steps but the last
-/// two skip the check for an axis past its last crossing (`Dda::step_far_crossing`).
+/// bits in `bits`; returns voxels on the rays and, of those, the ones not walked inside
+/// `covered`. The dense walk where the build has no AVX-512: the same voxels as
+/// `avx512::walk_dense`. As in the sparse walk, all steps but the last two skip the check
+/// for an axis past its last crossing (`Dda::step_far_crossing`).
 pub(super) fn walk_rays(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
     rays: &[Ray],
     ranges: [Range<usize>; 8],
-) -> u64 {
-    let mut steps = 0;
+    covered: Option<&Covered>,
+) -> (u64, u64) {
+    let (mut steps, mut skipped) = (0, 0);
     let [ix, iy, iz] = dbox.strides();
     let (free, hits) = bits.words_mut();
     for r in ranges.into_iter().flat_map(|g| &rays[g]) {
         let mut dda = Dda::new(origin, r.end);
+        steps += u64::from(dda.steps()) + 1;
+        if let Some(c) = covered {
+            let (t, d, last, dir) = dda.axes();
+            let made = c.skip(t, d, last, dir);
+            skipped += made.iter().sum::<u64>();
+            dda = dda.after(made);
+        }
         let n = dda.steps();
-        steps += u64::from(n) + 1;
         let mut p = dbox.index(dda.voxel());
         if n > 2 {
             let [sx, sy, sz] = dda.direction();
@@ -167,7 +176,7 @@ pub(super) fn walk_rays(
             set_bit(hits, p);
         }
     }
-    steps
+    (steps, skipped)
 }
 
 /// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a

@@ -25,6 +25,7 @@ use rayon::prelude::*;
 mod avx2;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
+mod covered;
 pub(super) mod dense;
 mod sparse;
 
@@ -56,38 +57,49 @@ pub(super) struct WalkInput<'a> {
     pub sides: &'a [[u32; 2]],
     /// About the voxel steps of the walk.
     pub steps: f64,
+    /// Voxel bounds (inclusive) of the origin and every ray's end.
+    pub bounds: (VoxelCoord, VoxelCoord),
     pub walk: Walk,
     pub kernel: Kernel,
 }
 
 /// Walk all rays into `marks` (sparse) or the pool threads' dense grids for frame
-/// `frame_no` (when `dense_box` is set); returns voxels visited.
+/// `frame_no` (when `dense_box` is set); returns the voxels on the rays and, of those, the
+/// ones the dense walk skipped in its covered box ([`covered`]).
 pub(super) fn run(
     input: &WalkInput<'_>,
     marks: &FrameMarks,
     dense: &[std::sync::Mutex<dense::DenseBits>],
     dense_box: Option<&dense::DenseBox>,
     frame_no: u64,
-) -> u64 {
+) -> (u64, u64) {
     match dense_box {
-        None => run_sparse(marks, input),
+        None => (run_sparse(marks, input), 0),
         Some(b) => run_dense(dense, b, frame_no, input),
     }
 }
 
+/// The share of a dense walk's tasks walked before its covered box is found: their rays
+/// come from all of the scan (see `run_dense`), and after an eighth of them the box
+/// holds most of what it would after all.
+const TASKS_BEFORE_COVERED: usize = 8;
+
 /// The dense walk: rays laid out by `Sides` with counts `input.sides`, into the pool
-/// threads' grids for frame `frame_no`; returns voxels visited.
+/// threads' grids for frame `frame_no`; returns the voxels on the rays and, of those, the
+/// ones skipped in the covered box. The first tasks walk whole rays; the box is then found
+/// in their marks, and the other tasks' rays skip it.
 fn run_dense(
     dense: &[std::sync::Mutex<dense::DenseBits>],
     dbox: &dense::DenseBox,
     frame_no: u64,
     input: &WalkInput<'_>,
-) -> u64 {
+) -> (u64, u64) {
     let &WalkInput {
         origin,
         rays,
         sides,
         steps,
+        bounds,
         walk,
         kernel,
     } = input;
@@ -117,28 +129,49 @@ fn run_dense(
         avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
-    (0..2 * per_lane)
-        .into_par_iter()
-        .map(|t| {
-            // Each pool thread has its own grids, so the lock is never contended.
-            let mut bits = lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
-            bits.begin(frame_no, dbox.words());
-            let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
-            match kernel {
-                #[cfg(target_arch = "x86_64")]
-                // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
-                // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
-                Kernel::Avx512 => unsafe {
-                    avx512::walk_dense(&mut bits, dbox, origin, rays, ranges, refill_at, test_first)
-                },
-                #[cfg(target_arch = "x86_64")]
-                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-                // (`Kernel::supported`), which is all `walk_dense` needs.
-                Kernel::Avx2 => unsafe { avx2::walk_dense(&mut bits, dbox, origin, rays, ranges) },
-                _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges),
-            }
-        })
-        .sum()
+    let tasks = |first: bool, covered: Option<&covered::Covered>| {
+        let before = per_lane.div_ceil(TASKS_BEFORE_COVERED);
+        (0..2 * per_lane)
+            .into_par_iter()
+            .filter(move |t| (t % per_lane < before) == first)
+            .map(|t| {
+                // Each pool thread has its own grids, so the lock is never contended.
+                let mut bits =
+                    lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
+                bits.begin(frame_no, dbox.words());
+                let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+                match kernel {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
+                    // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
+                    Kernel::Avx512 => unsafe {
+                        avx512::walk_dense(
+                            &mut bits, dbox, origin, rays, ranges, refill_at, test_first, covered,
+                        )
+                    },
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                    // (`Kernel::supported`), which is all `walk_dense` needs.
+                    Kernel::Avx2 => unsafe {
+                        avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered)
+                    },
+                    _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
+                }
+            })
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+    };
+    let (steps, _) = tasks(true, None);
+    let covered = {
+        // The threads that walked this frame have its marks; the others' are stale.
+        let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
+        let live: Vec<&dense::DenseBits> = (guards.iter().map(|g| &**g))
+            .filter(|g| g.frame() == frame_no)
+            .collect();
+        let start = crate::coord::units_to_voxel(origin).expect("origin checked");
+        covered::Covered::find(&live, dbox, start, bounds.0, bounds.1)
+    };
+    let (rest, skipped) = tasks(false, covered.as_ref());
+    (steps + rest, skipped)
 }
 
 /// The sparse walk: all rays, sorted by direction, into `marks` in parallel chunks;
