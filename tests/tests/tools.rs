@@ -435,6 +435,7 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         assert_eq!(u(r, "points"), n);
         assert!(f(r, "min_ms") <= f(r, "median_ms") && f(r, "median_ms") <= f(r, "max_ms"));
         assert!(u(r, "rays") <= n && u(r, "voxel_steps") > u(r, "rays"));
+        assert!(u(r, "covered_steps") < u(r, "voxel_steps"), "{r}");
         assert!(u(r, "occupied") > 1000 && u(r, "free") > u(r, "occupied"));
         assert!(u(r, "memory_bytes") > 0);
         // A room seen from inside: a small box, walked dense.
@@ -449,7 +450,14 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         let m: Vec<_> = frames.iter().filter(|r| r["mode"] == mode).collect();
         assert_eq!(m.len(), 2);
         assert_eq!((u(m[0], "threads"), u(m[1], "threads")), (1, 2));
-        for k in ["rays", "voxel_steps", "occupied", "free", "memory_bytes"] {
+        for k in [
+            "rays",
+            "voxel_steps",
+            "covered_steps",
+            "occupied",
+            "free",
+            "memory_bytes",
+        ] {
             assert_eq!(m[0][k], m[1][k], "{mode} {k}");
         }
     }

@@ -240,8 +240,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
             std::thread::available_parallelism().map_or(1, |n| n.get())
         );
         println!(
-            "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>9} {:>8} {:>8} {:>7} {:>6} | {:>6} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} | {:>8}",
-            "workload", "th", "mode", "kernel", "walk", "rays", "steps", "median", "min", "max", "Mpt/s", "ns/st",
+            "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>5} {:>9} {:>8} {:>8} {:>7} {:>6} | {:>6} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} | {:>8}",
+            "workload", "th", "mode", "kernel", "walk", "rays", "steps", "cov%", "median", "min", "max", "Mpt/s", "ns/st",
             "prep", "ray", "merge", "upd", "occupied", "free", "B/vox", "paper"
         );
     }
@@ -306,6 +306,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let (min, max) = (times[0], times[times.len() - 1]);
                 let p = median_phases(&mut phases);
                 let ns_step = med * 1e6 * threads as f64 / r.voxel_steps.max(1) as f64;
+                let covered_pct = 100.0 * r.covered_steps as f64 / r.voxel_steps.max(1) as f64;
                 let mpts = r.points as f64 / (med * 1e3);
                 let bpv = mem as f64 / r.touched_voxels.max(1) as f64;
                 if mode == RayMode::Exact {
@@ -317,7 +318,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     let mut o = serde_json::json!({
                         "workload": name, "threads": threads, "mode": mode.name(), "kernel": integ.kernel().name(), "walk": walk, "runs": a.runs,
                         "median_ms": med, "min_ms": min, "max_ms": max, "points": r.points, "rays": r.rays,
-                        "voxel_steps": r.voxel_steps, "occupied": counts.occupied, "free": counts.free,
+                        "voxel_steps": r.voxel_steps, "covered_steps": r.covered_steps, "occupied": counts.occupied, "free": counts.free,
                         "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
                         "mpoints_per_s": mpts, "ns_per_step_per_thread": ns_step, "bytes_per_touched_voxel": bpv,
                         "prepare_ms": ms(p.prepare), "thin_ms": ms(p.thin), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
@@ -335,8 +336,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     println!("{o}");
                 } else {
                     println!(
-                        "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
-                        name, threads, mode.name(), integ.kernel().name(), walk, r.rays, r.voxel_steps, med, min, max, mpts, ns_step,
+                        "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>5.1} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
+                        name, threads, mode.name(), integ.kernel().name(), walk, r.rays, r.voxel_steps, covered_pct, med, min, max, mpts, ns_step,
                         ms(p.prepare), ms(p.raycast), ms(p.merge), ms(p.update),
                         counts.occupied, counts.free, bpv, paper.map_or("-".into(), |v| format!("{v:.0}")),
                     );
@@ -356,7 +357,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         }
     }
     if !a.json {
-        println!("kernel = the vector kernels in use (VOXMAP_KERNEL forces one); walk = dense (per-thread bit grids over a small frame's box) or sparse; ns/st = median ns per voxel step per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
+        println!("kernel = the vector kernels in use (VOXMAP_KERNEL forces one); walk = dense (per-thread bit grids over a small frame's box) or sparse; steps = voxels on the rays; cov% = of those, the share the dense walk skipped in the box around the sensor that its first rays had marked through; ns/st = median ns per step (covered or walked) per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
         if !snapshots.is_empty() {
             println!();
             println!(
