@@ -413,6 +413,7 @@ impl Integrator {
                 sides,
                 steps,
                 bounds: (lo, hi),
+                range: range_units,
                 walk,
                 kernel,
             };

@@ -59,6 +59,8 @@ pub(super) struct WalkInput<'a> {
     pub steps: f64,
     /// Voxel bounds (inclusive) of the origin and every ray's end.
     pub bounds: (VoxelCoord, VoxelCoord),
+    /// The rays' longest length, voxel units.
+    pub range: f64,
     pub walk: Walk,
     pub kernel: Kernel,
 }
@@ -79,15 +81,16 @@ pub(super) fn run(
     }
 }
 
-/// The share of a dense walk's tasks walked before its covered box is found: their rays
-/// come from all of the scan (see `run_dense`), and after an eighth of them the box
-/// holds most of what it would after all.
-const TASKS_BEFORE_COVERED: usize = 8;
+/// Where a dense walk finds its covered box: after the first `1 / STAGES[0]` of its
+/// tasks, which walk whole rays, and again after `1 / STAGES[1]`, when the marks of more
+/// rays may hold a bigger box (docs/design.md, "The covered box"). The tasks' rays come
+/// from all of the scan (see `run_dense`).
+const STAGES: [usize; 2] = [8, 2];
 
 /// The dense walk: rays laid out by `Sides` with counts `input.sides`, into the pool
 /// threads' grids for frame `frame_no`; returns the voxels on the rays and, of those, the
 /// ones skipped in the covered box. The first tasks walk whole rays; the box is then found
-/// in their marks, and the other tasks' rays skip it.
+/// in their marks, and the other tasks' rays skip it (see [`STAGES`]).
 fn run_dense(
     dense: &[std::sync::Mutex<dense::DenseBits>],
     dbox: &dense::DenseBox,
@@ -100,6 +103,7 @@ fn run_dense(
         sides,
         steps,
         bounds,
+        range,
         walk,
         kernel,
     } = input;
@@ -129,11 +133,10 @@ fn run_dense(
         avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
         walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
-    let tasks = |first: bool, covered: Option<&covered::Covered>| {
-        let before = per_lane.div_ceil(TASKS_BEFORE_COVERED);
+    let tasks = |stage: std::ops::Range<usize>, covered: Option<&covered::Covered>| {
         (0..2 * per_lane)
             .into_par_iter()
-            .filter(move |t| (t % per_lane < before) == first)
+            .filter(move |t| stage.contains(&(t % per_lane)))
             .map(|t| {
                 // Each pool thread has its own grids, so the lock is never contended.
                 let mut bits =
@@ -160,18 +163,24 @@ fn run_dense(
             })
             .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     };
-    let (steps, _) = tasks(true, None);
-    let covered = {
+    let find = || {
         // The threads that walked this frame have its marks; the others' are stale.
         let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
         let live: Vec<&dense::DenseBits> = (guards.iter().map(|g| &**g))
             .filter(|g| g.frame() == frame_no)
             .collect();
-        let start = crate::coord::units_to_voxel(origin).expect("origin checked");
-        covered::Covered::find(&live, dbox, start, bounds.0, bounds.1)
+        covered::Covered::find(&live, dbox, origin, range, bounds, rays)
     };
-    let (rest, skipped) = tasks(false, covered.as_ref());
-    (steps + rest, skipped)
+    let stages = STAGES.map(|k| per_lane.div_ceil(k));
+    let (mut steps, mut skipped) = tasks(0..stages[0], None);
+    let covered = find();
+    let more = tasks(stages[0]..stages[1], covered.as_ref());
+    let covered = find().or(covered);
+    let rest = tasks(stages[1]..per_lane, covered.as_ref());
+    for (s, k) in [more, rest] {
+        (steps, skipped) = (steps + s, skipped + k);
+    }
+    (steps, skipped)
 }
 
 /// The sparse walk: all rays, sorted by direction, into `marks` in parallel chunks;
