@@ -81,11 +81,12 @@ pub(super) fn run(
     }
 }
 
-/// Where a dense walk finds its covered box: after the first `1 / STAGES[0]` of its
-/// tasks, which walk whole rays, and again after `1 / STAGES[1]`, when the marks of more
-/// rays may hold a bigger box (docs/design.md, "The covered box"). The tasks' rays come
-/// from all of the scan (see `run_dense`).
-const STAGES: [usize; 2] = [8, 2];
+/// Where a dense walk finds its covered box: its tasks walk in stages, the first whole
+/// rays, and before each later stage the box is found again in the marks of all the rays
+/// walked so far, which may hold a bigger one (docs/design.md, "The covered box"). Stage
+/// `i` ends after `1 / STAGES[i]` of the tasks; the tasks' rays come from all of the scan
+/// (see `run_dense`).
+const STAGES: [usize; 3] = [32, 8, 2];
 
 /// The dense walk: rays laid out by `Sides` with counts `input.sides`, into the pool
 /// threads' grids for frame `frame_no`; returns the voxels on the rays and, of those, the
@@ -171,14 +172,21 @@ fn run_dense(
             .collect();
         covered::Covered::find(&live, dbox, origin, range, bounds, rays)
     };
-    let stages = STAGES.map(|k| per_lane.div_ceil(k));
-    let (mut steps, mut skipped) = tasks(0..stages[0], None);
-    let covered = find();
-    let more = tasks(stages[0]..stages[1], covered.as_ref());
-    let covered = find().or(covered);
-    let rest = tasks(stages[1]..per_lane, covered.as_ref());
-    for (s, k) in [more, rest] {
-        (steps, skipped) = (steps + s, skipped + k);
+    let (mut steps, mut skipped, mut from, mut covered) = (0, 0, 0, None);
+    for k in STAGES
+        .into_iter()
+        .map(|k| per_lane.div_ceil(k))
+        .chain([per_lane])
+    {
+        // A stage of one task a side would leave a thread idle at its end.
+        if k < (from + 2).min(per_lane) || k == from {
+            continue;
+        }
+        if from > 0 {
+            covered = find().or(covered);
+        }
+        let (s, c) = tasks(from..k, covered.as_ref());
+        (steps, skipped, from) = (steps + s, skipped + c, k);
     }
     (steps, skipped)
 }
