@@ -497,10 +497,7 @@ fn dense_and_sparse_walks_agree() {
                 );
                 // The frames of many rays skip a covered box, the lattice's too, and every
                 // kernel skips the same steps.
-                assert!(
-                    covered[2] > 0 && covered[8] > 0 && covered[12] > 0,
-                    "{covered:?}"
-                );
+                assert!(covered[2] > 0 && covered[12] > 0, "{covered:?}");
                 assert_eq!(covered, scalar_covered, "{kernel:?} {walk:?}");
             }
             for (d, s) in dense.iter().zip(&sparse) {
