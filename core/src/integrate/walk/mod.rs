@@ -127,14 +127,20 @@ fn run_dense(
             start..start + n_front as usize
         }
     };
+    // Only the AVX-512 walk has these choices.
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (steps, walk);
+    let test_first = {
+        let _ = steps;
+        false
+    };
     #[cfg(target_arch = "x86_64")]
     let (refill_at, test_first) = (
         avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
-        walk == Walk::DenseTestFirst || avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
+        avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
     );
-    let tasks = |stage: std::ops::Range<usize>, covered: Option<&covered::Covered>| {
+    let tasks = |stage: std::ops::Range<usize>,
+                 covered: Option<&covered::Covered>,
+                 test_first: bool| {
         (0..2 * per_lane)
             .into_par_iter()
             .filter(move |t| stage.contains(&(t % per_lane)))
@@ -144,6 +150,8 @@ fn run_dense(
                     lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
                 bits.begin(frame_no, dbox.words());
                 let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = test_first;
                 match kernel {
                     #[cfg(target_arch = "x86_64")]
                     // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
@@ -185,7 +193,11 @@ fn run_dense(
         if from > 0 {
             covered = find().or(covered);
         }
-        let (s, c) = tasks(from..k, covered.as_ref());
+        // Testing marks first pays where most repeat: not in the covered box, which the
+        // rays skip, nor early in the frame, when the grids are still mostly empty.
+        let test = walk == Walk::DenseTestFirst
+            || test_first && covered.is_none() && from >= per_lane.div_ceil(8);
+        let (s, c) = tasks(from..k, covered.as_ref(), test);
         (steps, skipped, from) = (steps + s, skipped + c, k);
     }
     (steps, skipped)
