@@ -58,31 +58,40 @@ impl Covered {
         // are all marked or out of reach, found when first asked for: so a layer across x
         // is one compare a row, and each row's bits are read once.
         let (ny, nz) = ((hi.y - lo.y + 1) as usize, (hi.z - lo.z + 1) as usize);
-        let mut runs: Vec<Option<(i32, i32)>> = vec![None; ny * nz];
+        let row_run = |y: i32, z: i32| -> (i32, i32) {
+            let r2 = reach * reach - gap(y, 1).powi(2) - gap(z, 2).powi(2);
+            if r2 <= 0.0 {
+                return (lo.x, hi.x);
+            }
+            // Voxel x is within reach where x - 1 - r < origin < x + r.
+            let r = r2.sqrt();
+            let from = lo.x.max((origin[0] - r - 1.0).floor() as i32 + 1);
+            let to = hi.x.min((origin[0] + r).ceil() as i32 - 1);
+            let at = |x: i32| dbox.index(VoxelCoord::new(x, y, z));
+            let up = (s[0] <= to)
+                .then(|| unmarked(grids, at(s[0].max(from)), at(to), true))
+                .flatten();
+            let down = (from <= s[0])
+                .then(|| unmarked(grids, at(from), at(s[0].min(to)), false))
+                .flatten();
+            let x = |i: u64| dbox.voxel(i).x;
+            (
+                down.map_or(lo.x, |i| x(i) + 1),
+                up.map_or(hi.x, |i| x(i) - 1),
+            )
+        };
+        // Each run as its ends' offsets from `lo.x`, plus one, in the two halves of a word: 0
+        // (never a run, whose first end is at least `lo.x`) for a row not read yet. Zeroed
+        // memory: a big box's rows cost nothing until read.
+        let mut runs = vec![0u64; ny * nz];
         let mut run = |y: i32, z: i32| -> (i32, i32) {
             let k = (y - lo.y) as usize + ny * (z - lo.z) as usize;
-            *runs[k].get_or_insert_with(|| {
-                let r2 = reach * reach - gap(y, 1).powi(2) - gap(z, 2).powi(2);
-                if r2 <= 0.0 {
-                    return (lo.x, hi.x);
-                }
-                // Voxel x is within reach where x - 1 - r < origin < x + r.
-                let r = r2.sqrt();
-                let from = lo.x.max((origin[0] - r - 1.0).floor() as i32 + 1);
-                let to = hi.x.min((origin[0] + r).ceil() as i32 - 1);
-                let at = |x: i32| dbox.index(VoxelCoord::new(x, y, z));
-                let up = (s[0] <= to)
-                    .then(|| unmarked(grids, at(s[0].max(from)), at(to), true))
-                    .flatten();
-                let down = (from <= s[0])
-                    .then(|| unmarked(grids, at(from), at(s[0].min(to)), false))
-                    .flatten();
-                let x = |i: u64| dbox.voxel(i).x;
-                (
-                    down.map_or(lo.x, |i| x(i) + 1),
-                    up.map_or(hi.x, |i| x(i) - 1),
-                )
-            })
+            if runs[k] == 0 {
+                let (l, h) = row_run(y, z);
+                runs[k] = ((l - lo.x + 1) as u64) << 32 | u64::from((h - lo.x + 1) as u32);
+            }
+            let end = |v: u64| (v as u32) as i32 - 1 + lo.x;
+            (end(runs[k] >> 32), end(runs[k]))
         };
         let (mut b_lo, mut b_hi) = (s, s);
         // The bounds on x of the box's rows' runs; the box holds only rows whose run holds
