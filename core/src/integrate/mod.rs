@@ -422,14 +422,9 @@ impl Integrator {
             let t2 = Instant::now();
             // Merge.
             if let Some(b) = &dense_box {
-                // The threads that walked this frame have its marks; the others' are stale.
-                let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
-                let live: Vec<&walk::dense::DenseBits> = guards
-                    .iter()
-                    .map(|g| &**g)
-                    .filter(|g| g.frame() == frame_no)
-                    .collect();
-                walk::dense::fold_into(marks, b, &live);
+                walk::dense::with_live(dense, frame_no, |live| {
+                    walk::dense::fold_into(marks, b, live)
+                });
             }
             let items = merge::attach_leaves(marks, map);
             let t3 = Instant::now();

@@ -544,8 +544,7 @@ fn walk<const WAIT: bool, L: Lanes>(
             };
             let mut set_up =
                 [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
-            let [x, y, z] = &set_up;
-            let mut n = _mm512_add_epi64(_mm512_add_epi64(x.n, y.n), z.n);
+            let mut n = _mm512_add_epi64(_mm512_add_epi64(set_up[0].n, set_up[1].n), set_up[2].n);
             steps = _mm512_mask_add_epi64(steps, avail, steps, _mm512_add_epi64(n, one));
             let mut p0 = _mm512_set1_epi64(start as i64);
             if let Some(c) = covered {

@@ -115,6 +115,20 @@ impl DenseBits {
     }
 }
 
+/// `f` of the grids of the pool threads that walked frame `frame`: they hold its marks, the
+/// others' are stale.
+pub(in crate::integrate) fn with_live<R>(
+    dense: &[std::sync::Mutex<DenseBits>],
+    frame: u64,
+    f: impl FnOnce(&[&DenseBits]) -> R,
+) -> R {
+    let guards: Vec<_> = dense.iter().map(|m| crate::integrate::lock(m)).collect();
+    let live: Vec<&DenseBits> = (guards.iter().map(|g| &**g))
+        .filter(|g| g.frame() == frame)
+        .collect();
+    f(&live)
+}
+
 /// Set bit `index` of `words`.
 #[inline(always)]
 pub(super) fn set_bit(words: &mut [u64], index: u64) {

@@ -173,12 +173,9 @@ fn run_dense(
             .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     };
     let find = || {
-        // The threads that walked this frame have its marks; the others' are stale.
-        let guards: Vec<_> = dense.iter().map(|m| lock(m)).collect();
-        let live: Vec<&dense::DenseBits> = (guards.iter().map(|g| &**g))
-            .filter(|g| g.frame() == frame_no)
-            .collect();
-        covered::Covered::find(&live, dbox, origin, range, bounds, rays)
+        dense::with_live(dense, frame_no, |live| {
+            covered::Covered::find(live, dbox, origin, range, bounds, rays)
+        })
     };
     let (mut steps, mut skipped, mut from, mut covered) = (0, 0, 0, None);
     for k in STAGES
