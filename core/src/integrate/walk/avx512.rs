@@ -490,95 +490,109 @@ fn walk<const WAIT: bool, L: Lanes>(
     let mut need: __mmask8 = 0xff;
     // Lanes walking a ray.
     let mut live: __mmask8 = 0;
+    // Rays set up and not yet walked: set up eight at a time (a vectorised pass, as dear
+    // for one lane as for eight), handed to the lanes that need them as they need them.
+    let mut ahead = Ahead::of(0, &[AxisSetup::NONE; 3], zero, zero, 0);
     let mut regs = lanes.regs();
     loop {
-        // Give each lane in `need` its next ray that takes a step; rays that end in their
-        // start voxel are done here (a hit at most).
+        // Give each lane in `need` its next ray that takes a step, from the rays set up
+        // ahead; rays that end in their start voxel are done as they are set up (a hit at
+        // most).
         while need != 0 {
-            let (ray, avail) = if next {
-                // The lanes in `need`, lowest first, take the next rays in order.
-                let ray = _mm512_add_epi64(cur, _mm512_maskz_expand_epi64(need, IOTA));
-                let avail = need & _mm512_cmplt_epu64_mask(ray, lim);
-                cur = _mm512_add_epi64(cur, _mm512_set1_epi64(i64::from(avail.count_ones())));
-                (ray, avail)
-            } else {
-                let dry = need & _mm512_cmpge_epu64_mask(cur, lim);
-                if dry != 0 {
-                    (cur, lim) = share(cur, lim, dry);
+            if ahead.len == 0 {
+                let (ray, avail) = if next {
+                    let ray = _mm512_add_epi64(cur, IOTA);
+                    let avail = _mm512_cmplt_epu64_mask(ray, lim);
+                    cur = _mm512_add_epi64(cur, _mm512_set1_epi64(i64::from(avail.count_ones())));
+                    (ray, avail)
+                } else {
+                    let dry = _mm512_cmpge_epu64_mask(cur, lim);
+                    if dry != 0 {
+                        (cur, lim) = share(cur, lim, dry);
+                    }
+                    let avail = _mm512_cmplt_epu64_mask(cur, lim);
+                    let ray = cur;
+                    cur = _mm512_mask_add_epi64(cur, avail, cur, one);
+                    (ray, avail)
+                };
+                if avail == 0 {
+                    break;
                 }
-                let avail = need & _mm512_cmplt_epu64_mask(cur, lim);
-                let ray = cur;
-                cur = _mm512_mask_add_epi64(cur, avail, cur, one);
-                (ray, avail)
-            };
-            if avail == 0 {
-                break;
-            }
-            let at = _mm512_slli_epi64::<2>(ray); // Ray is four 8-byte words
-            let base = rays.as_ptr().cast::<u8>();
-            // SAFETY: lanes in `avail` have ray < lim <= rays.len(), so every word read is
-            // inside `rays`: `end` is words 0..3 and `key`/`hit` word 3 of a `Ray`
-            // (repr(C), every byte initialised, see `Ray`). Other lanes read nothing.
-            let (ex, ey, ez, flags) = unsafe {
-                (
-                    _mm512_mask_i64gather_pd::<8>(_mm512_setzero_pd(), avail, at, base.cast()),
-                    _mm512_mask_i64gather_pd::<8>(
-                        _mm512_setzero_pd(),
-                        avail,
-                        _mm512_add_epi64(at, one),
-                        base.cast(),
-                    ),
-                    _mm512_mask_i64gather_pd::<8>(
-                        _mm512_setzero_pd(),
-                        avail,
-                        _mm512_add_epi64(at, _mm512_set1_epi64(2)),
-                        base.cast(),
-                    ),
-                    _mm512_mask_i64gather_epi64::<8>(
-                        zero,
-                        avail,
-                        _mm512_add_epi64(at, _mm512_set1_epi64(3)),
-                        base.cast(),
-                    ),
-                )
-            };
-            let mut set_up =
-                [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
-            let mut n = _mm512_add_epi64(_mm512_add_epi64(set_up[0].n, set_up[1].n), set_up[2].n);
-            steps = _mm512_mask_add_epi64(steps, avail, steps, _mm512_add_epi64(n, one));
-            let mut p0 = _mm512_set1_epi64(start as i64);
-            if let Some(c) = covered {
-                let made;
-                (n, p0, made) = skip_covered(c, avail, start, &mut set_up, n);
-                skipped += made;
-            }
-            let [x, y, z] = set_up;
-            let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
-            let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
-            if empty & ray_hit != 0 {
-                let p0 = to_array(p0);
-                for l in BitIter(u64::from(empty & ray_hit)) {
-                    lanes.hit_at(p0[l]);
+                let at = _mm512_slli_epi64::<2>(ray); // Ray is four 8-byte words
+                let base = rays.as_ptr().cast::<u8>();
+                // SAFETY: lanes in `avail` have ray < lim <= rays.len(), so every word read
+                // is inside `rays`: `end` is words 0..3 and `key`/`hit` word 3 of a `Ray`
+                // (repr(C), every byte initialised, see `Ray`). Other lanes read nothing.
+                let (ex, ey, ez, flags) = unsafe {
+                    let word = |k: i64| _mm512_add_epi64(at, _mm512_set1_epi64(k));
+                    (
+                        _mm512_mask_i64gather_pd::<8>(_mm512_setzero_pd(), avail, at, base.cast()),
+                        _mm512_mask_i64gather_pd::<8>(
+                            _mm512_setzero_pd(),
+                            avail,
+                            word(1),
+                            base.cast(),
+                        ),
+                        _mm512_mask_i64gather_pd::<8>(
+                            _mm512_setzero_pd(),
+                            avail,
+                            word(2),
+                            base.cast(),
+                        ),
+                        _mm512_mask_i64gather_epi64::<8>(zero, avail, word(3), base.cast()),
+                    )
+                };
+                let mut set_up =
+                    [(ex, &axes[0]), (ey, &axes[1]), (ez, &axes[2])].map(|(e, a)| a.setup(e));
+                let mut n =
+                    _mm512_add_epi64(_mm512_add_epi64(set_up[0].n, set_up[1].n), set_up[2].n);
+                steps = _mm512_mask_add_epi64(steps, avail, steps, _mm512_add_epi64(n, one));
+                let mut p0 = _mm512_set1_epi64(start as i64);
+                if let Some(c) = covered {
+                    let made;
+                    (n, p0, made) = skip_covered(c, avail, start, &mut set_up, n);
+                    skipped += made;
                 }
+                let ray_hit = _mm512_test_epi64_mask(flags, _mm512_set1_epi64(1 << 32));
+                let empty = avail & _mm512_cmpeq_epi64_mask(n, zero);
+                if empty & ray_hit != 0 {
+                    let p0 = to_array(p0);
+                    for l in BitIter(u64::from(empty & ray_hit)) {
+                        lanes.hit_at(p0[l]);
+                    }
+                }
+                ahead = Ahead::of(avail & !empty, &set_up, p0, n, ray_hit);
+                continue;
             }
-            let k = avail & !empty;
-            tx = _mm512_mask_mov_epi64(tx, k, x.t);
-            ty = _mm512_mask_mov_epi64(ty, k, y.t);
-            tz = _mm512_mask_mov_epi64(tz, k, z.t);
-            dx = _mm512_mask_mov_epi64(dx, k, x.d);
-            dy = _mm512_mask_mov_epi64(dy, k, y.d);
-            dz = _mm512_mask_mov_epi64(dz, k, z.d);
-            lx = _mm512_mask_mov_epi64(lx, k, x.last);
-            ly = _mm512_mask_mov_epi64(ly, k, y.last);
-            lz = _mm512_mask_mov_epi64(lz, k, z.last);
-            mx = _mm512_mask_mov_epi64(mx, k, x.inc);
-            my = _mm512_mask_mov_epi64(my, k, y.inc);
-            mz = _mm512_mask_mov_epi64(mz, k, z.inc);
-            p = _mm512_mask_mov_epi64(p, k, p0);
-            rem = _mm512_mask_mov_epi64(rem, k, n);
-            hit = (hit & !k) | (ray_hit & k);
-            live |= k;
-            need = empty;
+            // The lowest `len` lanes of `need` at most take the rays ahead, in order.
+            let mut take: __mmask8 = 0;
+            let mut left = need;
+            for _ in 0..ahead.len.min(need.count_ones()) {
+                take |= left & left.wrapping_neg();
+                left &= left - 1;
+            }
+            let put =
+                |v: &mut __m512i, from: __m512i| *v = _mm512_mask_expand_epi64(*v, take, from);
+            let [x, y, z] = &ahead.axes;
+            for (v, f) in [(&mut tx, x.t), (&mut ty, y.t), (&mut tz, z.t)] {
+                put(v, f);
+            }
+            for (v, f) in [(&mut dx, x.d), (&mut dy, y.d), (&mut dz, z.d)] {
+                put(v, f);
+            }
+            for (v, f) in [(&mut lx, x.last), (&mut ly, y.last), (&mut lz, z.last)] {
+                put(v, f);
+            }
+            for (v, f) in [(&mut mx, x.inc), (&mut my, y.inc), (&mut mz, z.inc)] {
+                put(v, f);
+            }
+            put(&mut p, ahead.p0);
+            put(&mut rem, ahead.n);
+            let hits = _mm512_movepi64_mask(_mm512_maskz_expand_epi64(take, ahead.hit));
+            hit = (hit & !take) | hits;
+            live |= take;
+            need &= !take;
+            ahead.drop_first(take.count_ones());
         }
         if live == 0 {
             break;
@@ -621,6 +635,58 @@ fn walk<const WAIT: bool, L: Lanes>(
         need = ended;
     }
     (to_array(steps).iter().sum(), skipped)
+}
+
+/// Rays set up and not yet walked, in the lowest `len` lanes of their vectors.
+struct Ahead {
+    axes: [AxisSetup; 3],
+    p0: __m512i,
+    n: __m512i,
+    /// All ones in the lanes of rays that hit.
+    hit: __m512i,
+    len: u32,
+}
+
+impl Ahead {
+    /// The rays of the lanes in `keep`, moved to the lowest lanes.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    fn of(keep: __mmask8, axes: &[AxisSetup; 3], p0: __m512i, n: __m512i, hit: __mmask8) -> Self {
+        let c = |v: __m512i| _mm512_maskz_compress_epi64(keep, v);
+        Ahead {
+            axes: axes.map(|a| AxisSetup {
+                t: c(a.t),
+                d: c(a.d),
+                last: c(a.last),
+                inc: c(a.inc),
+                n: a.n,
+            }),
+            p0: c(p0),
+            n: c(n),
+            hit: c(_mm512_movm_epi64(hit)),
+            len: keep.count_ones(),
+        }
+    }
+
+    /// Drop the first `k` rays.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    fn drop_first(&mut self, k: u32) {
+        self.len -= k;
+        if self.len == 0 {
+            return;
+        }
+        let rest = (((1u32 << self.len) - 1) << k) as __mmask8;
+        let c = |v: &mut __m512i| *v = _mm512_maskz_compress_epi64(rest, *v);
+        for a in &mut self.axes {
+            for v in [&mut a.t, &mut a.d, &mut a.last, &mut a.inc] {
+                c(v);
+            }
+        }
+        for v in [&mut self.p0, &mut self.n, &mut self.hit] {
+            c(v);
+        }
+    }
 }
 
 /// Start the rays of the lanes in `lanes` where they first leave `c`: the crossings before
@@ -734,6 +800,17 @@ struct AxisSetup {
     /// Index increment per step along the axis, and the steps.
     inc: __m512i,
     n: __m512i,
+}
+
+impl AxisSetup {
+    /// No rays.
+    const NONE: AxisSetup = AxisSetup {
+        t: per_lane(0),
+        d: per_lane(0),
+        last: per_lane(0),
+        inc: per_lane(0),
+        n: per_lane(0),
+    };
 }
 
 impl Axis {
