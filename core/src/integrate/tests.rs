@@ -371,8 +371,7 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
 #[test]
 fn dense_and_sparse_walks_agree() {
     let mut rng = Rng(29);
-    // Short rays and long (lanes refill three at a time or one, see
-    // `avx512::refill_at`), many rays in a small box (most marks repeat, see
+    // Short rays and long, many rays in a small box (most marks repeat, see
     // `avx512::walk_dense`), and a box too big for the dense grid.
     let mut frames: Vec<_> = [
         (5, 2.0),

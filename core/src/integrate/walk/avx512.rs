@@ -33,22 +33,6 @@ use std::ops::Range;
 /// `t + between` from overflowing, which `step` avoids by saturating.
 const T_CAP: u64 = 1 << 62;
 
-/// Lanes that end their rays before any is given a new one, for rays of `mean_steps` voxel
-/// steps on average. The set-up of new rays is one vectorised pass, as dear for one lane
-/// as for eight (about five steps' time); waiting for three ends makes it a third as
-/// frequent, but lanes idle meanwhile, for longer the longer the rays. Ray phase, one
-/// thread, min of 45 runs (noisy VM): structured 500k 6 m (62 steps a ray) 59.7 -> 54.8
-/// ms, random 500k 6 m 69.6 -> 67.5 ms; waiting for two or five ends was slower than for
-/// three. With the 590 steps a ray of structured 500k 60 m, waiting for three was slower
-/// (one run: 522 -> 757 ms), as idle lanes cost more than set-ups save past about 200.
-pub(super) fn refill_at(mean_steps: f64) -> u32 {
-    if mean_steps <= 150.0 {
-        3
-    } else {
-        1
-    }
-}
-
 /// Whether marks are tested before they are written, for a frame of `steps_per_voxel`
 /// estimated steps per voxel of its box: whether nearly all of them will find their bit
 /// set already, as in a scan with many more steps than its box has voxels (97-99.6% of the
@@ -63,8 +47,8 @@ pub(super) fn test_first(steps_per_voxel: f64) -> bool {
 
 /// Walk the rays `rays[ranges[l]]` from `origin`, lane `l` those of its range in turn,
 /// setting their free and hit bits in `bits`; returns voxels visited. The same voxels and
-/// count as `super::sparse::walk_rays`. `refill_at` and `test_first` are [`refill_at`] and
-/// [`test_first`] for the frame (tests force the latter).
+/// count as `super::sparse::walk_rays`. `test_first` is [`test_first`] for the frame (tests
+/// force it).
 ///
 /// Feed the lanes from far apart in direction. Lanes on neighbouring rays OR into the same
 /// word one after another near the sensor, and each OR then waits for the last: fed
@@ -77,7 +61,6 @@ pub(super) fn walk_dense(
     origin: [f64; 3],
     rays: &[Ray],
     ranges: [Range<usize>; 8],
-    refill_at: u32,
     test_first: bool,
     covered: Option<&Covered>,
 ) -> (u64, u64) {
@@ -90,17 +73,14 @@ pub(super) fn walk_dense(
         origin,
         rays,
         Feed::Ranges(ranges),
-        refill_at,
         covered,
     );
-    // Each choice is its own compiled loop, so that the loop for long rays with new marks
-    // does no more work than before these choices existed (as run-time flags, every loop
-    // kept the work of all of them).
-    match (refill_at > 1, test_first) {
-        (false, false) => walk::<false, _>(&mut DenseLanes::<false>::new(free, hits, sink), a),
-        (false, true) => walk::<false, _>(&mut DenseLanes::<true>::new(free, hits, sink), a),
-        (true, false) => walk::<true, _>(&mut DenseLanes::<false>::new(free, hits, sink), a),
-        (true, true) => walk::<true, _>(&mut DenseLanes::<true>::new(free, hits, sink), a),
+    // Each choice is its own compiled loop, so that the loop for new marks does no more
+    // work than before the choice existed.
+    if test_first {
+        walk(&mut DenseLanes::<true>::new(free, hits, sink), a)
+    } else {
+        walk(&mut DenseLanes::<false>::new(free, hits, sink), a)
     }
 }
 
@@ -111,12 +91,7 @@ pub(super) fn walk_dense(
 /// `cache` and in the CPU's caches. Each lane gathers its current brick's marks in its own
 /// words, so lanes never write the same word.
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn walk_sparse(
-    cache: &mut BrickCache<'_>,
-    origin: [f64; 3],
-    rays: &[Ray],
-    refill_at: u32,
-) -> u64 {
+pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let v = crate::coord::units_to_voxel(origin).expect("origin checked");
     let packed = Packed::around(v);
     let mut lanes = SparseLanes {
@@ -133,14 +108,9 @@ pub(super) fn walk_sparse(
         origin,
         rays,
         Feed::Next(0..rays.len()),
-        refill_at,
         None,
     );
-    let (steps, _) = if refill_at > 1 {
-        walk::<true, _>(&mut lanes, a)
-    } else {
-        walk::<false, _>(&mut lanes, a)
-    };
+    let (steps, _) = walk(&mut lanes, a);
     lanes.flush_queue();
     steps
 }
@@ -431,19 +401,19 @@ enum Feed {
 
 /// Walk the rays of `feed` from `origin`, telling `lanes` the voxels each lane visits;
 /// returns voxels visited. Voxel indices start at `start` (the origin's voxel) and change
-/// by `strides` per step. `WAIT`: whether lanes wait for `refill_at` of them to end their
-/// rays (otherwise each takes its next at once).
+/// by `strides` per step. A lane whose ray ends takes its next at once: the rays are set up
+/// ahead, so that costs a few lane moves. (When each refill set up its rays, lanes waited
+/// for three of them to end, idle meanwhile.)
 #[target_feature(enable = "avx512f,avx512dq")]
 #[allow(clippy::type_complexity)]
-fn walk<const WAIT: bool, L: Lanes>(
+fn walk<L: Lanes>(
     lanes: &mut L,
-    (start, strides, origin, rays, feed, refill_at, covered): (
+    (start, strides, origin, rays, feed, covered): (
         u64,
         [i64; 3],
         [f64; 3],
         &[Ray],
         Feed,
-        u32,
         Option<&Covered>,
     ),
 ) -> (u64, u64) {
@@ -597,12 +567,8 @@ fn walk<const WAIT: bool, L: Lanes>(
         if live == 0 {
             break;
         }
-        // Refill when `refill_at` lanes have ended their rays (or all have).
-        let wait = refill_at.min(live.count_ones());
-        let mut ended: __mmask8 = 0;
-        // Walk until `wait` lanes have ended their rays. An ended lane walks on, marking
-        // nothing, until the refill.
-        loop {
+        // Walk until a lane ends its ray.
+        let ended = loop {
             // SAFETY: this function requires AVX-512F and DQ, all `Lanes` methods need.
             unsafe { lanes.mark(&mut regs, p, live) };
             let was = p;
@@ -626,12 +592,9 @@ fn walk<const WAIT: bool, L: Lanes>(
             if end != 0 {
                 regs = lanes.ended(regs, p, end, end & hit);
                 live &= !end;
-                ended |= end;
-                if !WAIT || ended.count_ones() >= wait {
-                    break;
-                }
+                break end;
             }
-        }
+        };
         need = ended;
     }
     (to_array(steps).iter().sum(), skipped)

@@ -134,44 +134,40 @@ fn run_dense(
         false
     };
     #[cfg(target_arch = "x86_64")]
-    let (refill_at, test_first) = (
-        avx512::refill_at(steps / super::prepare::ray_count(sides).max(1) as f64),
-        avx512::test_first(steps / (dbox.words() as f64 * 64.0)),
-    );
-    let tasks = |stage: std::ops::Range<usize>,
-                 covered: Option<&covered::Covered>,
-                 test_first: bool| {
-        (0..2 * per_lane)
-            .into_par_iter()
-            .filter(move |t| stage.contains(&(t % per_lane)))
-            .map(|t| {
-                // Each pool thread has its own grids, so the lock is never contended.
-                let mut bits =
-                    lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
-                bits.begin(frame_no, dbox.words());
-                let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
-                #[cfg(not(target_arch = "x86_64"))]
-                let _ = test_first;
-                match kernel {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
-                    // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
-                    Kernel::Avx512 => unsafe {
-                        avx512::walk_dense(
-                            &mut bits, dbox, origin, rays, ranges, refill_at, test_first, covered,
-                        )
-                    },
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-                    // (`Kernel::supported`), which is all `walk_dense` needs.
-                    Kernel::Avx2 => unsafe {
-                        avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered)
-                    },
-                    _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
-                }
-            })
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
-    };
+    let test_first = avx512::test_first(steps / (dbox.words() as f64 * 64.0));
+    let tasks =
+        |stage: std::ops::Range<usize>, covered: Option<&covered::Covered>, test_first: bool| {
+            (0..2 * per_lane)
+                .into_par_iter()
+                .filter(move |t| stage.contains(&(t % per_lane)))
+                .map(|t| {
+                    // Each pool thread has its own grids, so the lock is never contended.
+                    let mut bits =
+                        lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
+                    bits.begin(frame_no, dbox.words());
+                    let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+                    #[cfg(not(target_arch = "x86_64"))]
+                    let _ = test_first;
+                    match kernel {
+                        #[cfg(target_arch = "x86_64")]
+                        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
+                        // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
+                        Kernel::Avx512 => unsafe {
+                            avx512::walk_dense(
+                                &mut bits, dbox, origin, rays, ranges, test_first, covered,
+                            )
+                        },
+                        #[cfg(target_arch = "x86_64")]
+                        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                        // (`Kernel::supported`), which is all `walk_dense` needs.
+                        Kernel::Avx2 => unsafe {
+                            avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered)
+                        },
+                        _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
+                    }
+                })
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+        };
     let find = || {
         dense::with_live(dense, frame_no, |live| {
             covered::Covered::find(live, dbox, origin, range, bounds, rays)
@@ -206,20 +202,16 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
     let &WalkInput {
         origin,
         rays,
-        steps,
         kernel,
         ..
     } = input;
     match kernel {
         #[cfg(target_arch = "x86_64")]
         Kernel::Avx512 => {
-            let refill_at = avx512::refill_at(steps / rays.len().max(1) as f64);
             rays.par_chunks(RAY_CHUNK)
                 // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
                 // and BW (`Kernel::supported`); `walk_sparse` needs F and DQ.
-                .map(|chunk| unsafe {
-                    avx512::walk_sparse(&mut marks.cache(), origin, chunk, refill_at)
-                })
+                .map(|chunk| unsafe { avx512::walk_sparse(&mut marks.cache(), origin, chunk) })
                 .sum()
         }
         #[cfg(target_arch = "x86_64")]
@@ -230,12 +222,10 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
                 .map(|chunk| unsafe { avx2::walk_sparse(&mut marks.cache(), origin, chunk) })
                 .sum()
         }
-        _ => {
-            let _ = steps;
-            rays.par_chunks(RAY_CHUNK)
-                .map(|chunk| sparse::walk_rays(marks, origin, chunk))
-                .sum()
-        }
+        _ => rays
+            .par_chunks(RAY_CHUNK)
+            .map(|chunk| sparse::walk_rays(marks, origin, chunk))
+            .sum(),
     }
 }
 
