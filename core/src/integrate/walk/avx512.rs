@@ -600,7 +600,9 @@ fn walk<L: Lanes>(
     (to_array(steps).iter().sum(), skipped)
 }
 
-/// Rays set up and not yet walked, in the lowest `len` lanes of their vectors.
+/// Rays set up and not yet walked, in the lowest `len` lanes of their vectors. (The axes'
+/// `n` are not moved along and not read: the steps left are `n` below. Fields of its own
+/// instead of `AxisSetup`s measured 10% slower, for reasons not investigated.)
 struct Ahead {
     axes: [AxisSetup; 3],
     p0: __m512i,
