@@ -535,12 +535,8 @@ fn walk<L: Lanes>(
                 continue;
             }
             // The lowest `len` lanes of `need` at most take the rays ahead, in order.
-            let mut take: __mmask8 = 0;
-            let mut left = need;
-            for _ in 0..ahead.len.min(need.count_ones()) {
-                take |= left & left.wrapping_neg();
-                left &= left - 1;
-            }
+            let take = (BitIter(u64::from(need)).take(ahead.len as usize))
+                .fold(0 as __mmask8, |m, l| m | 1 << l);
             let put =
                 |v: &mut __m512i, from: __m512i| *v = _mm512_mask_expand_epi64(*v, take, from);
             let [x, y, z] = &ahead.axes;

@@ -127,7 +127,7 @@ fn run_dense(
             start..start + n_front as usize
         }
     };
-    // Only the AVX-512 walk has these choices.
+    // Only the AVX-512 walk has this choice.
     #[cfg(not(target_arch = "x86_64"))]
     let test_first = {
         let _ = steps;
