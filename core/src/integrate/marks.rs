@@ -283,6 +283,17 @@ impl FrameMarks {
         }
     }
 
+    /// Run `f` with a cache of its own ([`Self::cache`]). Not inlined: a cache holds
+    /// [`BRICK_CACHE`] bricks (96 KiB), which, inlined into a rayon task, sat in each level
+    /// of rayon's recursion and overflowed a worker's 2 MiB stack.
+    #[inline(never)]
+    pub(in crate::integrate) fn with_cache<R>(
+        &self,
+        f: impl FnOnce(&mut BrickCache<'_>) -> R,
+    ) -> R {
+        f(&mut self.cache())
+    }
+
     pub(in crate::integrate) fn used_slots(&self) -> u32 {
         self.slots.used()
     }

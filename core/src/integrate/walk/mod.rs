@@ -211,7 +211,7 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
             rays.par_chunks(RAY_CHUNK)
                 // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
                 // and BW (`Kernel::supported`); `walk_sparse` needs F and DQ.
-                .map(|chunk| unsafe { avx512::walk_sparse(&mut marks.cache(), origin, chunk) })
+                .map(|chunk| marks.with_cache(|c| unsafe { avx512::walk_sparse(c, origin, chunk) }))
                 .sum()
         }
         #[cfg(target_arch = "x86_64")]
@@ -219,7 +219,7 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
             rays.par_chunks(RAY_CHUNK)
                 // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
                 // (`Kernel::supported`), which is all `walk_sparse` needs.
-                .map(|chunk| unsafe { avx2::walk_sparse(&mut marks.cache(), origin, chunk) })
+                .map(|chunk| marks.with_cache(|c| unsafe { avx2::walk_sparse(c, origin, chunk) }))
                 .sum()
         }
         _ => rays
