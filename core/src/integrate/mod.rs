@@ -175,6 +175,8 @@ pub struct PhaseTimes {
     pub prepare: Duration,
     /// Of `prepare`: a trade-off mode choosing its rays and dropping the others from the
     /// layout (zero in exact mode), what the mode costs before its walk saves anything.
+    /// Where rays are chosen as they are made, it counts their layout too, which the
+    /// exact mode also does: an upper bound.
     pub thin: Duration,
     pub raycast: Duration,
     pub merge: Duration,

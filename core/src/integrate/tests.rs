@@ -729,6 +729,19 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                 for (r, &k) in bulk.iter().zip(&keys) {
                     assert_eq!(k, cells.key(r), "{kernel:?}, factor {factor}, {r:?}");
                 }
+                // And their bits in the box about the sensor and in the frame's box.
+                let extent = super::prepare::bounds(&bulk, o);
+                let boxes = [
+                    super::thin::CellBox::around(o, range, &cells),
+                    super::thin::CellBox::new(&extent, &cells),
+                ];
+                for b in boxes.iter().flatten() {
+                    let mut bits = vec![0; bulk.len()];
+                    b.bits_of(&cells, kernel, &bulk, &mut bits);
+                    for (r, &k) in bulk.iter().zip(&bits) {
+                        assert_eq!(k, b.bit_of(&cells, r), "{kernel:?}, factor {factor}, {r:?}");
+                    }
+                }
             }
             let sum = |s: super::prepare::ExtentSum| {
                 let bits = |v: [f64; 3]| v.map(f64::to_bits);
@@ -931,4 +944,102 @@ fn trade_off_modes_cast_fewer_rays_and_stay_close() {
     );
     // A very fine subsample grid (1.6 mm) keeps nearly every ray.
     assert!(run(RayMode::Subsample { factor: 64 }).0.rays * 1000 > exact.rays * 999);
+}
+
+/// Subsample and unique-end cast exactly the rays a hash set in scan order keeps, on each
+/// of their three paths (rays chosen as they are made in the box about the sensor, chosen
+/// afterwards in the frame's box, or in hash partitions), with every kernel and thread
+/// count, and with buffers reused by frames of other sizes and modes: the same ends and
+/// hits, the cut ones counted, all within the extent.
+#[test]
+fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
+    use super::prepare::{prepare_rays, ray_count, Ray};
+    use super::thin::{cell_factor, thin_hashed, Buffers, CellBox, CellKeys};
+    let mut rng = Rng(21);
+    let tf = crate::coord::GridTransform::new(0.1).unwrap();
+    let mut frames: Vec<_> = [20_000, 5_000, 30_000]
+        .map(|n| random_frame(&mut rng, n, 8.0))
+        .into();
+    for (_, pts) in &mut frames {
+        for (i, p) in pts.iter_mut().enumerate() {
+            // Repeats: points on a lattice of 0.5 m; some not finite.
+            *p = p.map(|c| (c * 2.0).round() / 2.0);
+            if i % 101 == 0 {
+                p[i % 3] = f32::NAN;
+            }
+        }
+    }
+    // (range in metres, mode, which path).
+    let cases = [
+        (5.0, RayMode::UniqueEnd, "around"),
+        (5.0, RayMode::Subsample { factor: 2 }, "around"),
+        (30.0, RayMode::UniqueEnd, "extent"),
+        (5.0, RayMode::Subsample { factor: 4 }, "hashed"),
+    ];
+    let mut thin = Buffers::default();
+    let (mut rays, mut sides) = (Vec::new(), Vec::new());
+    for kernel in kernels("modes_keep_what_the_scan_order_hash_keeps_on_every_path") {
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for (&(range_m, mode, path), (pose, pts)) in cases.iter().zip(frames.iter().cycle()) {
+                let frame = Frame {
+                    pose: *pose,
+                    points: pts,
+                };
+                let origin = tf.point_to_units(&Point3::from(pose.translation.vector));
+                let range = range_m / tf.resolution();
+                let maker = RayMaker::new(&frame, &tf, origin, range, Kernel::Scalar);
+                let mut want: Vec<Ray> = (pts.iter().map(|p| maker.make(p)))
+                    .filter(|r| r.key != SKIPPED)
+                    .collect();
+                let made = want.clone();
+                thin_hashed(&mut want, origin, mode);
+                assert!(want.len() * 10 < made.len() * 9, "{mode:?}: few dropped");
+                let cells = CellKeys::new(origin, cell_factor(mode));
+                let around = CellBox::around(origin, range, &cells).is_some();
+                let extent = super::prepare::bounds(&made, origin);
+                let boxed = CellBox::new(&extent, &cells).is_some();
+                let took = match (around, boxed) {
+                    (true, _) => "around",
+                    (false, true) => "extent",
+                    (false, false) => "hashed",
+                };
+                assert_eq!(took, path, "{range_m} m, {mode:?}");
+                let (skipped, extent, _) = pool.install(|| {
+                    let halves = Sides::new(&frame, origin, threads);
+                    prepare_rays(
+                        &mut rays, &mut sides, halves, &frame, &tf, origin, range, mode, kernel,
+                        &mut thin,
+                    )
+                });
+                let cast: Vec<Ray> = (rays.chunks(RAY_CHUNK).zip(&sides))
+                    .flat_map(|(c, &[front, back])| {
+                        let (f, b) = (front as usize, back as usize);
+                        c[..f].iter().chain(&c[c.len() - b..]).copied()
+                    })
+                    .collect();
+                assert_eq!(cast.len() as u64, ray_count(&sides));
+                let ends = |v: &[Ray]| {
+                    let mut e: Vec<_> =
+                        v.iter().map(|r| (r.end.map(f64::to_bits), r.hit)).collect();
+                    e.sort_unstable();
+                    e
+                };
+                let at = format!("{path}: {mode:?}, {kernel:?} on {threads} threads");
+                assert!(ends(&cast) == ends(&want), "{at}");
+                assert_eq!(skipped as usize, pts.len() - made.len(), "{at}");
+                let cut = want.iter().filter(|r| !r.hit).count() as u64;
+                assert_eq!(extent.cut_rays, cut, "{at}");
+                let inside = |r: &Ray| {
+                    let v = r.end.map(|c| c.floor() as i32);
+                    (0..3)
+                        .all(|a| extent.lo.to_array()[a] <= v[a] && v[a] <= extent.hi.to_array()[a])
+                };
+                assert!(cast.iter().all(inside), "{at}");
+            }
+        }
+    }
 }

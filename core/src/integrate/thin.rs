@@ -2,16 +2,21 @@
 //! map. Each keeps the first ray of a kind in scan order, so its result does not depend on
 //! the thread count.
 //!
-//! The rays are made and laid out by sides as in exact mode, and the same pass notes each
+//! Unless chosen as they are made (below), the rays are made and laid out by sides as in
+//! exact mode, and the same pass notes each
 //! ray's cell key ([`CellKeys`]) in scan order and where the layout put it
 //! ([`ChunkOrder`]). The modes choose from the keys alone (8 bytes a ray, not the ray's
 //! 32), and the layout then drops what they drop (`prepare::compact`).
 //!
 //! Subsample and unique-end keep the first ray per cell (a sub-cell or the end voxel, and
-//! whether the ray hits). Over a frame whose cells fit [`DENSE_CELL_BITS`], each thread
-//! marks the cells of its own run of rays in a bit set over the frame's box, then drops
-//! the rays whose cell an earlier run saw ([`firsts_dense`]); larger frames take a hash set
-//! in scan order.
+//! whether the ray hits), on the first of three paths that fits:
+//! - where the box of cells within max range of the sensor fits [`DENSE_CELL_BITS`], the
+//!   rays are chosen as they are made, in a bit set per thread over that box, and the rays
+//!   dropped are never laid out ([`make_firsts`]): the 6 m frames of the paper;
+//! - where the frame's own box fits, each thread marks the cells of its own run of rays in
+//!   a bit set over it, then drops the rays whose cell an earlier run saw
+//!   ([`firsts_dense`]): long range, small scenes;
+//! - otherwise hash sets in scan order, by partition ([`firsts_hashed`]).
 //!
 //! Bundle groups the rays by end voxel: over a small frame's box with a counting sort by
 //! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
@@ -26,6 +31,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 #[cfg(target_arch = "x86_64")]
 mod avx2;
+mod firsts;
+
+pub(in crate::integrate) use firsts::{make_firsts, Chooser};
 
 /// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
 /// bits, 4 MiB per thread (and bit indices below 2^31).
@@ -54,6 +62,8 @@ pub(in crate::integrate) struct Buffers {
     /// `marked` names (runs, rays per run, rays), which `bits` still notes.
     sets: Vec<Vec<u64>>,
     marked: Option<(usize, usize, usize)>,
+    /// [`make_firsts`]'s sets and notes.
+    pub(in crate::integrate) firsts: firsts::Firsts,
 }
 
 impl Buffers {
@@ -590,7 +600,7 @@ fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
 
 /// The cells ([`CellKeys`]) over a frame's voxel box, indexed densely, each as two bits
 /// (hit or not), or one where every ray hits.
-struct CellBox {
+pub(in crate::integrate) struct CellBox {
     /// The key field of the box's first cell on each axis.
     lo: [i64; 3],
     dims: [u64; 3],
@@ -599,17 +609,35 @@ struct CellBox {
 }
 
 impl CellBox {
-    /// `None` when the box's cells need more than [`DENSE_CELL_BITS`] bits.
-    fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
-        let f = cells.f as i64;
+    /// The box of a frame's `extent`; `None` when its cells need more than
+    /// [`DENSE_CELL_BITS`] bits.
+    pub(in crate::integrate) fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
-        let lo = [0, 1, 2].map(|a| i64::from(lo[a]) * f - cells.base[a] as i64);
-        let dims =
-            [0, 1, 2].map(|a| ((i64::from(hi[a]) + 1) * f - cells.base[a] as i64 - lo[a]) as u64);
+        let hit_bit = u64::from(extent.cut_rays > 0);
+        Self::of_voxels(lo.map(i64::from), hi.map(i64::from), hit_bit, cells)
+    }
+
+    /// The box of every end a ray from `origin` (voxel units) can have, within `range`
+    /// voxels, with a voxel to spare each way for rounding; `None` when it needs more
+    /// than [`DENSE_CELL_BITS`] bits.
+    pub(in crate::integrate) fn around(
+        origin: [f64; 3],
+        range: f64,
+        cells: &CellKeys,
+    ) -> Option<Self> {
+        let lo = origin.map(|c| (c - range).floor() as i64 - 1);
+        let hi = origin.map(|c| (c + range).floor() as i64 + 1);
+        Self::of_voxels(lo, hi, 1, cells)
+    }
+
+    /// The box of voxels `lo..=hi`.
+    fn of_voxels(lo: [i64; 3], hi: [i64; 3], hit_bit: u64, cells: &CellKeys) -> Option<Self> {
+        let f = cells.f as i64;
+        let lo = [0, 1, 2].map(|a| lo[a] * f - cells.base[a] as i64);
+        let dims = [0, 1, 2].map(|a| ((hi[a] + 1) * f - cells.base[a] as i64 - lo[a]) as u64);
         let n = dims[0]
             .checked_mul(dims[1])
             .and_then(|c| c.checked_mul(dims[2]))?;
-        let hit_bit = u64::from(extent.cut_rays > 0);
         (n.checked_mul(1 << hit_bit)? <= DENSE_CELL_BITS).then_some(CellBox { lo, dims, hit_bit })
     }
 
@@ -617,9 +645,38 @@ impl CellBox {
         ((self.dims[0] * self.dims[1] * self.dims[2]) << self.hit_bit) as usize
     }
 
+    /// The bit of `r`'s cell, [`NONE`] for a skipped point's ray.
+    #[inline]
+    pub(in crate::integrate) fn bit_of(&self, cells: &CellKeys, r: &Ray) -> u64 {
+        match cells.key(r) {
+            NONE => NONE,
+            k => self.bit(k) as u64,
+        }
+    }
+
+    /// `out[i] = self.bit_of(cells, &rays[i])`, four at a time with the vector kernels.
+    pub(in crate::integrate) fn bits_of(
+        &self,
+        cells: &CellKeys,
+        kernel: Kernel,
+        rays: &[Ray],
+        out: &mut [u64],
+    ) {
+        let done = match kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
+            // AVX2 (`Kernel::supported`), which is all `avx2::bits` needs.
+            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::bits(self, cells, rays, out) },
+            _ => 0,
+        };
+        for (b, r) in out.iter_mut().zip(rays).skip(done) {
+            *b = self.bit_of(cells, r);
+        }
+    }
+
     /// The bit of a cell key (not [`NONE`]). Ends lie in the box, whose voxel bounds the
     /// extent gives; a float end on the box's upper face is clamped into its last cell.
-    #[inline]
+    #[inline(always)]
     fn bit(&self, key: u64) -> usize {
         // Spelled out per axis: as `[0, 1, 2].map` it was an out-of-line call per ray.
         let axis = |a: usize| {
@@ -679,7 +736,7 @@ fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
 /// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
 /// reference the faster paths are tested against.
 #[cfg(test)]
-fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
+pub(in crate::integrate) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
     use super::prepare::set_direction_keys;
     match mode {
         RayMode::Exact => {}

@@ -1,10 +1,11 @@
 //! Phase 1, prepare: a frame's points become rays in voxel units (pose, face snap,
 //! max-range cut), laid out by the sides of the sensor ([`Sides`]) as they are made, with
 //! the frame's extent summed up in the same pass ([`ExtentSum`]); the trade-off modes
-//! choose from notes of the same pass ([`super::thin`]) and drop the rest from the layout
-//! ([`compact`]); the sparse walk gets them sorted by direction ([`order_by_direction`]).
+//! choose in the same pass (subsample and unique-end in a box about the sensor) or from
+//! notes of it ([`super::thin`]) and drop the rest from the layout ([`compact`]); the
+//! sparse walk gets them sorted by direction ([`order_by_direction`]).
 
-use super::thin::{cell_factor, thin_out, Buffers, CellKeys, Kept};
+use super::thin::{cell_factor, make_firsts, thin_out, Buffers, CellBox, CellKeys, Chooser, Kept};
 use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
 use crate::kernel::Kernel;
@@ -125,6 +126,28 @@ pub(super) fn prepare_rays(
     rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
     sides.clear();
     sides.resize(n.div_ceil(RAY_CHUNK), [0; 2]);
+    let firsts = matches!(mode, RayMode::Subsample { .. } | RayMode::UniqueEnd);
+    let cells = CellKeys::new(origin, cell_factor(mode));
+    if let Some(cells_box) = (firsts)
+        .then(|| CellBox::around(origin, range_units, &cells))
+        .flatten()
+    {
+        // Every end the frame can have fits a bit set: the rays are chosen as they are
+        // made ([`make_firsts`]).
+        let how = Chooser {
+            maker: &maker,
+            halves: &halves,
+            cells: &cells,
+            cells_box: &cells_box,
+            centre: mode == RayMode::UniqueEnd,
+        };
+        let (sums, cut, took) = make_firsts(rays, sides, frame.points, how, &mut thin.firsts);
+        let mut extent = sums.extent();
+        let made = (n as u64 - sums.skipped).max(1) as f64;
+        extent.steps *= ray_count(sides) as f64 / made;
+        extent.cut_rays = cut;
+        return (sums.skipped, extent, took);
+    }
     let chunks = rays
         .par_chunks_mut(RAY_CHUNK)
         .zip(frame.points.par_chunks(RAY_CHUNK))
@@ -141,7 +164,6 @@ pub(super) fn prepare_rays(
         // The trade-off modes choose rays in scan order: the same pass notes each ray's
         // cell, in scan order, and where the layout put it, so that choosing reads 8 bytes
         // a ray instead of the ray, and dropping rays is a compaction of the layout.
-        let cells = CellKeys::new(origin, cell_factor(mode));
         let (keys, orders) = thin.notes(n);
         chunks
             .zip(keys.par_chunks_mut(RAY_CHUNK))
@@ -386,7 +408,6 @@ impl Sides {
         made: &[Ray],
         out: &mut [Ray],
     ) -> ([u32; 2], ChunkOrder) {
-        let (o, x) = (self.origin, self.axis.unwrap_or([0.0; 3]));
         let (mut front, mut back) = (0, out.len());
         let mut order = ChunkOrder::default();
         for (w, block) in made.chunks(64).enumerate() {
@@ -394,8 +415,7 @@ impl Sides {
             // loads and stores through the whole loop.
             let (mut ahead, mut made) = (0u64, 0u64);
             for (b, r) in block.iter().enumerate().filter(|(_, r)| r.key != SKIPPED) {
-                let d = [0, 1, 2].map(|a| r.end[a] - o[a]);
-                let behind = d[0] * x[0] + d[1] * x[1] + d[2] * x[2] < 0.0;
+                let behind = self.behind(r.end);
                 // A select, not a branch: the side is a coin flip in many scans. A ray is
                 // left to place, so `front < back`.
                 out[if behind { back - 1 } else { front }] = *r;
@@ -409,6 +429,14 @@ impl Sides {
         }
         out[front..back].fill(Ray::new([0.0; 3], SKIPPED, false));
         ([front as u32, (out.len() - back) as u32], order)
+    }
+
+    /// Whether a ray to `end` lies behind the plane (never, across no axis).
+    #[inline]
+    pub(in crate::integrate) fn behind(&self, end: [f64; 3]) -> bool {
+        let (o, x) = (self.origin, self.axis.unwrap_or([0.0; 3]));
+        let d = [0, 1, 2].map(|a| end[a] - o[a]);
+        d[0] * x[0] + d[1] * x[1] + d[2] * x[2] < 0.0
     }
 
     /// [`Sides::lay_out`] of `chunk` into itself, through `scratch`.

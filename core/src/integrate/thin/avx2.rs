@@ -1,6 +1,7 @@
-//! Cell keys on AVX2: four rays at a time, bit for bit as [`CellKeys::key`].
+//! Cell keys and bits on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
+//! [`CellBox::bit_of`].
 
-use super::{CellKeys, Ray};
+use super::{CellBox, CellKeys, Ray};
 use std::arch::x86_64::*;
 
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
@@ -39,6 +40,47 @@ pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
         );
         // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
         unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), key) };
+    }
+    n
+}
+
+/// `out[i] = b.bit_of(c, &rays[i])` for four rays at a time; returns how many it did, a
+/// multiple of four. In doubles: every value is an integer below 2^26, exact.
+#[target_feature(enable = "avx2")]
+pub(super) fn bits(b: &CellBox, c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
+    let n = rays.len().min(out.len()) / 4 * 4;
+    let f = _mm256_set1_pd(c.f);
+    let off = [0, 1, 2].map(|a| _mm256_set1_pd(c.base[a] + b.lo[a] as f64));
+    let last = b.dims.map(|d| _mm256_set1_pd((d - 1) as f64));
+    let [dx, dy] = [0, 1].map(|a| _mm256_set1_pd(b.dims[a] as f64));
+    let zero = _mm256_setzero_pd();
+    let low32 = _mm256_set1_epi64x(0xffff_ffff);
+    let hit_bit = _mm256_set1_epi64x(b.hit_bit as i64);
+    let shift = _mm_set_epi64x(0, b.hit_bit as i64);
+    for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
+        let p = r4.as_ptr().cast::<f64>();
+        // SAFETY: as in `keys`.
+        let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
+        let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1));
+        let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3));
+        let x = _mm256_permute2f128_pd::<0x20>(t0, t2);
+        let y = _mm256_permute2f128_pd::<0x20>(t1, t3);
+        let z = _mm256_permute2f128_pd::<0x31>(t0, t2);
+        let w = _mm256_castpd_si256(_mm256_permute2f128_pd::<0x31>(t1, t3));
+        let [cx, cy, cz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
+            let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, f)), off[a]);
+            _mm256_min_pd(_mm256_max_pd(cell, zero), last[a])
+        });
+        let cell = _mm256_add_pd(
+            _mm256_mul_pd(_mm256_add_pd(_mm256_mul_pd(cz, dy), cy), dx),
+            cx,
+        );
+        let cell = _mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell));
+        let hit = _mm256_and_si256(_mm256_srli_epi64::<32>(w), hit_bit);
+        let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
+        let bit = _mm256_or_si256(_mm256_sll_epi64(cell, shift), _mm256_or_si256(hit, skipped));
+        // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
+        unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), bit) };
     }
     n
 }
