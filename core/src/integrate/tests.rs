@@ -729,17 +729,23 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                 for (r, &k) in bulk.iter().zip(&keys) {
                     assert_eq!(k, cells.key(r), "{kernel:?}, factor {factor}, {r:?}");
                 }
-                // And their bits in the box about the sensor and in the frame's box.
+                // And their notes in the box about the sensor and in the frame's box.
                 let extent = super::prepare::bounds(&bulk, o);
                 let boxes = [
                     super::thin::CellBox::around(o, range, &cells),
                     super::thin::CellBox::new(&extent, &cells),
                 ];
-                for b in boxes.iter().flatten() {
-                    let mut bits = vec![0; bulk.len()];
-                    b.bits_of(&cells, kernel, &bulk, &mut bits);
-                    for (r, &k) in bulk.iter().zip(&bits) {
-                        assert_eq!(k, b.bit_of(&cells, r), "{kernel:?}, factor {factor}, {r:?}");
+                let sides = [None, Some([0.6, -0.8, 0.0])].map(|axis| Sides { origin: o, axis });
+                for (b, s) in boxes
+                    .iter()
+                    .flatten()
+                    .flat_map(|b| sides.iter().map(move |s| (b, s)))
+                {
+                    let mut notes = vec![0; bulk.len()];
+                    b.notes_of(&cells, s, kernel, &bulk, &mut notes);
+                    for (r, &k) in bulk.iter().zip(&notes) {
+                        let want = b.note_of(&cells, s, r);
+                        assert_eq!(k, want, "{kernel:?}, factor {factor}, {r:?}");
                     }
                 }
             }

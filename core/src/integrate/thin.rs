@@ -22,7 +22,7 @@
 //! cell ([`bundle_dense`]), over larger ones in hash tables by partition ([`bundle`]).
 //! Both sum a group's ends in scan order, so the mean is the same on any thread count.
 
-use super::prepare::{direction_key, ChunkOrder, Extent, Ones, Ray, RAY_CHUNK, SKIPPED};
+use super::prepare::{direction_key, ChunkOrder, Extent, Ones, Ray, Sides, RAY_CHUNK, SKIPPED};
 use super::RayMode;
 use crate::kernel::Kernel;
 use hashbrown::{HashMap, HashSet};
@@ -257,6 +257,9 @@ enum Keep<'a> {
         per: usize,
     },
 }
+
+/// Marks a cell's bit in [`CellBox::note_of`] as that of a ray behind the sides' plane.
+pub(in crate::integrate) const BEHIND: u64 = 1 << 33;
 
 /// Marks a noted cell bit first in its run ([`Keep::Firsts`]).
 const FIRST: u32 = 1 << 31;
@@ -645,19 +648,22 @@ impl CellBox {
         ((self.dims[0] * self.dims[1] * self.dims[2]) << self.hit_bit) as usize
     }
 
-    /// The bit of `r`'s cell, [`NONE`] for a skipped point's ray.
+    /// The bit of `r`'s cell, with [`BEHIND`] if `r` lies behind the plane of `halves`;
+    /// [`NONE`] for a skipped point's ray.
     #[inline]
-    pub(in crate::integrate) fn bit_of(&self, cells: &CellKeys, r: &Ray) -> u64 {
+    pub(in crate::integrate) fn note_of(&self, cells: &CellKeys, halves: &Sides, r: &Ray) -> u64 {
         match cells.key(r) {
             NONE => NONE,
-            k => self.bit(k) as u64,
+            k => self.bit(k) as u64 | if halves.behind(r.end) { BEHIND } else { 0 },
         }
     }
 
-    /// `out[i] = self.bit_of(cells, &rays[i])`, four at a time with the vector kernels.
-    pub(in crate::integrate) fn bits_of(
+    /// `out[i] = self.note_of(cells, halves, &rays[i])`, four at a time with the vector
+    /// kernels.
+    pub(in crate::integrate) fn notes_of(
         &self,
         cells: &CellKeys,
+        halves: &Sides,
         kernel: Kernel,
         rays: &[Ray],
         out: &mut [u64],
@@ -665,12 +671,12 @@ impl CellBox {
         let done = match kernel {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
-            // AVX2 (`Kernel::supported`), which is all `avx2::bits` needs.
-            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::bits(self, cells, rays, out) },
+            // AVX2 (`Kernel::supported`), which is all `avx2::notes` needs.
+            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::notes(self, cells, halves, rays, out) },
             _ => 0,
         };
         for (b, r) in out.iter_mut().zip(rays).skip(done) {
-            *b = self.bit_of(cells, r);
+            *b = self.note_of(cells, halves, r);
         }
     }
 

@@ -1,7 +1,7 @@
-//! Cell keys and bits on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
-//! [`CellBox::bit_of`].
+//! Cell keys and notes on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
+//! [`CellBox::note_of`].
 
-use super::{CellBox, CellKeys, Ray};
+use super::{CellBox, CellKeys, Ray, Sides, BEHIND};
 use std::arch::x86_64::*;
 
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
@@ -44,18 +44,28 @@ pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
     n
 }
 
-/// `out[i] = b.bit_of(c, &rays[i])` for four rays at a time; returns how many it did, a
-/// multiple of four. In doubles: every value is an integer below 2^26, exact.
+/// `out[i] = b.note_of(c, halves, &rays[i])` for four rays at a time; returns how many it
+/// did, a multiple of four. The cell in doubles: every value is an integer below 2^26,
+/// exact; the side with the scalar code's operations in its order.
 #[target_feature(enable = "avx2")]
-pub(super) fn bits(b: &CellBox, c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
+pub(super) fn notes(
+    b: &CellBox,
+    c: &CellKeys,
+    halves: &Sides,
+    rays: &[Ray],
+    out: &mut [u64],
+) -> usize {
     let n = rays.len().min(out.len()) / 4 * 4;
     let f = _mm256_set1_pd(c.f);
     let off = [0, 1, 2].map(|a| _mm256_set1_pd(c.base[a] + b.lo[a] as f64));
     let last = b.dims.map(|d| _mm256_set1_pd((d - 1) as f64));
     let [dx, dy] = [0, 1].map(|a| _mm256_set1_pd(b.dims[a] as f64));
+    let o = halves.origin.map(|v| _mm256_set1_pd(v));
+    let axis = halves.axis.unwrap_or([0.0; 3]).map(|v| _mm256_set1_pd(v));
     let zero = _mm256_setzero_pd();
     let low32 = _mm256_set1_epi64x(0xffff_ffff);
     let hit_bit = _mm256_set1_epi64x(b.hit_bit as i64);
+    let behind = _mm256_set1_epi64x(BEHIND as i64);
     let shift = _mm_set_epi64x(0, b.hit_bit as i64);
     for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
         let p = r4.as_ptr().cast::<f64>();
@@ -78,9 +88,22 @@ pub(super) fn bits(b: &CellBox, c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> 
         let cell = _mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell));
         let hit = _mm256_and_si256(_mm256_srli_epi64::<32>(w), hit_bit);
         let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
-        let bit = _mm256_or_si256(_mm256_sll_epi64(cell, shift), _mm256_or_si256(hit, skipped));
+        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
+        let [d0, d1, d2] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| _mm256_sub_pd(v, o[a]));
+        let dot = _mm256_add_pd(
+            _mm256_add_pd(_mm256_mul_pd(d0, axis[0]), _mm256_mul_pd(d1, axis[1])),
+            _mm256_mul_pd(d2, axis[2]),
+        );
+        let back = _mm256_and_si256(
+            _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)),
+            behind,
+        );
+        let note = _mm256_or_si256(
+            _mm256_or_si256(_mm256_sll_epi64(cell, shift), back),
+            _mm256_or_si256(hit, skipped),
+        );
         // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
-        unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), bit) };
+        unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), note) };
     }
     n
 }

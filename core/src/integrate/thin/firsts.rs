@@ -9,7 +9,7 @@
 //! marked. That keeps the first ray of each cell in scan order, as the other paths of
 //! [`super::thin_out`] do, on any thread count.
 
-use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, NONE};
+use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
 use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
@@ -142,15 +142,15 @@ fn make_run(
         maker.make_all(made, pts);
         sum = ExtentSum::join(sum, ExtentSum::of(origin, made, maker.kernel));
         let t = Instant::now();
-        how.cells_box.bits_of(how.cells, maker.kernel, made, notes);
+        how.cells_box
+            .notes_of(how.cells, how.halves, maker.kernel, made, notes);
         // First the cells, marked with nothing else depending on the set's words, so that
         // their cache misses overlap; then the layout, from the notes.
         mark(notes, set);
         if how.centre {
             made.iter_mut().for_each(|r| *r = to_centre(r));
         }
-        let (front, back, kept_cut) =
-            lay_out(how.halves, made, notes, out, placed, &mut marked[*count..]);
+        let (front, back, kept_cut) = lay_out(made, notes, out, placed, &mut marked[*count..]);
         *count += front + (out.len() - back);
         cut += kept_cut;
         *side = [front as u32, (out.len() - back) as u32];
@@ -159,26 +159,25 @@ fn make_run(
     (sum, cut, took)
 }
 
-/// Mark each cell bit of `notes` (but [`NONE`]) in `set`, noting 1 << 32 with it if `set`
-/// did not have it. This and [`lay_out`] are functions of their own: inlined into the
+/// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
+/// 1 << 32 to the note if `set` did not have it. This and [`lay_out`] are functions of their own: inlined into the
 /// run's loop, their counters lived on the stack, and the layout took half again as long.
 #[inline(never)]
 fn mark(notes: &mut [u64], set: &mut [u64]) {
     for k in notes.iter_mut().filter(|k| **k != NONE) {
-        let b = *k as usize;
+        let b = *k as u32 as usize;
         let (w, m) = (b / 64, 1u64 << (b % 64));
         let first = set[w] & m == 0;
         set[w] |= m;
-        *k = b as u64 | u64::from(first) << 32;
+        *k |= u64::from(first) << 32;
     }
 }
 
-/// Lay out the rays `made` whose note in `notes` (cell bit, and 1 << 32 if the first of
-/// its cell) says first, into `out` by sides, their cell bits into `placed` by place and
-/// into `marked` in order; returns the sides' ends (front, back) and the cut rays laid out.
+/// Lay out the rays `made` whose note in `notes` ([`mark`]'s) says first of their cell,
+/// into `out` by the sides the notes give, their cell bits into `placed` by place and into
+/// `marked` in order; returns the sides' ends (front, back) and the cut rays laid out.
 #[inline(never)]
 fn lay_out(
-    halves: &Sides,
     made: &[Ray],
     notes: &[u64],
     out: &mut [Ray],
@@ -190,13 +189,12 @@ fn lay_out(
         if k == NONE {
             continue;
         }
-        let (b, first) = (k as u32, k >> 32 == 1);
+        let (b, first, behind) = (k as u32, k >> 32 & 1 == 1, k & BEHIND != 0);
         // Written whatever the ray, counted only for the first: no branch on a cell's
         // novelty, a coin flip in many scans. Each ray laid out or not leaves a place
         // between `front` and `back`, and in `marked`.
         marked[count] = b;
         count += usize::from(first);
-        let behind = halves.behind(r.end);
         let place = if behind { back - 1 } else { front };
         out[place] = *r;
         placed[place] = b;
