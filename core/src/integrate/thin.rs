@@ -3,10 +3,10 @@
 //! the thread count.
 //!
 //! Unless chosen as they are made (below), the rays are made and laid out by sides as in
-//! exact mode, and the same pass notes each
-//! ray's cell key ([`CellKeys`]) in scan order and where the layout put it
-//! ([`ChunkOrder`]). The modes choose from the keys alone (8 bytes a ray, not the ray's
-//! 32), and the layout then drops what they drop (`prepare::compact`).
+//! exact mode, and the same pass notes each ray's cell key ([`CellKeys`]) in scan order
+//! and where the layout put it ([`ChunkOrder`]). The modes choose from the keys alone (8
+//! bytes a ray, not the ray's 32), and the layout then drops what they drop
+//! (`prepare::compact`).
 //!
 //! Subsample and unique-end keep the first ray per cell (a sub-cell or the end voxel, and
 //! whether the ray hits), on the first of three paths that fits:
@@ -601,8 +601,8 @@ fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
     }
 }
 
-/// The cells ([`CellKeys`]) over a frame's voxel box, indexed densely, each as two bits
-/// (hit or not), or one where every ray hits.
+/// The cells ([`CellKeys`]) over a box of voxels (a frame's, or all a sensor's rays can
+/// reach), indexed densely, each as two bits (hit or not), or one where every ray hits.
 pub(in crate::integrate) struct CellBox {
     /// The key field of the box's first cell on each axis.
     lo: [i64; 3],
@@ -682,7 +682,7 @@ impl CellBox {
 
     /// The bit of a cell key (not [`NONE`]). Ends lie in the box, whose voxel bounds the
     /// extent gives; a float end on the box's upper face is clamped into its last cell.
-    #[inline(always)]
+    #[inline]
     fn bit(&self, key: u64) -> usize {
         // Spelled out per axis: as `[0, 1, 2].map` it was an out-of-line call per ray.
         let axis = |a: usize| {

@@ -3,8 +3,9 @@
 //! [`DENSE_CELL_BITS`](super::DENSE_CELL_BITS).
 //!
 //! The frame's points are cut into runs in scan order, one per thread. A run makes its
-//! rays chunk by chunk and marks each ray's cell in a bit set of its own; a ray whose cell
-//! the run had marked is not laid out at all, so nothing moves it or drops it later. The
+//! rays chunk by chunk, notes each ray's cell bit and side four rays at a time, and marks
+//! the cells in a bit set of its own; a ray whose cell the run had marked is not laid out
+//! at all, so nothing moves it or drops it later. The
 //! runs after the first then drop from their layout the rays whose cell an earlier run
 //! marked. That keeps the first ray of each cell in scan order, as the other paths of
 //! [`super::thin_out`] do, on any thread count.
