@@ -4,11 +4,31 @@
 use super::{CellBox, CellKeys, Ray, Sides, BEHIND};
 use std::arch::x86_64::*;
 
+/// Four rays (`rays.len() == 4`) as lanes: their x, y and z, and the word of key (bits
+/// 0-31) and hit flag (bit 32).
+#[target_feature(enable = "avx2")]
+#[inline]
+fn load4(rays: &[Ray]) -> [__m256d; 4] {
+    const _: () = assert!(std::mem::size_of::<Ray>() == 32);
+    assert_eq!(rays.len(), 4);
+    let p = rays.as_ptr().cast::<f64>();
+    // SAFETY: four `repr(C)` rays of 32 bytes, every byte initialised (explicit padding):
+    // load `j` reads ray `j` whole, as x, y, z and the word of key and hit.
+    let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
+    let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1)); // x0 x1 z0 z1, y0 y1 w0 w1
+    let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3)); // x2 x3 z2 z3, y2 y3 w2 w3
+    [
+        _mm256_permute2f128_pd::<0x20>(t0, t2),
+        _mm256_permute2f128_pd::<0x20>(t1, t3),
+        _mm256_permute2f128_pd::<0x31>(t0, t2),
+        _mm256_permute2f128_pd::<0x31>(t1, t3),
+    ]
+}
+
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
 /// multiple of four. The rest is left to the caller.
 #[target_feature(enable = "avx2")]
 pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
-    const _: () = assert!(std::mem::size_of::<Ray>() == 32);
     let n = rays.len().min(out.len()) / 4 * 4;
     let f = _mm256_set1_pd(c.f);
     let base = c.base.map(|b| _mm256_set1_pd(b));
@@ -16,17 +36,8 @@ pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
     let low32 = _mm256_set1_epi64x(0xffff_ffff);
     let top = _mm256_set1_epi64x(i64::MIN);
     for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
-        let p = r4.as_ptr().cast::<f64>();
-        // SAFETY: four `repr(C)` rays of 32 bytes, every byte initialised (explicit
-        // padding): load `j` reads ray `j` whole, as x, y, z and the word of key and hit.
-        let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
-        let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1)); // x0 x1 z0 z1, y0 y1 w0 w1
-        let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3)); // x2 x3 z2 z3, y2 y3 w2 w3
-        let x = _mm256_permute2f128_pd::<0x20>(t0, t2);
-        let y = _mm256_permute2f128_pd::<0x20>(t1, t3);
-        let z = _mm256_permute2f128_pd::<0x31>(t0, t2);
-        // The key (bits 0-31) and the hit flag (bit 32) of each ray.
-        let w = _mm256_castpd_si256(_mm256_permute2f128_pd::<0x31>(t1, t3));
+        let [x, y, z, w] = load4(r4);
+        let w = _mm256_castpd_si256(w);
         let [kx, ky, kz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
             let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, f)), base[a]);
             // Fields of rays within max range fit 21 bits (see `CellKeys`): exact in i32.
@@ -68,15 +79,8 @@ pub(super) fn notes(
     let behind = _mm256_set1_epi64x(BEHIND as i64);
     let shift = _mm_set_epi64x(0, b.hit_bit as i64);
     for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
-        let p = r4.as_ptr().cast::<f64>();
-        // SAFETY: as in `keys`.
-        let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
-        let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1));
-        let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3));
-        let x = _mm256_permute2f128_pd::<0x20>(t0, t2);
-        let y = _mm256_permute2f128_pd::<0x20>(t1, t3);
-        let z = _mm256_permute2f128_pd::<0x31>(t0, t2);
-        let w = _mm256_castpd_si256(_mm256_permute2f128_pd::<0x31>(t1, t3));
+        let [x, y, z, w] = load4(r4);
+        let w = _mm256_castpd_si256(w);
         let [cx, cy, cz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
             let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, f)), off[a]);
             _mm256_min_pd(_mm256_max_pd(cell, zero), last[a])
