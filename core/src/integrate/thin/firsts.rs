@@ -161,8 +161,9 @@ fn make_run(
 }
 
 /// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
-/// 1 << 32 to the note if `set` did not have it. This and [`lay_out`] are functions of their own: inlined into the
-/// run's loop, their counters lived on the stack, and the layout took half again as long.
+/// 1 << 32 to the note if `set` did not have it. This and [`lay_out`] are functions of
+/// their own: inlined into the run's loop, their counters lived on the stack, and the
+/// layout took half again as long.
 #[inline(never)]
 fn mark(notes: &mut [u64], set: &mut [u64]) {
     for k in notes.iter_mut().filter(|k| **k != NONE) {
