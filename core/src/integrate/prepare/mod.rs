@@ -126,12 +126,14 @@ pub(super) fn prepare_rays(
     rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
     sides.clear();
     sides.resize(n.div_ceil(RAY_CHUNK), [0; 2]);
-    let firsts = matches!(mode, RayMode::Subsample { .. } | RayMode::UniqueEnd);
     let cells = CellKeys::new(origin, cell_factor(mode));
-    if let Some(cells_box) = (firsts)
-        .then(|| CellBox::around(origin, range_units, &cells))
-        .flatten()
-    {
+    let around = match mode {
+        RayMode::Subsample { .. } | RayMode::UniqueEnd => {
+            CellBox::around(origin, range_units, &cells)
+        }
+        RayMode::Exact | RayMode::Bundle { .. } => None,
+    };
+    if let Some(cells_box) = around {
         // Every end the frame can have fits a bit set: the rays are chosen as they are
         // made ([`make_firsts`]).
         let how = Chooser {
@@ -142,11 +144,7 @@ pub(super) fn prepare_rays(
             centre: mode == RayMode::UniqueEnd,
         };
         let (sums, cut, took) = make_firsts(rays, sides, frame.points, how, &mut thin.firsts);
-        let mut extent = sums.extent();
-        let made = (n as u64 - sums.skipped).max(1) as f64;
-        extent.steps *= ray_count(sides) as f64 / made;
-        extent.cut_rays = cut;
-        return (sums.skipped, extent, took);
+        return (sums.skipped, kept_extent(&sums, n, sides, cut), took);
     }
     let chunks = rays
         .par_chunks_mut(RAY_CHUNK)
@@ -180,17 +178,23 @@ pub(super) fn prepare_rays(
     if mode == RayMode::Exact {
         return (skipped, sums.extent(), std::time::Duration::ZERO);
     }
-    let mut extent = sums.extent();
     let t = std::time::Instant::now();
-    let (kept, orders) = thin_out(rays, origin, mode, &extent, thin);
+    let (kept, orders) = thin_out(rays, origin, mode, &sums.extent(), thin);
     let cut = compact(rays, sides, orders, &kept);
     let thinned = t.elapsed();
-    // The box of all rays holds those kept (a kept ray moves only within its end voxel);
-    // the walk's length is taken as the share of rays kept.
-    let made = (n as u64 - skipped).max(1) as f64;
+    (skipped, kept_extent(&sums, n, sides, cut), thinned)
+}
+
+/// The extent of the rays a trade-off mode kept of a frame's `points` (laid out with the
+/// counts `sides`, `cut` of them cut at max range), from the sum over all rays made: the
+/// box of all rays holds those kept (a kept ray moves only within its end voxel), and the
+/// walk's length is taken as the share of rays kept.
+fn kept_extent(sums: &ExtentSum, points: usize, sides: &[[u32; 2]], cut: u64) -> Extent {
+    let mut extent = sums.extent();
+    let made = (points as u64 - sums.skipped).max(1) as f64;
     extent.steps *= ray_count(sides) as f64 / made;
     extent.cut_rays = cut;
-    (skipped, extent, thinned)
+    extent
 }
 
 /// Drop from the layout of each chunk the rays `kept` does not keep (a bundle's mean is
