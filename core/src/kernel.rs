@@ -120,6 +120,15 @@ impl Kernel {
     }
 }
 
+/// Print a test's notice that it skips a kernel, straight to the process's stderr: the
+/// test harness captures `eprintln!` and shows it only for failed tests, and a skipped
+/// kernel must be seen in every run, not silently absent.
+#[cfg(test)]
+pub(crate) fn skip_notice(what: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "NOTICE: {what}");
+}
+
 impl std::str::FromStr for Kernel {
     type Err = KernelError;
 

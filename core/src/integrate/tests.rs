@@ -43,10 +43,10 @@ fn integrator(threads: usize, max_range: f64, mode: RayMode) -> Integrator {
 fn kernel_or_notice(kernel: Kernel, test: &str) -> bool {
     let yes = kernel.supported();
     if !yes {
-        eprintln!(
-            "NOTICE: {test}: the {} kernel is skipped, this CPU lacks its instructions",
+        crate::kernel::skip_notice(format_args!(
+            "{test}: the {} kernel is skipped, this CPU lacks its instructions",
             kernel.name()
-        );
+        ));
     }
     yes
 }

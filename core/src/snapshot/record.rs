@@ -593,7 +593,9 @@ mod tests {
         }
         let avx512 = Avx512Encode::detect();
         if avx512.is_none() {
-            eprintln!("NOTICE: the AVX-512 record encoder is skipped (CPU or VOXMAP_KERNEL)");
+            crate::kernel::skip_notice(format_args!(
+                "the AVX-512 record encoder is skipped (CPU or VOXMAP_KERNEL)"
+            ));
         }
         for (known, occ) in masks {
             let (ck, co) = (choose_known(&known), choose_occupied(&occ));

@@ -1,20 +1,22 @@
-//! The raycast walks on AVX2: four rays at once, one per 64-bit lane. One walk
-//! ([`walk`]), two ways to keep marks ([`Marks`]):
-//! - dense ([`walk_dense`]): a voxel is its bit index in the thread's [`DenseBits`], so a
-//!   step is one add and a mark one OR into memory that stays in cache;
-//! - sparse ([`walk_sparse`]): a voxel is [`Packed`]; each lane stores its current plane's
-//!   marks, and the voxel, to its current brick's entry on every step, and moves to its
-//!   next entry when it leaves the brick, so a step has no branch ([`SparseMarks`]); the
-//!   bricks are OR-ed into the frame's tables after each burst of steps.
+//! The raycast walks on AVX2: four rays at once, one per 64-bit lane, set up four at a
+//! time in queues ([`Queue`]; [`Axis::setup`], bit for bit `raycast::axis`):
+//! - dense ([`walk_dense`], [`walk_groups`]): a voxel is its bit index in the thread's
+//!   [`DenseBits`], so a step is one add and a mark one OR into memory that stays in
+//!   cache. A group of four rays is walked together for as many steps as its longest, a
+//!   lane whose ray ended marking a sink, so the loop is left once per group;
+//! - sparse ([`walk_sparse`], [`walk`]): a voxel is [`Packed`]; each lane stores its
+//!   current plane's marks, and the voxel, to its current brick's entry on every step,
+//!   and moves to its next entry when it leaves the brick, so a step has no branch
+//!   ([`SparseMarks`]); every lane walks as many steps as the live lane with the fewest
+//!   left, then the bricks are OR-ed into the frame's tables and the lanes whose rays
+//!   ended take their next.
 //!
 //! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters, no compress and
 //! no conversion from doubles to 64-bit integers, so this is not the AVX-512 walk
 //! narrowed: the lane masks are vectors (all ones or all zeros per lane), a finished
-//! axis's next crossing is `i64::MAX` so that signed compares order the crossings, each
-//! lane's rays are set up four at a time into a queue of its own ([`Axis::setup`], bit
-//! for bit `raycast::axis`), every lane walks as many steps as the live lane with the
-//! fewest left (so the loop tests no lane for its end), and marks are written lane by lane
-//! in scalar code, without being read first (see [`walk_dense`]).
+//! axis's next crossing is `i64::MAX` so that signed compares order the crossings, and
+//! dense marks are written lane by lane in scalar code, without being read first (see
+//! [`walk_dense`]).
 //! Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and end
 //! voxel as `super::dense::walk_rays` and `super::sparse::walk_rays`. The dense walk stays
 //! inside the box because the origin's voxel and every end voxel are checked to be in it:
@@ -135,45 +137,39 @@ impl Axis {
     }
 }
 
-/// Each lane's rays: its current range, then the ones left to hand out.
+/// The rays to walk: ranges of `rays`, taken in order.
 struct Feed<'r> {
     rays: &'r [Ray],
-    cur: [usize; 4],
-    lim: [usize; 4],
-    spare: [Range<usize>; 4],
-    spare_left: usize,
-    /// Whether all lanes take the next rays of lane 0's range in turn.
-    shared: bool,
+    ranges: [Range<usize>; 8],
+    at: usize,
 }
 
-impl Feed<'_> {
-    /// Lane `l`'s next ray: from its range, else a spare range, else half of what the
-    /// lane with the most left has (as the AVX-512 walk shares).
-    fn next(&mut self, l: usize) -> Option<&Ray> {
-        let l = if self.shared { 0 } else { l };
-        if self.cur[l] >= self.lim[l] {
-            if self.spare_left > 0 {
-                self.spare_left -= 1;
-                let r = self.spare[self.spare_left].clone();
-                (self.cur[l], self.lim[l]) = (r.start, r.end);
-            } else {
-                let (j, left) = (0..4)
-                    .map(|j| (j, self.lim[j].saturating_sub(self.cur[j])))
-                    .max_by_key(|&(_, left)| left)?;
-                if left < 2 {
-                    return None;
-                }
-                let mid = self.cur[j] + left / 2;
-                (self.cur[l], self.lim[l]) = (mid, self.lim[j]);
-                self.lim[j] = mid;
+impl<'r> Feed<'r> {
+    fn new(rays: &'r [Ray], ranges: [Range<usize>; 8]) -> Self {
+        Feed {
+            rays,
+            ranges,
+            at: 0,
+        }
+    }
+
+    fn next(&mut self) -> Option<&'r Ray> {
+        while let Some(r) = self.ranges.get_mut(self.at) {
+            if let Some(i) = r.next() {
+                return Some(&self.rays[i]);
             }
-            if self.cur[l] >= self.lim[l] {
-                return self.next(l);
+            self.at += 1;
+        }
+        None
+    }
+
+    /// Ask for the cache lines of the next `4 * GROUPS` rays.
+    fn prefetch(&self) {
+        if let Some(r) = self.ranges.get(self.at) {
+            for i in (r.start..r.end.min(r.start + 4 * GROUPS)).step_by(2) {
+                crate::prefetch::prefetch(self.rays, i);
             }
         }
-        let r = &self.rays[self.cur[l]];
-        self.cur[l] += 1;
-        Some(r)
     }
 }
 
@@ -213,6 +209,8 @@ struct Queue {
     hit: [bool; 4 * GROUPS],
     /// Each ray's first voxel: the walk's start, or where it leaves the covered box.
     p0: [i64; 4 * GROUPS],
+    /// Each ray's end voxel.
+    end: [i64; 4 * GROUPS],
     len: usize,
     next: usize,
     /// Steps of the rays set up so far that their walks skip in the covered box.
@@ -231,6 +229,7 @@ impl Queue {
             n: [0; 4 * GROUPS],
             hit: [false; 4 * GROUPS],
             p0: [0; 4 * GROUPS],
+            end: [0; 4 * GROUPS],
             len: 0,
             next: 0,
             skipped: 0,
@@ -239,9 +238,9 @@ impl Queue {
 
     /// Lane `l`'s next ray: its entry in the queue; `None` when the lane has no rays left.
     #[inline(always)]
-    fn pop(&mut self, feed: &mut Feed<'_>, l: usize, from: &Start<'_>) -> Option<usize> {
+    fn pop(&mut self, feed: &mut Feed<'_>, from: &Start<'_>) -> Option<usize> {
         // SAFETY: the CPU has AVX2: `Queue::new`, the only way to make a queue, needs it.
-        if self.next == self.len && !unsafe { self.fill(feed, l, from) } {
+        if self.next == self.len && !unsafe { self.fill(feed, from) } {
             return None;
         }
         self.next += 1;
@@ -251,7 +250,7 @@ impl Queue {
     /// Set up lane `l`'s next rays from `feed`; false if it has none left.
     #[inline(never)]
     #[target_feature(enable = "avx2")]
-    fn fill(&mut self, feed: &mut Feed<'_>, l: usize, from: &Start<'_>) -> bool {
+    fn fill(&mut self, feed: &mut Feed<'_>, from: &Start<'_>) -> bool {
         let Start {
             axes,
             origin,
@@ -262,20 +261,25 @@ impl Queue {
         let mut ends = [origin; 4 * GROUPS];
         self.len = 0;
         while self.len < 4 * GROUPS {
-            let Some(r) = feed.next(l) else { break };
+            let Some(r) = feed.next() else { break };
             (ends[self.len], self.hit[self.len]) = (r.end, r.hit);
             self.len += 1;
         }
+        // The next rays are read at the next fill: ask for them now, so that their misses
+        // overlap this fill's set-up and the walk.
+        feed.prefetch();
         self.next = 0;
         let mut inside = _mm256_set1_epi64x(-1);
         let groups = self.len.div_ceil(4);
         let mut n = [[_mm256_setzero_si256(); 3]; GROUPS];
+        let mut span = [[_mm256_setzero_pd(); 3]; GROUPS];
         for (g, ends) in ends.chunks_exact(4).enumerate().take(groups) {
             for (a, axis) in axes.iter().enumerate() {
                 let e = _mm256_set_pd(ends[3][a], ends[2][a], ends[1][a], ends[0][a]);
                 let [t, d, last, inc, na, ins] = axis.setup(e);
                 (self.t[g][a], self.d[g][a], self.last[g][a], self.inc[g][a]) = (t, d, last, inc);
                 n[g][a] = na;
+                span[g][a] = _mm256_andnot_pd(_mm256_set1_pd(-0.0), _mm256_sub_pd(e, axis.o));
                 inside = _mm256_and_si256(inside, ins);
             }
         }
@@ -285,8 +289,14 @@ impl Queue {
         }
         let start_v = _mm256_set1_epi64x(start as i64);
         for (g, n) in n.iter().enumerate().take(groups) {
+            // Increments are a stride, under 2^31, with its sign: signed 32-bit products.
+            let inc = &self.inc[g];
+            let end = (0..3).fold(start_v, |e, a| {
+                _mm256_add_epi64(e, _mm256_mul_epi32(n[a], inc[a]))
+            });
+            self.end[4 * g..4 * g + 4].copy_from_slice(&to_array(end));
             let (left, p0) = match covered {
-                Some(c) => self.skip_covered(g, c, start_v, n),
+                Some(c) => self.skip_covered(g, c, start_v, n, &span[g]),
                 None => (add3(n), start_v),
             };
             self.n[4 * g..4 * g + 4].copy_from_slice(&to_array(left));
@@ -295,11 +305,12 @@ impl Queue {
         self.len > 0
     }
 
-    /// Start group `g`'s rays, whose crossings per axis are `n`, where they first leave the
-    /// covered box `c`: the crossings before that made at once (those before its time,
-    /// [`Covered::skip`], bit for bit), their walk from `start` skipped. Returns their
-    /// steps left and the voxels they start from. The crossings made are estimated in
-    /// doubles and then checked against the exact crossing times.
+    /// Start group `g`'s rays, whose crossings per axis are `n` and extents from the origin
+    /// `span`, where they first leave the covered box `c`: the crossings before that made
+    /// at once (those before its time, [`Covered::skip`], bit for bit), their walk from
+    /// `start` skipped. Returns their steps left and the voxels they start from. The
+    /// crossings made are estimated in doubles and then checked against the exact
+    /// crossing times.
     #[target_feature(enable = "avx2")]
     fn skip_covered(
         &mut self,
@@ -307,6 +318,7 @@ impl Queue {
         c: &Covered,
         start: __m256i,
         n: &[__m256i; 3],
+        span: &[__m256d; 3],
     ) -> (__m256i, __m256i) {
         let (zero, one, never) = (
             _mm256_setzero_si256(),
@@ -338,8 +350,11 @@ impl Queue {
             // Crossings before `first`: t[a] + j d[a] < first for j < k, about
             // (first - t[a]) / d[a] rounded up, then checked one each way (the estimate
             // is off by far less than one crossing, so only rounding at a tie can miss).
+            // `d` is `T_ONE / span` truncated (bit for bit `raycast::axis`), so the
+            // quotient is about (first - t) span / T_ONE: a product, not a division.
             let due = _mm256_cmpgt_epi64(first, t[a]);
-            let q = _mm256_div_pd(approx_pd(_mm256_sub_epi64(first, t[a])), approx_pd(d[a]));
+            let per = _mm256_mul_pd(span[a], _mm256_set1_pd(1024.0 / T_ONE));
+            let q = _mm256_mul_pd(approx_pd(_mm256_sub_epi64(first, t[a])), per);
             let est = _mm256_cvtepi32_epi64(_mm256_cvttpd_epi32(_mm256_ceil_pd(q)));
             let k = min(
                 _mm256_andnot_si256(_mm256_cmpgt_epi64(zero, est), est),
@@ -406,7 +421,7 @@ struct Start<'a> {
     covered: Option<&'a Covered>,
 }
 
-/// Walk the rays `rays[ranges[..]]` from `origin`, four lanes over the eight ranges,
+/// Walk the rays `rays[ranges[..]]` from `origin`, four at a time ([`walk_groups`]),
 /// setting their free and hit bits in `bits`, outside `covered`; returns voxels on the
 /// rays and, of those, the ones skipped in `covered`. The same marks and counts as
 /// `super::dense::walk_rays`. Marks are written without being read first (unlike
@@ -440,22 +455,14 @@ pub(super) fn walk_dense(
     let start = dbox.index(origin_voxel);
     let sink = dbox.sink();
     let (free, hits) = bits.words_mut();
-    let [r0, r1, r2, r3, r4, r5, r6, r7] = ranges;
-    let feed = Feed {
-        rays,
-        cur: [r0.start, r1.start, r2.start, r3.start],
-        lim: [r0.end, r1.end, r2.end, r3.end],
-        spare: [r7, r6, r5, r4],
-        spare_left: 4,
-        shared: false,
-    };
+    let feed = Feed::new(rays, ranges);
     let from = Start {
         axes: &axes,
         origin,
         start,
         covered,
     };
-    walk(&mut DenseMarks { free, hits, sink }, &from, feed)
+    walk_groups(&mut DenseMarks { free, hits, sink }, &from, feed)
 }
 
 /// Walk `rays` from `origin` four at a time, OR-ing their marks into the frame's tables
@@ -471,14 +478,9 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
     // "inside" bounds no coordinate reaches.
     let axes: [Axis; 3] =
         std::array::from_fn(|a| Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33));
-    let feed = Feed {
-        rays,
-        cur: [0; 4],
-        lim: [rays.len(), 0, 0, 0],
-        spare: Default::default(),
-        spare_left: 0,
-        shared: true,
-    };
+    let mut ranges: [Range<usize>; 8] = Default::default();
+    ranges[0] = 0..rays.len();
+    let feed = Feed::new(rays, ranges);
     let start = packed.pack(v);
     let mut marks = SparseMarks {
         cache,
@@ -499,77 +501,11 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
     walk(&mut marks, &from, feed).0
 }
 
-/// Where a lane walk keeps the marks of the voxels its lanes visit. Voxels are `u64`
-/// indices with fixed strides per axis (see [`Axis::new`]): bit indices into a dense box,
-/// or [`Packed`] voxels.
-trait Marks {
-    /// Most steps walked between two [`Marks::burst_done`].
-    const BURST: i64;
-    /// The voxel index lanes without a ray sit on (their increments are 0).
-    fn idle(&self) -> u64;
-    /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each
-    /// voxel before the step; `live` all ones in the lanes that walk a ray.
-    ///
-    /// # Safety
-    /// Every live lane's `k` steps stay on its ray (`k` is at most its steps left), and
-    /// the CPU has AVX2.
-    unsafe fn steps(
-        &mut self,
-        k: i64,
-        t: &mut [__m256i; 3],
-        p: &mut __m256i,
-        fixed: &Fixed,
-        live: __m256i,
-    );
-    /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
-    /// rays at voxels `p`; those in `hit` hit there.
-    ///
-    /// # Safety
-    /// The CPU has AVX2.
-    unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
-    /// A ray ended in the voxel its walk starts from, `p`, which it hit.
-    fn hit_at(&mut self, p: u64);
-}
-
 /// The dense walk's marks: bits of the thread's grid over the frame's box.
 struct DenseMarks<'a> {
     free: &'a mut [u64],
     hits: &'a mut [u64],
     sink: u64,
-}
-
-impl Marks for DenseMarks<'_> {
-    const BURST: i64 = i64::MAX;
-
-    fn idle(&self) -> u64 {
-        self.sink
-    }
-
-    #[inline(never)]
-    unsafe fn steps(
-        &mut self,
-        k: i64,
-        t: &mut [__m256i; 3],
-        p: &mut __m256i,
-        fixed: &Fixed,
-        _: __m256i,
-    ) {
-        // SAFETY: every lane's voxels are in the box: the origin's voxel and each ray's
-        // end voxel were checked to be (`Queue::fill`), a lane stops at its ray's end (the
-        // caller's promise), and a walk moves along each axis monotonically from the one
-        // to the other. Lanes without a ray sit on the sink, increments 0.
-        unsafe { walk_steps(k, t, p, fixed, self.free) };
-    }
-
-    unsafe fn burst_done(&mut self, p: [i64; 4], _: u32, hit: u32) {
-        for l in BitIter(u64::from(hit)) {
-            set_bit(self.hits, p[l] as u64);
-        }
-    }
-
-    fn hit_at(&mut self, p: u64) {
-        set_bit(self.hits, p);
-    }
 }
 
 /// Brick entries per lane of [`SparseMarks`]: a burst crosses at most one brick a step.
@@ -601,13 +537,22 @@ struct SparseMarks<'c, 'a> {
     flush: Vec<(&'a Slot, usize)>,
 }
 
-impl Marks for SparseMarks<'_, '_> {
+impl SparseMarks<'_, '_> {
+    /// Most steps walked between two [`SparseMarks::burst_done`].
     const BURST: i64 = RING as i64 - 1;
 
+    /// The voxel lanes without a ray sit on (their increments are 0).
     fn idle(&self) -> u64 {
         self.packed.pack(self.start)
     }
 
+    /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each
+    /// voxel before the step; `live` all ones in the lanes that walk a ray. Not inlined,
+    /// as [`group_steps`].
+    ///
+    /// # Safety
+    /// Every live lane's `k` steps stay on its ray (`k` is at most its steps left), and
+    /// the CPU has AVX2.
     #[inline(never)]
     unsafe fn steps(
         &mut self,
@@ -626,6 +571,11 @@ impl Marks for SparseMarks<'_, '_> {
         unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
     }
 
+    /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
+    /// rays at voxels `p`; those in `hit` hit there.
+    ///
+    /// # Safety
+    /// The CPU has AVX2.
     #[target_feature(enable = "avx2")]
     unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
         let entry = to_array(self.entry);
@@ -685,17 +635,19 @@ impl Marks for SparseMarks<'_, '_> {
         self.plane = from_array(plane);
     }
 
+    /// A ray ended in the voxel its walk starts from, `p`, which it hit.
     fn hit_at(&mut self, p: u64) {
         self.cache.set_hit(self.packed.unpack(p));
     }
 }
 
-/// Walk the lanes' rays from `feed`, telling `marks` the voxels each lane visits; returns
+/// The sparse walk: the lanes' rays from `feed`, telling `marks` the voxels each lane
+/// visits, each lane taking its next ray as soon as its ray ends; returns
 /// voxels on the rays and, of those, the ones skipped in `from.covered`. Voxel indices
 /// start at `from.start` (the origin's voxel), or where a ray leaves the covered box, and
 /// change by the axes' strides per step.
 #[target_feature(enable = "avx2")]
-fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
+fn walk(marks: &mut SparseMarks<'_, '_>, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let never = _mm256_set1_epi64x(NEVER);
     let iota = _mm256_setr_epi64x(0, 1, 2, 3);
@@ -722,7 +674,7 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
         // start voxel are done here (a hit at most).
         for l in BitIter(u64::from(need)) {
             let q = &mut queues[l];
-            while let Some(j) = q.pop(&mut feed, l, from) {
+            while let Some(j) = q.pop(&mut feed, from) {
                 let n = q.n[j];
                 steps += n as u64 + 1;
                 if n == 0 {
@@ -771,7 +723,12 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
         }
         // Every lane walks as many steps as the live lane with the fewest left, so the
         // loop tests no lane for its end.
-        let k = rem.iter().copied().min().unwrap_or(0).min(M::BURST);
+        let k = rem
+            .iter()
+            .copied()
+            .min()
+            .unwrap_or(0)
+            .min(SparseMarks::BURST);
         // SAFETY: k is at most every live lane's steps left; the CPU has AVX2, which
         // this function requires.
         unsafe { marks.steps(k, &mut t, &mut p, &fixed, lane_mask(live)) };
@@ -788,6 +745,94 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
     }
     let skipped: u64 = queues.iter().map(|q| q.skipped).sum();
     (steps + skipped, skipped)
+}
+
+/// The dense walk: the rays from `feed`, set up sixteen at a time in one queue, walked a
+/// group of four at a time, one ray per lane, for as many steps as the group's longest;
+/// a lane whose ray has ended marks a sink word of its own. Returns voxels on the rays
+/// and, of those, the ones skipped in `from.covered`. Refilling a lane as soon as its ray
+/// ends (as [`walk`] does) leaves the loop every few steps on rays as short as a frame's
+/// outside its covered box, and that bookkeeping cost more than the steps the shorter
+/// rays of a group walk idle (see docs/performance.md). Hits are marked from the end
+/// voxels the set-up computed.
+#[target_feature(enable = "avx2")]
+fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
+    let mut q = Queue::new();
+    let sinks = _mm256_add_epi64(
+        _mm256_set1_epi64x(marks.sink as i64),
+        _mm256_setr_epi64x(0, 64, 128, 192),
+    );
+    let mut steps = 0u64;
+    while q.fill(&mut feed, from) {
+        for g in 0..q.len.div_ceil(4) {
+            let mut most = 0;
+            for j in 4 * g..(4 * g + 4).min(q.len) {
+                steps += q.n[j] as u64 + 1;
+                most = most.max(q.n[j]);
+                if q.hit[j] {
+                    set_bit(marks.hits, q.end[j] as u64);
+                }
+            }
+            if most == 0 {
+                continue;
+            }
+            let load = |v: &[i64]| from_array(v.try_into().expect("four lanes"));
+            let (n, p0) = (load(&q.n[4 * g..4 * g + 4]), load(&q.p0[4 * g..4 * g + 4]));
+            let fixed = Fixed {
+                d: q.d[g],
+                last: q.last[g],
+                inc: q.inc[g],
+            };
+            // SAFETY: the CPU has AVX2 (this function requires it). Every lane walks its
+            // ray's steps left (entries past the queue's rays have none), and those stay
+            // in the box: the origin's voxel and each ray's end voxel were checked to be
+            // in it (`walk_dense`, `Queue::fill`), and a walk moves along each axis
+            // monotonically from the one to the other. Then it marks its sink, one of
+            // the four words past the box (`DenseBits::begin`).
+            unsafe { group_steps(most, q.t[g], (p0, n), &fixed, sinks, marks.free) };
+        }
+    }
+    (steps + q.skipped, q.skipped)
+}
+
+/// Walk a group's lanes `k` steps from crossings `t`, voxels `p` and steps left `n`
+/// (`at`), marking each voxel before the step in `free`; a lane with no steps left marks
+/// its word of `sinks` instead. A function of its own, not inlined: inside its caller the
+/// register allocator kept the crossings on the stack, a store and a load on every step,
+/// which once made the walk take twice as long.
+///
+/// # Safety
+/// Every lane's first `n` voxels must lie in the box of `free`, and `sinks` be words of
+/// `free` outside it. The CPU must have AVX2.
+#[inline(never)]
+#[target_feature(enable = "avx2")]
+unsafe fn group_steps(
+    k: i64,
+    t: [__m256i; 3],
+    (p, n): (__m256i, __m256i),
+    fixed: &Fixed,
+    sinks: __m256i,
+    free: &mut [u64],
+) {
+    let one = _mm256_set1_epi64x(1);
+    let (mut tv, mut left) = (t, n);
+    let mut pv = _mm256_blendv_epi8(p, sinks, _mm256_cmpgt_epi64(one, left));
+    for _ in 0..k {
+        for q in to_array(pv) {
+            let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
+            // SAFETY: `word < free.len()`, as the caller guarantees.
+            let w = unsafe { free.get_unchecked_mut(word) };
+            *w |= bit;
+        }
+        let (next, inc) = step(tv, fixed);
+        tv = next;
+        left = _mm256_sub_epi64(left, one);
+        pv = _mm256_blendv_epi8(
+            _mm256_add_epi64(pv, inc),
+            sinks,
+            _mm256_cmpgt_epi64(one, left),
+        );
+    }
 }
 
 /// All ones in lane `l` for each bit `l` of `lanes`.
@@ -838,41 +883,6 @@ fn step(t: [__m256i; 3], fixed: &Fixed) -> ([__m256i; 3], __m256i) {
         ],
         _mm256_blendv_epi8(mx, _mm256_blendv_epi8(my, mz, gyz), not_x),
     )
-}
-
-/// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each voxel
-/// before the step in `free`. A function of its own, not inlined: inside `walk_dense` the
-/// register allocator kept the crossings on the stack, a store and a load on every step
-/// (random 500k 6 m 28 -> 36 ms; structured 500k 6 m 14 -> 28 ms when an unrelated change
-/// made the compiler inline it through `DenseMarks::steps` despite this attribute, which
-/// is why that method is not inlined either).
-///
-/// # Safety
-/// Every voxel of every lane's `k` steps must lie in the box of `free`, or be the sink
-/// (its last word), which a lane without increments never leaves.
-#[inline(never)]
-#[target_feature(enable = "avx2")]
-unsafe fn walk_steps(
-    k: i64,
-    t: &mut [__m256i; 3],
-    p: &mut __m256i,
-    fixed: &Fixed,
-    free: &mut [u64],
-) {
-    let mut tv = *t;
-    let mut pv = *p;
-    for _ in 0..k {
-        for q in to_array(pv) {
-            let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
-            // SAFETY: `word < free.len()`, as the caller guarantees.
-            let w = unsafe { free.get_unchecked_mut(word) };
-            *w |= bit;
-        }
-        let (next, inc) = step(tv, fixed);
-        tv = next;
-        pv = _mm256_add_epi64(pv, inc);
-    }
-    (*t, *p) = (tv, pv);
 }
 
 /// The sparse walk's `k` steps from crossings `t` and [`Packed`] voxels `p`, for
@@ -972,7 +982,9 @@ mod tests {
     #[test]
     fn four_lane_skip_equals_the_scalar_one() {
         if !is_x86_feature_detected!("avx2") {
-            println!("notice: this CPU has no AVX2; the AVX2 skip is not tested here");
+            crate::kernel::skip_notice(format_args!(
+                "this CPU has no AVX2; the AVX2 skip is not tested here"
+            ));
             return;
         }
         let mut rng = Rng(5);
@@ -1012,19 +1024,14 @@ mod tests {
                 start,
                 covered: Some(&c),
             };
-            let mut feed = Feed {
-                rays: &rays,
-                cur: [0; 4],
-                lim: [rays.len(), 0, 0, 0],
-                spare: Default::default(),
-                spare_left: 0,
-                shared: true,
-            };
+            let mut ranges: [Range<usize>; 8] = Default::default();
+            ranges[0] = 0..rays.len();
+            let mut feed = Feed::new(&rays, ranges);
             // SAFETY: AVX2 was detected above.
             let mut q = unsafe { Queue::new() };
             let mut at = 0;
             // SAFETY: AVX2 was detected above.
-            while unsafe { q.fill(&mut feed, 0, &from) } {
+            while unsafe { q.fill(&mut feed, &from) } {
                 for j in 0..q.len {
                     let dda = Dda::new(origin, rays[at + j].end);
                     let (t, d, last, dir) = dda.axes();
@@ -1055,7 +1062,9 @@ mod tests {
     #[test]
     fn four_lane_setup_equals_the_scalar_one_bit_for_bit() {
         if !is_x86_feature_detected!("avx2") {
-            println!("notice: this CPU has no AVX2; the AVX2 set-up is not tested here");
+            crate::kernel::skip_notice(format_args!(
+                "this CPU has no AVX2; the AVX2 set-up is not tested here"
+            ));
             return;
         }
         let mut rng = Rng(7);
@@ -1115,7 +1124,9 @@ mod tests {
     #[test]
     fn a_walk_marks_within_its_box_and_stops_at_an_end_outside_it() {
         if !is_x86_feature_detected!("avx2") {
-            println!("notice: this CPU has no AVX2; the AVX2 walk is not tested here");
+            crate::kernel::skip_notice(format_args!(
+                "this CPU has no AVX2; the AVX2 walk is not tested here"
+            ));
             return;
         }
         use crate::coord::VoxelCoord;
@@ -1155,7 +1166,9 @@ mod tests {
     #[test]
     fn ends_outside_the_box_are_found() {
         if !is_x86_feature_detected!("avx2") {
-            println!("notice: this CPU has no AVX2; the AVX2 set-up is not tested here");
+            crate::kernel::skip_notice(format_args!(
+                "this CPU has no AVX2; the AVX2 set-up is not tested here"
+            ));
             return;
         }
         // Box voxels -4..12 along the axis.

@@ -97,10 +97,10 @@ impl DenseBits {
     pub(in crate::integrate) fn begin(&mut self, frame: u64, words: usize) {
         if self.frame != frame {
             self.frame = frame;
-            // One word more than the box: the sink.
+            // Four words more than the box: sinks, one per lane of the AVX2 walk.
             for v in [&mut self.free, &mut self.hit] {
                 v.clear();
-                v.resize(words + 1, 0);
+                v.resize(words + 4, 0);
             }
         }
     }
