@@ -493,11 +493,15 @@ enum Walk {
     Auto,
     /// Sparse.
     Sparse,
-    /// Dense whenever the box fits the budget.
+    /// Dense whenever the box fits the budget; the AVX2 kernel refills each lane as its
+    /// ray ends, whatever the rays' length (see `walk::avx2::walks_grouped`).
     Dense,
     /// Dense, testing each mark before writing it on every frame (see
-    /// `walk::avx512::walk_dense`; the scalar kernel walks `Dense`).
+    /// `walk::avx512::walk_dense`; the other kernels walk `Dense`).
     DenseTestFirst,
+    /// Dense, the AVX2 kernel walking its rays in groups on every frame (the other kernels
+    /// walk `Dense`).
+    DenseGrouped,
 }
 
 fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {

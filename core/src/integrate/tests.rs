@@ -477,7 +477,13 @@ fn dense_and_sparse_walks_agree() {
         g.iter().flat_map(|g| &g.2).map(|r| r.6).collect()
     };
     let scalar_covered = covered_of(&run(Kernel::Scalar, Walk::Dense));
-    let walks = [Walk::Sparse, Walk::Dense, Walk::DenseTestFirst, Walk::Auto];
+    let walks = [
+        Walk::Sparse,
+        Walk::Dense,
+        Walk::DenseTestFirst,
+        Walk::DenseGrouped,
+        Walk::Auto,
+    ];
     for kernel in kernels("dense_and_sparse_walks_agree") {
         for walk in walks {
             let dense = run(kernel, walk);

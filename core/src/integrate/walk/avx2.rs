@@ -421,8 +421,17 @@ struct Start<'a> {
     covered: Option<&'a Covered>,
 }
 
-/// Walk the rays `rays[ranges[..]]` from `origin`, four at a time ([`walk_groups`]),
-/// setting their free and hit bits in `bits`, outside `covered`; returns voxels on the
+/// Whether a dense walk whose rays walk `walked` steps each, on average, walks them in
+/// groups ([`walk_groups`]) rather than refilling each lane as its ray ends ([`walk`]):
+/// a group walks as long as its longest ray, so the steps its shorter rays idle grow
+/// with the rays' length, while the refills cost the same per ray. Short rays, as a
+/// small frame's are outside its covered box, walk grouped (docs/performance.md).
+pub(super) fn walks_grouped(walked: f64) -> bool {
+    walked <= 48.0
+}
+
+/// Walk the rays `rays[ranges[..]]` from `origin`, four at a time, in groups or not
+/// ([`walks_grouped`]), setting their free and hit bits in `bits`, outside `covered`; returns voxels on the
 /// rays and, of those, the ones skipped in `covered`. The same marks and counts as
 /// `super::dense::walk_rays`. Marks are written without being read first (unlike
 /// `avx512::test_first`'s frames): lane by lane in scalar code, the test's mispredicted
@@ -436,6 +445,7 @@ pub(super) fn walk_dense(
     rays: &[Ray],
     ranges: [Range<usize>; 8],
     covered: Option<&Covered>,
+    grouped: bool,
 ) -> (u64, u64) {
     let strides = dbox.strides();
     let origin_voxel = crate::coord::units_to_voxel(origin).expect("origin checked");
@@ -462,7 +472,12 @@ pub(super) fn walk_dense(
         start,
         covered,
     };
-    walk_groups(&mut DenseMarks { free, hits, sink }, &from, feed)
+    let marks = &mut DenseMarks { free, hits, sink };
+    if grouped {
+        walk_groups(marks, &from, feed)
+    } else {
+        walk(marks, &from, feed)
+    }
 }
 
 /// Walk `rays` from `origin` four at a time, OR-ing their marks into the frame's tables
@@ -501,11 +516,77 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
     walk(&mut marks, &from, feed).0
 }
 
+/// Where a lane walk keeps the marks of the voxels its lanes visit. Voxels are `u64`
+/// indices with fixed strides per axis (see [`Axis::new`]): bit indices into a dense box,
+/// or [`Packed`] voxels.
+trait Marks {
+    /// Most steps walked between two [`Marks::burst_done`].
+    const BURST: i64;
+    /// The voxel index lanes without a ray sit on (their increments are 0).
+    fn idle(&self) -> u64;
+    /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each
+    /// voxel before the step; `live` all ones in the lanes that walk a ray.
+    ///
+    /// # Safety
+    /// Every live lane's `k` steps stay on its ray (`k` is at most its steps left), and
+    /// the CPU has AVX2.
+    unsafe fn steps(
+        &mut self,
+        k: i64,
+        t: &mut [__m256i; 3],
+        p: &mut __m256i,
+        fixed: &Fixed,
+        live: __m256i,
+    );
+    /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
+    /// rays at voxels `p`; those in `hit` hit there.
+    ///
+    /// # Safety
+    /// The CPU has AVX2.
+    unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32);
+    /// A ray ended in the voxel its walk starts from, `p`, which it hit.
+    fn hit_at(&mut self, p: u64);
+}
+
 /// The dense walk's marks: bits of the thread's grid over the frame's box.
 struct DenseMarks<'a> {
     free: &'a mut [u64],
     hits: &'a mut [u64],
     sink: u64,
+}
+
+impl Marks for DenseMarks<'_> {
+    const BURST: i64 = i64::MAX;
+
+    fn idle(&self) -> u64 {
+        self.sink
+    }
+
+    #[inline(never)]
+    unsafe fn steps(
+        &mut self,
+        k: i64,
+        t: &mut [__m256i; 3],
+        p: &mut __m256i,
+        fixed: &Fixed,
+        _: __m256i,
+    ) {
+        // SAFETY: every lane's voxels are in the box: the origin's voxel and each ray's
+        // end voxel were checked to be (`Queue::fill`), a lane stops at its ray's end (the
+        // caller's promise), and a walk moves along each axis monotonically from the one
+        // to the other. Lanes without a ray sit on the sink, increments 0.
+        unsafe { walk_steps(k, t, p, fixed, self.free) };
+    }
+
+    unsafe fn burst_done(&mut self, p: [i64; 4], _: u32, hit: u32) {
+        for l in BitIter(u64::from(hit)) {
+            set_bit(self.hits, p[l] as u64);
+        }
+    }
+
+    fn hit_at(&mut self, p: u64) {
+        set_bit(self.hits, p);
+    }
 }
 
 /// Brick entries per lane of [`SparseMarks`]: a burst crosses at most one brick a step.
@@ -537,22 +618,13 @@ struct SparseMarks<'c, 'a> {
     flush: Vec<(&'a Slot, usize)>,
 }
 
-impl SparseMarks<'_, '_> {
-    /// Most steps walked between two [`SparseMarks::burst_done`].
+impl Marks for SparseMarks<'_, '_> {
     const BURST: i64 = RING as i64 - 1;
 
-    /// The voxel lanes without a ray sit on (their increments are 0).
     fn idle(&self) -> u64 {
         self.packed.pack(self.start)
     }
 
-    /// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each
-    /// voxel before the step; `live` all ones in the lanes that walk a ray. Not inlined,
-    /// as [`group_steps`].
-    ///
-    /// # Safety
-    /// Every live lane's `k` steps stay on its ray (`k` is at most its steps left), and
-    /// the CPU has AVX2.
     #[inline(never)]
     unsafe fn steps(
         &mut self,
@@ -571,11 +643,6 @@ impl SparseMarks<'_, '_> {
         unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
     }
 
-    /// After a burst of steps: the lanes in `ended` (bit `l` for lane `l`) ended their
-    /// rays at voxels `p`; those in `hit` hit there.
-    ///
-    /// # Safety
-    /// The CPU has AVX2.
     #[target_feature(enable = "avx2")]
     unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
         let entry = to_array(self.entry);
@@ -635,7 +702,6 @@ impl SparseMarks<'_, '_> {
         self.plane = from_array(plane);
     }
 
-    /// A ray ended in the voxel its walk starts from, `p`, which it hit.
     fn hit_at(&mut self, p: u64) {
         self.cache.set_hit(self.packed.unpack(p));
     }
@@ -647,7 +713,7 @@ impl SparseMarks<'_, '_> {
 /// start at `from.start` (the origin's voxel), or where a ray leaves the covered box, and
 /// change by the axes' strides per step.
 #[target_feature(enable = "avx2")]
-fn walk(marks: &mut SparseMarks<'_, '_>, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
+fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let never = _mm256_set1_epi64x(NEVER);
     let iota = _mm256_setr_epi64x(0, 1, 2, 3);
@@ -723,12 +789,7 @@ fn walk(marks: &mut SparseMarks<'_, '_>, from: &Start<'_>, mut feed: Feed<'_>) -
         }
         // Every lane walks as many steps as the live lane with the fewest left, so the
         // loop tests no lane for its end.
-        let k = rem
-            .iter()
-            .copied()
-            .min()
-            .unwrap_or(0)
-            .min(SparseMarks::BURST);
+        let k = rem.iter().copied().min().unwrap_or(0).min(M::BURST);
         // SAFETY: k is at most every live lane's steps left; the CPU has AVX2, which
         // this function requires.
         unsafe { marks.steps(k, &mut t, &mut p, &fixed, lane_mask(live)) };
@@ -883,6 +944,41 @@ fn step(t: [__m256i; 3], fixed: &Fixed) -> ([__m256i; 3], __m256i) {
         ],
         _mm256_blendv_epi8(mx, _mm256_blendv_epi8(my, mz, gyz), not_x),
     )
+}
+
+/// Walk every lane `k` steps from its next crossings `t` and voxel `p`, marking each voxel
+/// before the step in `free`. A function of its own, not inlined: inside `walk_dense` the
+/// register allocator kept the crossings on the stack, a store and a load on every step
+/// (random 500k 6 m 28 -> 36 ms; structured 500k 6 m 14 -> 28 ms when an unrelated change
+/// made the compiler inline it through `DenseMarks::steps` despite this attribute, which
+/// is why that method is not inlined either).
+///
+/// # Safety
+/// Every voxel of every lane's `k` steps must lie in the box of `free`, or be the sink
+/// (its last word), which a lane without increments never leaves.
+#[inline(never)]
+#[target_feature(enable = "avx2")]
+unsafe fn walk_steps(
+    k: i64,
+    t: &mut [__m256i; 3],
+    p: &mut __m256i,
+    fixed: &Fixed,
+    free: &mut [u64],
+) {
+    let mut tv = *t;
+    let mut pv = *p;
+    for _ in 0..k {
+        for q in to_array(pv) {
+            let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
+            // SAFETY: `word < free.len()`, as the caller guarantees.
+            let w = unsafe { free.get_unchecked_mut(word) };
+            *w |= bit;
+        }
+        let (next, inc) = step(tv, fixed);
+        tv = next;
+        pv = _mm256_add_epi64(pv, inc);
+    }
+    (*t, *p) = (tv, pv);
 }
 
 /// The sparse walk's `k` steps from crossings `t` and [`Packed`] voxels `p`, for
@@ -1133,33 +1229,37 @@ mod tests {
         // Box voxels 0..64 x 0..8 x 0..8, origin in voxel (2, 2, 2).
         let dbox = DenseBox::new(VoxelCoord::new(0, 0, 0), VoxelCoord::new(63, 7, 7)).unwrap();
         let origin = [2.5, 2.5, 2.5];
-        let walk = |ends: &[[f64; 3]]| {
-            let rays: Vec<Ray> = ends.iter().map(|&e| Ray::new(e, 0, true)).collect();
-            let mut ranges: [Range<usize>; 8] = Default::default();
-            ranges[0] = 0..rays.len();
-            let mut bits = DenseBits::default();
-            bits.begin(1, dbox.words());
-            // SAFETY: AVX2 was detected above.
-            let (steps, _) = unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges, None) };
-            (steps, bits)
-        };
-        // Inside: a ray along x to voxel (60, 2, 2) marks voxels 2..60 free and 60 hit.
-        let (steps, bits) = walk(&[[60.5, 2.5, 2.5]]);
-        assert_eq!(steps, 59);
-        let row = bits.free[(dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize];
-        assert_eq!(row, ((1u64 << 60) - 1) & !0b11);
-        let word = (dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize;
-        assert_eq!(bits.hit[word], 1 << 60);
-        // Nothing else in the box (idle lanes mark the sink, the word after it).
-        let marked: u32 = bits.free[..dbox.words()]
-            .iter()
-            .map(|w| w.count_ones())
-            .sum();
-        assert_eq!(marked, 58);
-        // An end outside the box stops the walk before it reads or writes outside it.
-        for end in [[64.5, 2.5, 2.5], [2.5, 8.5, 2.5], [2.5, 2.5, -0.5]] {
-            let outcome = std::panic::catch_unwind(|| walk(&[[3.5, 3.5, 3.5], end]));
-            assert!(outcome.is_err(), "end {end:?} outside the box");
+        // Both dense walks: in groups and lane by lane.
+        for grouped in [false, true] {
+            let walk = |ends: &[[f64; 3]]| {
+                let rays: Vec<Ray> = ends.iter().map(|&e| Ray::new(e, 0, true)).collect();
+                let mut ranges: [Range<usize>; 8] = Default::default();
+                ranges[0] = 0..rays.len();
+                let mut bits = DenseBits::default();
+                bits.begin(1, dbox.words());
+                // SAFETY: AVX2 was detected above.
+                let (steps, _) =
+                    unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges, None, grouped) };
+                (steps, bits)
+            };
+            // Inside: a ray along x to voxel (60, 2, 2) marks voxels 2..60 free and 60 hit.
+            let (steps, bits) = walk(&[[60.5, 2.5, 2.5]]);
+            assert_eq!(steps, 59);
+            let row = bits.free[(dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize];
+            assert_eq!(row, ((1u64 << 60) - 1) & !0b11);
+            let word = (dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize;
+            assert_eq!(bits.hit[word], 1 << 60);
+            // Nothing else in the box (idle lanes mark the sinks, past it).
+            let marked: u32 = bits.free[..dbox.words()]
+                .iter()
+                .map(|w| w.count_ones())
+                .sum();
+            assert_eq!(marked, 58);
+            // An end outside the box stops the walk before it reads or writes outside it.
+            for end in [[64.5, 2.5, 2.5], [2.5, 8.5, 2.5], [2.5, 2.5, -0.5]] {
+                let outcome = std::panic::catch_unwind(|| walk(&[[3.5, 3.5, 3.5], end]));
+                assert!(outcome.is_err(), "end {end:?} outside the box");
+            }
         }
     }
 

@@ -45,7 +45,7 @@ pub(super) fn plan(
         // has steps. A few rays in a big box walk sparse. (Not re-tuned for the
         // AVX-512 sparse walk, 2.5-4 ns a step at 60 m with its memory traffic.)
         Walk::Auto => dense::DenseBox::new(lo, hi).filter(|b| b.words() as f64 * 4.0 <= steps),
-        Walk::Dense | Walk::DenseTestFirst => dense::DenseBox::new(lo, hi),
+        Walk::Dense | Walk::DenseTestFirst | Walk::DenseGrouped => dense::DenseBox::new(lo, hi),
     }
 }
 
@@ -135,39 +135,50 @@ fn run_dense(
     };
     #[cfg(target_arch = "x86_64")]
     let test_first = avx512::test_first(steps / (dbox.words() as f64 * 64.0));
-    let tasks =
-        |stage: std::ops::Range<usize>, covered: Option<&covered::Covered>, test_first: bool| {
-            (0..2 * per_lane)
-                .into_par_iter()
-                .filter(move |t| stage.contains(&(t % per_lane)))
-                .map(|t| {
-                    // Each pool thread has its own grids, so the lock is never contended.
-                    let mut bits =
-                        lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
-                    bits.begin(frame_no, dbox.words());
-                    let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
-                    #[cfg(not(target_arch = "x86_64"))]
-                    let _ = test_first;
-                    match kernel {
-                        #[cfg(target_arch = "x86_64")]
-                        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
-                        // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
-                        Kernel::Avx512 => unsafe {
-                            avx512::walk_dense(
-                                &mut bits, dbox, origin, rays, ranges, test_first, covered,
-                            )
-                        },
-                        #[cfg(target_arch = "x86_64")]
-                        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-                        // (`Kernel::supported`), which is all `walk_dense` needs.
-                        Kernel::Avx2 => unsafe {
-                            avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered)
-                        },
-                        _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
-                    }
-                })
-                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+    // The rays' mean steps, as estimated before the walk.
+    let per_ray = steps / rays.len().max(1) as f64;
+    let tasks = |stage: std::ops::Range<usize>,
+                 covered: Option<&covered::Covered>,
+                 test_first: bool| {
+        // Steps a ray walks outside the covered box, on average (its sample's savings).
+        let walked = per_ray - covered.map_or(0.0, |c| c.saves as f64);
+        #[cfg(target_arch = "x86_64")]
+        let grouped = match walk {
+            Walk::DenseGrouped => true,
+            Walk::Auto => avx2::walks_grouped(walked),
+            _ => false,
         };
+        (0..2 * per_lane)
+            .into_par_iter()
+            .filter(move |t| stage.contains(&(t % per_lane)))
+            .map(|t| {
+                // Each pool thread has its own grids, so the lock is never contended.
+                let mut bits =
+                    lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
+                bits.begin(frame_no, dbox.words());
+                let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = (test_first, walked);
+                match kernel {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
+                    // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
+                    Kernel::Avx512 => unsafe {
+                        avx512::walk_dense(
+                            &mut bits, dbox, origin, rays, ranges, test_first, covered,
+                        )
+                    },
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                    // (`Kernel::supported`), which is all `walk_dense` needs.
+                    Kernel::Avx2 => unsafe {
+                        avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered, grouped)
+                    },
+                    _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
+                }
+            })
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+    };
     let find = || {
         dense::with_live(dense, frame_no, |live| {
             covered::Covered::find(live, dbox, origin, range, bounds, rays)
