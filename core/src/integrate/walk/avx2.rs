@@ -195,11 +195,12 @@ fn lanes(m: __m256i) -> u32 {
 /// Groups of four rays set up at once in a lane's queue.
 const GROUPS: usize = 4;
 
-/// Up to `4 * GROUPS` rays of one lane, set up together, in the order its feed gave them:
-/// per group and axis, vectors of next crossing (`NEVER` for an axis without any),
-/// between, last and index increment, entry `4 g + j` in lane `j` of group `g`; each
-/// ray's steps and whether it hits. (Four groups give the set-up's long chains of
-/// divisions more to overlap than two; eight measured no better.)
+/// Up to `4 * GROUPS` rays, set up together, in the order the feed gave them: per group
+/// and axis, vectors of next crossing (`NEVER` for an axis without any), between, last
+/// and index increment, entry `4 g + j` in lane `j` of group `g`; each ray's steps, first
+/// and end voxels and whether it hits. One per lane in [`walk`], one in [`walk_groups`].
+/// (Four groups give the set-up's long chains more to overlap than two; eight measured
+/// no better.)
 struct Queue {
     t: [[__m256i; 3]; GROUPS],
     d: [[__m256i; 3]; GROUPS],
@@ -236,7 +237,7 @@ impl Queue {
         }
     }
 
-    /// Lane `l`'s next ray: its entry in the queue; `None` when the lane has no rays left.
+    /// The next ray: its entry in the queue; `None` when the feed has no rays left.
     #[inline(always)]
     fn pop(&mut self, feed: &mut Feed<'_>, from: &Start<'_>) -> Option<usize> {
         // SAFETY: the CPU has AVX2: `Queue::new`, the only way to make a queue, needs it.
@@ -247,7 +248,7 @@ impl Queue {
         Some(self.next - 1)
     }
 
-    /// Set up lane `l`'s next rays from `feed`; false if it has none left.
+    /// Set up the next rays from `feed`; false if it has none left.
     #[inline(never)]
     #[target_feature(enable = "avx2")]
     fn fill(&mut self, feed: &mut Feed<'_>, from: &Start<'_>) -> bool {
@@ -879,12 +880,8 @@ unsafe fn group_steps(
     let (mut tv, mut left) = (t, n);
     let mut pv = _mm256_blendv_epi8(p, sinks, _mm256_cmpgt_epi64(one, left));
     for _ in 0..k {
-        for q in to_array(pv) {
-            let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
-            // SAFETY: `word < free.len()`, as the caller guarantees.
-            let w = unsafe { free.get_unchecked_mut(word) };
-            *w |= bit;
-        }
+        // SAFETY: every lane's voxel is a bit of `free`, as the caller guarantees.
+        unsafe { mark(free, pv) };
         let (next, inc) = step(tv, fixed);
         tv = next;
         left = _mm256_sub_epi64(left, one);
@@ -968,17 +965,28 @@ unsafe fn walk_steps(
     let mut tv = *t;
     let mut pv = *p;
     for _ in 0..k {
-        for q in to_array(pv) {
-            let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
-            // SAFETY: `word < free.len()`, as the caller guarantees.
-            let w = unsafe { free.get_unchecked_mut(word) };
-            *w |= bit;
-        }
+        // SAFETY: every lane's voxel is a bit of `free`, as the caller guarantees.
+        unsafe { mark(free, pv) };
         let (next, inc) = step(tv, fixed);
         tv = next;
         pv = _mm256_add_epi64(pv, inc);
     }
     (*t, *p) = (tv, pv);
+}
+
+/// Set the bit of each lane's voxel `p` in `free`, lane by lane, without testing them
+/// first (see [`walk_dense`]).
+///
+/// # Safety
+/// Every lane's voxel must be a bit of `free`.
+#[inline(always)]
+unsafe fn mark(free: &mut [u64], p: __m256i) {
+    for q in to_array(p) {
+        let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
+        // SAFETY: `word < free.len()`, as the caller guarantees.
+        let w = unsafe { free.get_unchecked_mut(word) };
+        *w |= bit;
+    }
 }
 
 /// The sparse walk's `k` steps from crossings `t` and [`Packed`] voxels `p`, for
