@@ -1,15 +1,17 @@
 //! The raycast walks on AVX2: four rays at once, one per 64-bit lane, set up four at a
-//! time in queues ([`Queue`]; [`Axis::setup`], bit for bit `raycast::axis`):
-//! - dense ([`walk_dense`], [`walk_groups`]): a voxel is its bit index in the thread's
+//! time in queues ([`Queue`]; [`Axis::setup`], bit for bit `raycast::axis`), walked in
+//! one of two ways: lane by lane ([`walk`]: every lane walks as many steps as the live
+//! lane with the fewest left, then the lanes whose rays ended take their next) or in
+//! groups ([`walk_groups`]: four rays walked together for as many steps as the longest,
+//! a lane whose ray ended marking a sink, so the loop is left once per group). Marks:
+//! - dense ([`walk_dense`], [`DenseMarks`]): a voxel is its bit index in the thread's
 //!   [`DenseBits`], so a step is one add and a mark one OR into memory that stays in
-//!   cache. A group of four rays is walked together for as many steps as its longest, a
-//!   lane whose ray ended marking a sink, so the loop is left once per group;
-//! - sparse ([`walk_sparse`], [`walk`]): a voxel is [`Packed`]; each lane stores its
+//!   cache. Short rays walk in groups, long ones lane by lane ([`walks_grouped`]);
+//! - sparse ([`walk_sparse`], lane by lane): a voxel is [`Packed`]; each lane stores its
 //!   current plane's marks, and the voxel, to its current brick's entry on every step,
 //!   and moves to its next entry when it leaves the brick, so a step has no branch
-//!   ([`SparseMarks`]); every lane walks as many steps as the live lane with the fewest
-//!   left, then the bricks are OR-ed into the frame's tables and the lanes whose rays
-//!   ended take their next.
+//!   ([`SparseMarks`]); after each burst of steps the bricks are OR-ed into the frame's
+//!   tables.
 //!
 //! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters, no compress and
 //! no conversion from doubles to 64-bit integers, so this is not the AVX-512 walk
@@ -708,8 +710,9 @@ impl Marks for SparseMarks<'_, '_> {
     }
 }
 
-/// The sparse walk: the lanes' rays from `feed`, telling `marks` the voxels each lane
-/// visits, each lane taking its next ray as soon as its ray ends; returns
+/// The lane-by-lane walk (the sparse walk's, and the dense walk's for long rays): the
+/// lanes' rays from `feed`, telling `marks` the voxels each lane visits, each lane taking
+/// its next ray as soon as its ray ends; returns
 /// voxels on the rays and, of those, the ones skipped in `from.covered`. Voxel indices
 /// start at `from.start` (the origin's voxel), or where a ray leaves the covered box, and
 /// change by the axes' strides per step.
