@@ -155,6 +155,13 @@ impl<'r> Feed<'r> {
         }
     }
 
+    /// All of `rays`, in order.
+    fn all(rays: &'r [Ray]) -> Self {
+        let mut ranges: [Range<usize>; 8] = Default::default();
+        ranges[0] = 0..rays.len();
+        Self::new(rays, ranges)
+    }
+
     fn next(&mut self) -> Option<&'r Ray> {
         while let Some(r) = self.ranges.get_mut(self.at) {
             if let Some(i) = r.next() {
@@ -434,8 +441,8 @@ pub(super) fn walks_grouped(walked: f64) -> bool {
 }
 
 /// Walk the rays `rays[ranges[..]]` from `origin`, four at a time, in groups or not
-/// ([`walks_grouped`]), setting their free and hit bits in `bits`, outside `covered`; returns voxels on the
-/// rays and, of those, the ones skipped in `covered`. The same marks and counts as
+/// ([`walks_grouped`]), setting their free and hit bits in `bits`, outside `covered`;
+/// returns voxels on the rays and, of those, the ones skipped in `covered`. The same marks and counts as
 /// `super::dense::walk_rays`. Marks are written without being read first (unlike
 /// `avx512::test_first`'s frames): lane by lane in scalar code, the test's mispredicted
 /// branches cost more than the writes (random 500k 6 m 28.3 -> 23.5-24.5 ms, structured
@@ -496,9 +503,7 @@ pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[
     // "inside" bounds no coordinate reaches.
     let axes: [Axis; 3] =
         std::array::from_fn(|a| Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33));
-    let mut ranges: [Range<usize>; 8] = Default::default();
-    ranges[0] = 0..rays.len();
-    let feed = Feed::new(rays, ranges);
+    let feed = Feed::all(rays);
     let start = packed.pack(v);
     let mut marks = SparseMarks {
         cache,
@@ -1131,9 +1136,7 @@ mod tests {
                 start,
                 covered: Some(&c),
             };
-            let mut ranges: [Range<usize>; 8] = Default::default();
-            ranges[0] = 0..rays.len();
-            let mut feed = Feed::new(&rays, ranges);
+            let mut feed = Feed::all(&rays);
             // SAFETY: AVX2 was detected above.
             let mut q = unsafe { Queue::new() };
             let mut at = 0;
