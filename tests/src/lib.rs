@@ -4,8 +4,15 @@
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 
+/// What `cargo` builds for a test that needs the workspace's binaries or libraries: all
+/// of them, with the test targets, so that the features are those `cargo test
+/// --workspace` unifies (its dev-dependencies' included) and cargo reuses that build.
+/// Built on its own (`-p voxmap-service`), nearly every crate was built again with other
+/// features: over 2 minutes of CI.
+pub const WORKSPACE_BUILD: [&str; 4] = ["build", "--workspace", "--bins", "--tests"];
+
 /// Path of the `voxmap` binary of this build profile, brought up to date once per test
-/// process (`cargo test` does not build other packages' binaries).
+/// process (`cargo test` does not build other packages' binaries) by [`WORKSPACE_BUILD`].
 pub fn voxmap_bin() -> PathBuf {
     static BUILT: std::sync::Once = std::sync::Once::new();
     let exe = std::env::current_exe().expect("test exe");
@@ -19,7 +26,7 @@ pub fn voxmap_bin() -> PathBuf {
         let release = profile_dir.file_name().is_some_and(|n| n == "release");
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut c = Command::new(cargo);
-        c.args(["build", "-p", "voxmap-service", "--bin", "voxmap"]);
+        c.args(WORKSPACE_BUILD);
         if release {
             c.arg("--release");
         }
