@@ -1,26 +1,56 @@
-//! Ray making on AVX2: four points at a time, bit for bit as [`RayMaker::make`]; and the
-//! extent of rays, bit for bit as [`ExtentSum::of`].
+//! Ray making on AVX2: four points at a time, bit for bit as [`RayMaker::make`]; the
+//! extent of rays, bit for bit as [`ExtentSum::of`]; and both with the layout by sides in
+//! one pass, bit for bit as [`Sides::make`](super::Sides::make).
 
-use super::{ExtentSum, Ray, RayMaker, SKIPPED};
+use super::{ChunkOrder, ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 use std::arch::x86_64::*;
 
-/// `out[i] = m.make(&pts[i])` for four points at a time, with `make`'s f64 operations in
-/// its order (so bit for bit the same rays; no FMA, which would round differently);
-/// returns how many it made, a multiple of four. The rest is left to the caller.
+/// The pose, grid and range of a [`RayMaker`] in vectors, to make four rays at a time.
+struct Maker4 {
+    res: __m256d,
+    snap: __m256d,
+    range: __m256d,
+    surely_in: __m256d,
+    origin: [__m256d; 3],
+    rot: [[__m256d; 3]; 3],
+    t: [__m256d; 3],
+}
+
+/// Four rays made: their ends per axis (lanes of a skipped point's are not ends), which
+/// are finite points and which hit (bit `j` for lane `j`).
+struct Made4 {
+    e: [__m256d; 3],
+    finite: u32,
+    hit: u32,
+}
+
+#[inline]
 #[target_feature(enable = "avx2")]
-pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
-    let n = out.len().min(pts.len()) / 4 * 4;
-    let zero = _mm256_setzero_pd();
-    let mask = |v: __m256d| _mm256_movemask_pd(v) as u32;
-    let sign = _mm256_set1_pd(-0.0);
-    let res = _mm256_set1_pd(m.tf.resolution());
-    let snap = _mm256_set1_pd(crate::coord::FACE_SNAP);
-    let range = _mm256_set1_pd(m.range_units);
-    let surely_in = _mm256_set1_pd(m.surely_in);
-    let origin = m.origin.map(|c| _mm256_set1_pd(c));
-    let rot = m.rot.map(|r| r.map(|c| _mm256_set1_pd(c)));
-    let t = m.t.map(|c| _mm256_set1_pd(c));
-    for (o4, p4) in out[..n].chunks_exact_mut(4).zip(pts[..n].chunks_exact(4)) {
+fn mask(v: __m256d) -> u32 {
+    _mm256_movemask_pd(v) as u32
+}
+
+impl Maker4 {
+    #[target_feature(enable = "avx2")]
+    fn new(m: &RayMaker) -> Self {
+        Maker4 {
+            res: _mm256_set1_pd(m.tf.resolution()),
+            snap: _mm256_set1_pd(crate::coord::FACE_SNAP),
+            range: _mm256_set1_pd(m.range_units),
+            surely_in: _mm256_set1_pd(m.surely_in),
+            origin: m.origin.map(|c| _mm256_set1_pd(c)),
+            rot: m.rot.map(|r| r.map(|c| _mm256_set1_pd(c))),
+            t: m.t.map(|c| _mm256_set1_pd(c)),
+        }
+    }
+
+    /// The rays to four points, with `make`'s f64 operations in its order (so bit for bit
+    /// the same rays; no FMA, which would round differently).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn make(&self, p4: &[[f32; 3]]) -> Made4 {
+        let zero = _mm256_setzero_pd();
+        let sign = _mm256_set1_pd(-0.0);
         let [x, y, z] = deinterleave(p4).map(|c| _mm256_cvtps_pd(c));
         // Finite iff c - c is 0 (NaN otherwise).
         let finite = [x, y, z]
@@ -28,59 +58,160 @@ pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usiz
             .into_iter()
             .fold(0b1111, |a, b| a & b);
         let mut e = [0, 1, 2].map(|i| {
-            let r = rot[i];
+            let r = self.rot[i];
             let w = _mm256_add_pd(
                 _mm256_add_pd(
                     _mm256_add_pd(_mm256_mul_pd(r[0], x), _mm256_mul_pd(r[1], y)),
                     _mm256_mul_pd(r[2], z),
                 ),
-                t[i],
+                self.t[i],
             );
             // `GridTransform::to_units`.
-            let k = _mm256_div_pd(w, res);
+            let k = _mm256_div_pd(w, self.res);
             let near = _mm256_round_pd::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(k);
             let off = _mm256_andnot_pd(sign, _mm256_sub_pd(k, near));
-            _mm256_blendv_pd(k, near, _mm256_cmp_pd::<_CMP_LE_OQ>(off, snap))
+            _mm256_blendv_pd(k, near, _mm256_cmp_pd::<_CMP_LE_OQ>(off, self.snap))
         });
-        let d = [0, 1, 2].map(|a| _mm256_sub_pd(e[a], origin[a]));
+        let d = [0, 1, 2].map(|a| _mm256_sub_pd(e[a], self.origin[a]));
         let len2 = _mm256_add_pd(
             _mm256_add_pd(_mm256_mul_pd(d[0], d[0]), _mm256_mul_pd(d[1], d[1])),
             _mm256_mul_pd(d[2], d[2]),
         );
-        let len = _mm256_sqrt_pd(len2);
-        let hit = mask(_mm256_or_pd(
-            _mm256_cmp_pd::<_CMP_LT_OQ>(len2, surely_in),
-            _mm256_cmp_pd::<_CMP_LE_OQ>(len, range),
-        ));
+        let surely = mask(_mm256_cmp_pd::<_CMP_LT_OQ>(len2, self.surely_in));
+        // The square root only where a lane may end beyond max range: in most frames
+        // rarely, and it is the slowest instruction here.
+        let hit = if surely == 0b1111 {
+            surely
+        } else {
+            let len = _mm256_sqrt_pd(len2);
+            surely | mask(_mm256_cmp_pd::<_CMP_LE_OQ>(len, self.range))
+        };
         let cut = finite & !hit;
         if cut != 0 {
-            let s = _mm256_div_pd(range, len);
-            let cut_v = _mm256_castsi256_pd(_mm256_setr_epi64x(
-                -i64::from(cut & 1),
-                -i64::from(cut >> 1 & 1),
-                -i64::from(cut >> 2 & 1),
-                -i64::from(cut >> 3 & 1),
-            ));
+            let s = _mm256_div_pd(self.range, _mm256_sqrt_pd(len2));
+            let cut_v = _mm256_castsi256_pd(lanes(cut));
             for a in 0..3 {
-                let c = _mm256_add_pd(origin[a], _mm256_mul_pd(d[a], s));
+                let c = _mm256_add_pd(self.origin[a], _mm256_mul_pd(d[a], s));
                 e[a] = _mm256_blendv_pd(e[a], c, cut_v);
             }
         }
-        let e = e.map(|v| {
-            let mut a = [0.0f64; 4];
-            // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.
-            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), v) };
-            a
-        });
-        for (j, r) in o4.iter_mut().enumerate() {
-            *r = if finite >> j & 1 == 0 {
-                Ray::new([0.0; 3], SKIPPED, false)
-            } else {
-                Ray::new([e[0][j], e[1][j], e[2][j]], 0, hit >> j & 1 != 0)
-            };
+        Made4 { e, finite, hit }
+    }
+}
+
+/// All ones in lane `j` where bit `j` of `bits` is set, else zeros.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lanes(bits: u32) -> __m256i {
+    let lane = |j: u32| -i64::from(bits >> j & 1);
+    _mm256_setr_epi64x(lane(0), lane(1), lane(2), lane(3))
+}
+
+/// `out[i] = m.make(&pts[i])` for four points at a time; returns how many it made, a
+/// multiple of four. The rest is left to the caller.
+#[target_feature(enable = "avx2")]
+pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
+    let n = out.len().min(pts.len()) / 4 * 4;
+    let maker = Maker4::new(m);
+    for (o4, p4) in out[..n].chunks_exact_mut(4).zip(pts[..n].chunks_exact(4)) {
+        let rays = maker.make(p4).rays();
+        let p = o4.as_mut_ptr().cast::<f64>();
+        for (j, r) in rays.into_iter().enumerate() {
+            // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes
+            // ray `j` whole (`Made4::rays`), all of its fields valid values.
+            unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
         }
     }
     n
+}
+
+impl Made4 {
+    /// The four rays whole, as `Ray::new` lays them out, a vector each: lane `j`'s end
+    /// with key 0 and its hit flag, or a skipped point's ray (end 0, key `SKIPPED`, no
+    /// hit).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn rays(&self) -> [__m256d; 4] {
+        const _: () = assert!(std::mem::size_of::<Ray>() == 32 && SKIPPED == u32::MAX);
+        let ok = _mm256_castsi256_pd(lanes(self.finite));
+        // The word after the end: key (low 32 bits) and hit (the next byte), padding 0.
+        let word = |j: u32| {
+            if self.finite >> j & 1 == 0 {
+                i64::from(SKIPPED)
+            } else {
+                i64::from(self.hit >> j & 1) << 32
+            }
+        };
+        let w = _mm256_castsi256_pd(_mm256_setr_epi64x(word(0), word(1), word(2), word(3)));
+        let [x, y, z] = self.e.map(|v| _mm256_and_pd(v, ok));
+        let (t0, t1) = (_mm256_unpacklo_pd(x, y), _mm256_unpackhi_pd(x, y)); // x0 y0 x2 y2, x1 y1 x3 y3
+        let (t2, t3) = (_mm256_unpacklo_pd(z, w), _mm256_unpackhi_pd(z, w)); // z0 w0 z2 w2, z1 w1 z3 w3
+        [
+            _mm256_permute2f128_pd::<0x20>(t0, t2),
+            _mm256_permute2f128_pd::<0x20>(t1, t3),
+            _mm256_permute2f128_pd::<0x31>(t0, t2),
+            _mm256_permute2f128_pd::<0x31>(t1, t3),
+        ]
+    }
+}
+
+/// [`Sides::make`] without notes, in one pass, bit for bit: four rays made at a time,
+/// each written straight to its place in `out` by the side [`Sides::behind`] computes
+/// (its operations in its order), and their extent summed as [`ExtentSum::of`] sums the
+/// rays in scan order. `None`, with nothing written, unless `pts` is a whole number of
+/// fours as long as `out`.
+#[target_feature(enable = "avx2")]
+pub(super) fn make_laid_out(
+    m: &RayMaker,
+    halves: &Sides,
+    pts: &[[f32; 3]],
+    out: &mut [Ray],
+) -> Option<([u32; 2], ChunkOrder, ExtentSum)> {
+    if !pts.len().is_multiple_of(4) || pts.len() != out.len() || out.len() > RAY_CHUNK {
+        return None;
+    }
+    let maker = Maker4::new(m);
+    let o = halves.origin.map(|c| _mm256_set1_pd(c));
+    let axis = halves.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c));
+    let zero = _mm256_setzero_pd();
+    let mut sums = [Acc::new(halves.origin), Acc::new(halves.origin)];
+    let (mut front, mut back) = (0, out.len());
+    let mut order = ChunkOrder::default();
+    for (q, p4) in pts.chunks_exact(4).enumerate() {
+        let made = maker.make(p4);
+        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
+        let d = [0, 1, 2].map(|a| _mm256_sub_pd(made.e[a], o[a]));
+        let dot = _mm256_add_pd(
+            _mm256_add_pd(_mm256_mul_pd(d[0], axis[0]), _mm256_mul_pd(d[1], axis[1])),
+            _mm256_mul_pd(d[2], axis[2]),
+        );
+        let behind = mask(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)) & made.finite;
+        let ahead = made.finite & !behind;
+        let (w, b) = (4 * q / 64, 4 * q % 64);
+        order.front[w] |= u64::from(ahead) << b;
+        order.back[w] |= u64::from(behind) << b;
+        for (j, r) in made.rays().into_iter().enumerate() {
+            // Rays 4q + j alternate between the two sums, as in `extent_of`.
+            let sum = &mut sums[j % 2];
+            if made.finite >> j & 1 == 0 {
+                sum.skipped += 1;
+                continue;
+            }
+            sum.add(r, made.hit >> j & 1 != 0);
+            let behind = behind >> j & 1 != 0;
+            let place = if behind { back - 1 } else { front };
+            front += usize::from(!behind);
+            back -= usize::from(behind);
+            // SAFETY: `place` is below `out.len()` (each ray made takes one place between
+            // `front` and `back`); a ray is 32 bytes, `repr(C)`, end first, and `r` holds
+            // one whole with valid fields (`Made4::rays`).
+            unsafe { _mm256_storeu_pd(out.as_mut_ptr().add(place).cast::<f64>(), r) };
+        }
+    }
+    out[front..back].fill(Ray::new([0.0; 3], SKIPPED, false));
+    let [even, odd] = sums.map(|s| s.sum(halves.origin));
+    let counts = [front as u32, (out.len() - back) as u32];
+    Some((counts, order, ExtentSum::join(even, odd)))
 }
 
 /// Four points' x, y and z, each as four floats: three loads and nine shuffles (three
@@ -109,27 +240,11 @@ fn deinterleave(p4: &[[f32; 3]]) -> [__m128; 3] {
     ]
 }
 
-/// [`ExtentSum::of`] on AVX2, bit for bit: the same two sums over alternate rays, with a
-/// sum's three axes in the lanes of one vector (the fourth lane, the key and hit flag
-/// read as a float, is ignored).
+/// [`ExtentSum::of`] on AVX2, bit for bit: the same two sums over alternate rays
+/// ([`Acc`]).
 #[target_feature(enable = "avx2")]
 pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
-    struct Acc {
-        lo: __m256d,
-        hi: __m256d,
-        len: __m256d,
-        cut: u64,
-        skipped: u64,
-    }
-    let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
-    let sign = _mm256_set1_pd(-0.0);
-    let new = || Acc {
-        lo: o,
-        hi: o,
-        len: _mm256_setzero_pd(),
-        cut: 0,
-        skipped: 0,
-    };
+    let (mut even, mut odd) = (Acc::new(origin), Acc::new(origin));
     let add = |s: &mut Acc, r: &Ray| {
         if r.key == SKIPPED {
             s.skipped += 1;
@@ -137,19 +252,55 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
         }
         // SAFETY: a `repr(C)` ray is 32 initialised bytes, the end first.
         let v = unsafe { _mm256_loadu_pd(std::ptr::from_ref(r).cast::<f64>()) };
-        s.lo = _mm256_min_pd(s.lo, v);
-        s.hi = _mm256_max_pd(s.hi, v);
-        s.len = _mm256_add_pd(s.len, _mm256_andnot_pd(sign, _mm256_sub_pd(v, o)));
-        s.cut += u64::from(!r.hit);
+        s.add(v, r.hit);
     };
-    let (mut even, mut odd) = (new(), new());
     let mut pairs = rays.chunks_exact(2);
     for p in &mut pairs {
         add(&mut even, &p[0]);
         add(&mut odd, &p[1]);
     }
     pairs.remainder().iter().for_each(|r| add(&mut even, r));
-    let out = |s: Acc| {
+    ExtentSum::join(even.sum(origin), odd.sum(origin))
+}
+
+/// An [`ExtentSum`] being summed with a ray's three axes in the lanes of one vector (the
+/// fourth lane, the key and hit flag read as a float, is ignored).
+struct Acc {
+    o: __m256d,
+    lo: __m256d,
+    hi: __m256d,
+    len: __m256d,
+    cut: u64,
+    skipped: u64,
+}
+
+impl Acc {
+    #[target_feature(enable = "avx2")]
+    fn new(origin: [f64; 3]) -> Self {
+        let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
+        Acc {
+            o,
+            lo: o,
+            hi: o,
+            len: _mm256_setzero_pd(),
+            cut: 0,
+            skipped: 0,
+        }
+    }
+
+    /// A ray (not a skipped point's) whose first 32 bytes are `v`.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn add(&mut self, v: __m256d, hit: bool) {
+        let sign = _mm256_set1_pd(-0.0);
+        self.lo = _mm256_min_pd(self.lo, v);
+        self.hi = _mm256_max_pd(self.hi, v);
+        self.len = _mm256_add_pd(self.len, _mm256_andnot_pd(sign, _mm256_sub_pd(v, self.o)));
+        self.cut += u64::from(!hit);
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn sum(self, origin: [f64; 3]) -> ExtentSum {
         let lanes = |v: __m256d| {
             let mut a = [0.0f64; 4];
             // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.
@@ -158,12 +309,11 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
         };
         ExtentSum {
             origin,
-            lo: lanes(s.lo),
-            hi: lanes(s.hi),
-            cut: s.cut,
-            length: lanes(s.len),
-            skipped: s.skipped,
+            lo: lanes(self.lo),
+            hi: lanes(self.hi),
+            cut: self.cut,
+            length: lanes(self.len),
+            skipped: self.skipped,
         }
-    };
-    ExtentSum::join(out(even), out(odd))
+    }
 }

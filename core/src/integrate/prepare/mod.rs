@@ -386,6 +386,14 @@ impl Sides {
             cut
         };
         if self.axis.is_some() {
+            #[cfg(target_arch = "x86_64")]
+            if note.is_none() && maker.kernel == Kernel::Avx2 {
+                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                // (`Kernel::supported`), which is all `make_laid_out` needs.
+                if let Some(made) = unsafe { avx2::make_laid_out(maker, self, pts, out) } {
+                    return made;
+                }
+            }
             made.resize(out.len(), Ray::new([0.0; 3], SKIPPED, false));
             maker.make_all(made, pts);
             let cut = notes(made, note);
