@@ -4,11 +4,12 @@
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 
-/// What `cargo` builds for a test that needs the workspace's binaries or libraries: all
-/// of them, with the test targets, so that the features are those `cargo test
-/// --workspace` unifies (its dev-dependencies' included) and cargo reuses that build.
-/// Built on its own (`-p voxmap-service`), nearly every crate was built again with other
-/// features: over 2 minutes of CI.
+/// What `cargo` builds for a test that needs the `voxmap` binary: the workspace's
+/// binaries with its test targets, so that the features are those `cargo test --workspace`
+/// unifies (its dev-dependencies' included) and cargo reuses that build for all but the
+/// binary's own crate. Built on its own (`-p voxmap-service`), nearly every crate was
+/// built again with other features: over 2 minutes of CI. (Not `--lib`: that would build
+/// the Python extension, which `cargo test` does not.)
 pub const WORKSPACE_BUILD: [&str; 4] = ["build", "--workspace", "--bins", "--tests"];
 
 /// Path of the `voxmap` binary of this build profile, brought up to date once per test

@@ -50,9 +50,7 @@ fn c_prefix() -> Option<PathBuf> {
             }
             let target = PathBuf::from(format!("{REPO}/target"));
             let prefix = target.join("c-prefix");
-            let select = voxmap_tests::WORKSPACE_BUILD[1..].join(";");
-            let select = format!("-DVOXMAP_CARGO_SELECT={select}");
-            cmake_build("c", &prefix, &target.join("c-build"), &[&select]);
+            cmake_build("c", &prefix, &target.join("c-build"));
             let build = target.join("c-build");
             run_ok(
                 Command::new("cmake")
@@ -76,9 +74,8 @@ fn python_api() -> Option<PathBuf> {
     )
 }
 
-/// Configure (with the `extra` arguments) and build the CMake project `src` against the
-/// package in `prefix`.
-fn cmake_build(src: &str, prefix: &Path, build: &Path, extra: &[&str]) {
+/// Configure and build the CMake project `src` against the package in `prefix`.
+fn cmake_build(src: &str, prefix: &Path, build: &Path) {
     let run = |args: &[&str]| {
         let out = Command::new("cmake").args(args).output().expect("cmake");
         assert!(
@@ -96,10 +93,7 @@ fn cmake_build(src: &str, prefix: &Path, build: &Path, extra: &[&str]) {
         &build,
         &format!("-DCMAKE_PREFIX_PATH={}", prefix.display()),
         "-DCMAKE_BUILD_TYPE=Release",
-    ]
-    .into_iter()
-    .chain(extra.iter().copied())
-    .collect::<Vec<_>>());
+    ]);
     run(&["--build", &build, "-j", "2"]);
 }
 
@@ -297,7 +291,7 @@ fn c_and_cpp_answer_as_the_rust_view_and_survive_mutated_snapshots() {
     let Some(prefix) = c_prefix() else { return };
     let f = fixture("c_api");
     let build = f.dir.join("build");
-    cmake_build("c/tests/programs", &prefix, &build, &[]);
+    cmake_build("c/tests/programs", &prefix, &build);
     // Both inputs: the map file (converted on open) and the snapshot file.
     for input in [&f.map, &f.snapshot] {
         let out = f.dir.join("cpp.bin");
@@ -404,7 +398,7 @@ fn distance_field_from_cpp_and_python_answers_as_the_rust_view() {
     let f = fixture("c_field");
     let (snapshot, pts, expected) = field_fixture(&f);
     let build = f.dir.join("build");
-    cmake_build("c/tests/programs", &prefix, &build, &[]);
+    cmake_build("c/tests/programs", &prefix, &build);
     let out = f.dir.join("field_cpp.bin");
     run_ok(Command::new(build.join("field")).args([&snapshot, &pts, &out]));
     let (got, want) = (
@@ -476,9 +470,9 @@ fn frames_from_cpp_and_python_come_back_to_cpp_and_python() {
     };
     let dir = tmpdir("live");
     let build = dir.join("examples");
-    cmake_build("examples/cpp", &prefix, &build, &[]);
+    cmake_build("examples/cpp", &prefix, &build);
     let programs = dir.join("programs");
-    cmake_build("c/tests/programs", &prefix, &programs, &[]);
+    cmake_build("c/tests/programs", &prefix, &programs);
     let name = unique_prefix("live");
     let svc = Service::start(&name, &["--resolution", "0.1"]);
     let mut sub = {

@@ -144,15 +144,24 @@ impl Made4 {
         };
         let w = _mm256_castsi256_pd(_mm256_setr_epi64x(word(0), word(1), word(2), word(3)));
         let [x, y, z] = self.e.map(|v| _mm256_and_pd(v, ok));
-        let (t0, t1) = (_mm256_unpacklo_pd(x, y), _mm256_unpackhi_pd(x, y)); // x0 y0 x2 y2, x1 y1 x3 y3
-        let (t2, t3) = (_mm256_unpacklo_pd(z, w), _mm256_unpackhi_pd(z, w)); // z0 w0 z2 w2, z1 w1 z3 w3
-        [
-            _mm256_permute2f128_pd::<0x20>(t0, t2),
-            _mm256_permute2f128_pd::<0x20>(t1, t3),
-            _mm256_permute2f128_pd::<0x31>(t0, t2),
-            _mm256_permute2f128_pd::<0x31>(t1, t3),
-        ]
+        transpose4([x, y, z, w])
     }
+}
+
+/// The 4 x 4 doubles `rows` transposed: lane `j` of vector `i` becomes lane `i` of vector
+/// `j`. Four rays loaded whole become their x, y, z and words, and back.
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(in crate::integrate) fn transpose4(rows: [__m256d; 4]) -> [__m256d; 4] {
+    let [a, b, c, d] = rows;
+    let (t0, t1) = (_mm256_unpacklo_pd(a, b), _mm256_unpackhi_pd(a, b)); // a0 b0 a2 b2, a1 b1 a3 b3
+    let (t2, t3) = (_mm256_unpacklo_pd(c, d), _mm256_unpackhi_pd(c, d)); // c0 d0 c2 d2, c1 d1 c3 d3
+    [
+        _mm256_permute2f128_pd::<0x20>(t0, t2),
+        _mm256_permute2f128_pd::<0x20>(t1, t3),
+        _mm256_permute2f128_pd::<0x31>(t0, t2),
+        _mm256_permute2f128_pd::<0x31>(t1, t3),
+    ]
 }
 
 /// [`Sides::make`] without notes, in one pass, bit for bit: four rays made at a time,

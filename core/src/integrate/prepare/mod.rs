@@ -12,7 +12,7 @@ use crate::kernel::Kernel;
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-mod avx2;
+pub(in crate::integrate) mod avx2;
 #[cfg(target_arch = "x86_64")]
 mod avx512;
 
@@ -390,8 +390,8 @@ impl Sides {
             if note.is_none() && maker.kernel == Kernel::Avx2 {
                 // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
                 // (`Kernel::supported`), which is all `make_laid_out` needs.
-                if let Some(made) = unsafe { avx2::make_laid_out(maker, self, pts, out) } {
-                    return made;
+                if let Some(laid) = unsafe { avx2::make_laid_out(maker, self, pts, out) } {
+                    return laid;
                 }
             }
             made.resize(out.len(), Ray::new([0.0; 3], SKIPPED, false));

@@ -2,6 +2,7 @@
 //! [`CellBox::note_of`].
 
 use super::{CellBox, CellKeys, Ray, Sides, BEHIND};
+use crate::integrate::prepare::avx2::transpose4;
 use std::arch::x86_64::*;
 
 /// Four rays (`rays.len() == 4`) as lanes: their x, y and z, and the word of key (bits
@@ -14,15 +15,7 @@ fn load4(rays: &[Ray]) -> [__m256d; 4] {
     let p = rays.as_ptr().cast::<f64>();
     // SAFETY: four `repr(C)` rays of 32 bytes, every byte initialised (explicit padding):
     // load `j` reads ray `j` whole, as x, y, z and the word of key and hit.
-    let [r0, r1, r2, r3] = [0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) });
-    let (t0, t1) = (_mm256_unpacklo_pd(r0, r1), _mm256_unpackhi_pd(r0, r1)); // x0 x1 z0 z1, y0 y1 w0 w1
-    let (t2, t3) = (_mm256_unpacklo_pd(r2, r3), _mm256_unpackhi_pd(r2, r3)); // x2 x3 z2 z3, y2 y3 w2 w3
-    [
-        _mm256_permute2f128_pd::<0x20>(t0, t2),
-        _mm256_permute2f128_pd::<0x20>(t1, t3),
-        _mm256_permute2f128_pd::<0x31>(t0, t2),
-        _mm256_permute2f128_pd::<0x31>(t1, t3),
-    ]
+    transpose4([0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) }))
 }
 
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
