@@ -10,7 +10,7 @@ use std::process::{Child, Command, Stdio};
 /// binary's own crate. Built on its own (`-p voxmap-service`), nearly every crate was
 /// built again with other features: over 2 minutes of CI. (Not `--lib`: that would build
 /// the Python extension, which `cargo test` does not.)
-pub const WORKSPACE_BUILD: [&str; 4] = ["build", "--workspace", "--bins", "--tests"];
+const WORKSPACE_BUILD: [&str; 4] = ["build", "--workspace", "--bins", "--tests"];
 
 /// Path of the `voxmap` binary of this build profile, brought up to date once per test
 /// process (`cargo test` does not build other packages' binaries) by [`WORKSPACE_BUILD`].

@@ -218,7 +218,7 @@ pub(super) fn make_laid_out(
         }
     }
     out[front..back].fill(Ray::new([0.0; 3], SKIPPED, false));
-    let [even, odd] = sums.map(|s| s.sum(halves.origin));
+    let [even, odd] = sums.map(|s| s.sum());
     let counts = [front as u32, (out.len() - back) as u32];
     Some((counts, order, ExtentSum::join(even, odd)))
 }
@@ -269,12 +269,13 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
         add(&mut odd, &p[1]);
     }
     pairs.remainder().iter().for_each(|r| add(&mut even, r));
-    ExtentSum::join(even.sum(origin), odd.sum(origin))
+    ExtentSum::join(even.sum(), odd.sum())
 }
 
 /// An [`ExtentSum`] being summed with a ray's three axes in the lanes of one vector (the
 /// fourth lane, the key and hit flag read as a float, is ignored).
 struct Acc {
+    origin: [f64; 3],
     o: __m256d,
     lo: __m256d,
     hi: __m256d,
@@ -288,6 +289,7 @@ impl Acc {
     fn new(origin: [f64; 3]) -> Self {
         let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
         Acc {
+            origin,
             o,
             lo: o,
             hi: o,
@@ -309,7 +311,7 @@ impl Acc {
     }
 
     #[target_feature(enable = "avx2")]
-    fn sum(self, origin: [f64; 3]) -> ExtentSum {
+    fn sum(self) -> ExtentSum {
         let lanes = |v: __m256d| {
             let mut a = [0.0f64; 4];
             // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.
@@ -317,7 +319,7 @@ impl Acc {
             [a[0], a[1], a[2]]
         };
         ExtentSum {
-            origin,
+            origin: self.origin,
             lo: lanes(self.lo),
             hi: lanes(self.hi),
             cut: self.cut,
