@@ -6,7 +6,7 @@ use super::{ChunkOrder, ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 use std::arch::x86_64::*;
 
 /// The pose, grid and range of a [`RayMaker`] in vectors, to make four rays at a time.
-struct Maker4 {
+pub(in crate::integrate) struct Maker4 {
     res: __m256d,
     snap: __m256d,
     range: __m256d,
@@ -18,10 +18,10 @@ struct Maker4 {
 
 /// Four rays made: their ends per axis (lanes of a skipped point's are not ends), which
 /// are finite points and which hit (bit `j` for lane `j`).
-struct Made4 {
-    e: [__m256d; 3],
-    finite: u32,
-    hit: u32,
+pub(in crate::integrate) struct Made4 {
+    pub(in crate::integrate) e: [__m256d; 3],
+    pub(in crate::integrate) finite: u32,
+    pub(in crate::integrate) hit: u32,
 }
 
 #[inline]
@@ -32,7 +32,7 @@ fn mask(v: __m256d) -> u32 {
 
 impl Maker4 {
     #[target_feature(enable = "avx2")]
-    fn new(m: &RayMaker) -> Self {
+    pub(in crate::integrate) fn new(m: &RayMaker) -> Self {
         Maker4 {
             res: _mm256_set1_pd(m.tf.resolution()),
             snap: _mm256_set1_pd(crate::coord::FACE_SNAP),
@@ -48,7 +48,7 @@ impl Maker4 {
     /// the same rays; no FMA, which would round differently).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn make(&self, p4: &[[f32; 3]]) -> Made4 {
+    pub(in crate::integrate) fn make(&self, p4: &[[f32; 3]]) -> Made4 {
         let zero = _mm256_setzero_pd();
         let sign = _mm256_set1_pd(-0.0);
         let [x, y, z] = deinterleave(p4).map(|c| _mm256_cvtps_pd(c));
@@ -131,10 +131,17 @@ impl Made4 {
     /// hit).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn rays(&self) -> [__m256d; 4] {
+    pub(in crate::integrate) fn rays(&self) -> [__m256d; 4] {
+        transpose4(self.lanes())
+    }
+
+    /// [`Self::rays`] as lanes: their x, y and z, and the word after the end (key in the
+    /// low 32 bits, hit flag in the next byte, padding 0).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(in crate::integrate) fn lanes(&self) -> [__m256d; 4] {
         const _: () = assert!(std::mem::size_of::<Ray>() == 32 && SKIPPED == u32::MAX);
         let ok = _mm256_castsi256_pd(lanes(self.finite));
-        // The word after the end: key (low 32 bits) and hit (the next byte), padding 0.
         let word = |j: u32| {
             if self.finite >> j & 1 == 0 {
                 i64::from(SKIPPED)
@@ -144,7 +151,7 @@ impl Made4 {
         };
         let w = _mm256_castsi256_pd(_mm256_setr_epi64x(word(0), word(1), word(2), word(3)));
         let [x, y, z] = self.e.map(|v| _mm256_and_pd(v, ok));
-        transpose4([x, y, z, w])
+        [x, y, z, w]
     }
 }
 
@@ -274,19 +281,19 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
 
 /// An [`ExtentSum`] being summed with a ray's three axes in the lanes of one vector (the
 /// fourth lane, the key and hit flag read as a float, is ignored).
-struct Acc {
+pub(in crate::integrate) struct Acc {
     origin: [f64; 3],
     o: __m256d,
     lo: __m256d,
     hi: __m256d,
     len: __m256d,
     cut: u64,
-    skipped: u64,
+    pub(in crate::integrate) skipped: u64,
 }
 
 impl Acc {
     #[target_feature(enable = "avx2")]
-    fn new(origin: [f64; 3]) -> Self {
+    pub(in crate::integrate) fn new(origin: [f64; 3]) -> Self {
         let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
         Acc {
             origin,
@@ -302,7 +309,7 @@ impl Acc {
     /// A ray (not a skipped point's) whose first 32 bytes are `v`.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn add(&mut self, v: __m256d, hit: bool) {
+    pub(in crate::integrate) fn add(&mut self, v: __m256d, hit: bool) {
         let sign = _mm256_set1_pd(-0.0);
         self.lo = _mm256_min_pd(self.lo, v);
         self.hi = _mm256_max_pd(self.hi, v);
@@ -311,7 +318,7 @@ impl Acc {
     }
 
     #[target_feature(enable = "avx2")]
-    fn sum(self) -> ExtentSum {
+    pub(in crate::integrate) fn sum(self) -> ExtentSum {
         let lanes = |v: __m256d| {
             let mut a = [0.0f64; 4];
             // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.

@@ -1,8 +1,9 @@
 //! Cell keys and notes on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
-//! [`CellBox::note_of`].
+//! [`CellBox::note_of`]; and the rays made and noted in one pass ([`make_noted`]).
 
 use super::{CellBox, CellKeys, Ray, Sides, BEHIND};
-use crate::integrate::prepare::avx2::transpose4;
+use crate::integrate::prepare::avx2::{transpose4, Acc, Maker4};
+use crate::integrate::prepare::{ExtentSum, RayMaker};
 use std::arch::x86_64::*;
 
 /// Four rays (`rays.len() == 4`) as lanes: their x, y and z, and the word of key (bits
@@ -48,9 +49,78 @@ pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
     n
 }
 
+/// The constants of [`CellBox::note_of`] in vectors, to note four rays at a time.
+struct Noter {
+    f: __m256d,
+    off: [__m256d; 3],
+    last: [__m256d; 3],
+    dx: __m256d,
+    dy: __m256d,
+    o: [__m256d; 3],
+    axis: [__m256d; 3],
+    hit_bit: __m256i,
+    shift: __m128i,
+}
+
+impl Noter {
+    #[target_feature(enable = "avx2")]
+    fn new(b: &CellBox, c: &CellKeys, halves: &Sides) -> Self {
+        let [dx, dy] = [0, 1].map(|a| _mm256_set1_pd(b.dims[a] as f64));
+        Noter {
+            f: _mm256_set1_pd(c.f),
+            off: [0, 1, 2].map(|a| _mm256_set1_pd(c.base[a] + b.lo[a] as f64)),
+            last: b.dims.map(|d| _mm256_set1_pd((d - 1) as f64)),
+            dx,
+            dy,
+            o: halves.origin.map(|v| _mm256_set1_pd(v)),
+            axis: halves.axis.unwrap_or([0.0; 3]).map(|v| _mm256_set1_pd(v)),
+            hit_bit: _mm256_set1_epi64x(b.hit_bit as i64),
+            shift: _mm_set_epi64x(0, b.hit_bit as i64),
+        }
+    }
+
+    /// The notes of four rays given as lanes (x, y, z and the word of key and hit). The
+    /// cell in doubles: every value is an integer below 2^26, exact; the side with the
+    /// scalar code's operations in its order.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn note4(&self, [x, y, z, w]: [__m256d; 4]) -> __m256i {
+        let zero = _mm256_setzero_pd();
+        let low32 = _mm256_set1_epi64x(0xffff_ffff);
+        let w = _mm256_castpd_si256(w);
+        let [cx, cy, cz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
+            let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, self.f)), self.off[a]);
+            _mm256_min_pd(_mm256_max_pd(cell, zero), self.last[a])
+        });
+        let cell = _mm256_add_pd(
+            _mm256_mul_pd(_mm256_add_pd(_mm256_mul_pd(cz, self.dy), cy), self.dx),
+            cx,
+        );
+        let cell = _mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell));
+        let hit = _mm256_and_si256(_mm256_srli_epi64::<32>(w), self.hit_bit);
+        let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
+        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
+        let [d0, d1, d2] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| _mm256_sub_pd(v, self.o[a]));
+        let dot = _mm256_add_pd(
+            _mm256_add_pd(
+                _mm256_mul_pd(d0, self.axis[0]),
+                _mm256_mul_pd(d1, self.axis[1]),
+            ),
+            _mm256_mul_pd(d2, self.axis[2]),
+        );
+        let back = _mm256_and_si256(
+            _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)),
+            _mm256_set1_epi64x(BEHIND as i64),
+        );
+        _mm256_or_si256(
+            _mm256_or_si256(_mm256_sll_epi64(cell, self.shift), back),
+            _mm256_or_si256(hit, skipped),
+        )
+    }
+}
+
 /// `out[i] = b.note_of(c, halves, &rays[i])` for four rays at a time; returns how many it
-/// did, a multiple of four. The cell in doubles: every value is an integer below 2^26,
-/// exact; the side with the scalar code's operations in its order.
+/// did, a multiple of four.
 #[target_feature(enable = "avx2")]
 pub(super) fn notes(
     b: &CellBox,
@@ -60,47 +130,58 @@ pub(super) fn notes(
     out: &mut [u64],
 ) -> usize {
     let n = rays.len().min(out.len()) / 4 * 4;
-    let f = _mm256_set1_pd(c.f);
-    let off = [0, 1, 2].map(|a| _mm256_set1_pd(c.base[a] + b.lo[a] as f64));
-    let last = b.dims.map(|d| _mm256_set1_pd((d - 1) as f64));
-    let [dx, dy] = [0, 1].map(|a| _mm256_set1_pd(b.dims[a] as f64));
-    let o = halves.origin.map(|v| _mm256_set1_pd(v));
-    let axis = halves.axis.unwrap_or([0.0; 3]).map(|v| _mm256_set1_pd(v));
-    let zero = _mm256_setzero_pd();
-    let low32 = _mm256_set1_epi64x(0xffff_ffff);
-    let hit_bit = _mm256_set1_epi64x(b.hit_bit as i64);
-    let behind = _mm256_set1_epi64x(BEHIND as i64);
-    let shift = _mm_set_epi64x(0, b.hit_bit as i64);
+    let noter = Noter::new(b, c, halves);
     for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
-        let [x, y, z, w] = load4(r4);
-        let w = _mm256_castpd_si256(w);
-        let [cx, cy, cz] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| {
-            let cell = _mm256_sub_pd(_mm256_floor_pd(_mm256_mul_pd(v, f)), off[a]);
-            _mm256_min_pd(_mm256_max_pd(cell, zero), last[a])
-        });
-        let cell = _mm256_add_pd(
-            _mm256_mul_pd(_mm256_add_pd(_mm256_mul_pd(cz, dy), cy), dx),
-            cx,
-        );
-        let cell = _mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell));
-        let hit = _mm256_and_si256(_mm256_srli_epi64::<32>(w), hit_bit);
-        let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
-        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
-        let [d0, d1, d2] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| _mm256_sub_pd(v, o[a]));
-        let dot = _mm256_add_pd(
-            _mm256_add_pd(_mm256_mul_pd(d0, axis[0]), _mm256_mul_pd(d1, axis[1])),
-            _mm256_mul_pd(d2, axis[2]),
-        );
-        let back = _mm256_and_si256(
-            _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)),
-            behind,
-        );
-        let note = _mm256_or_si256(
-            _mm256_or_si256(_mm256_sll_epi64(cell, shift), back),
-            _mm256_or_si256(hit, skipped),
-        );
+        let note = noter.note4(load4(r4));
         // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
         unsafe { _mm256_storeu_si256(o4.as_mut_ptr().cast(), note) };
     }
     n
+}
+
+/// `RayMaker::make_all`, `ExtentSum::of` and [`notes`] in one pass, bit for bit: four
+/// rays made at a time, stored to `made`, summed and noted from the vectors they were
+/// made in. `None`, with nothing written, unless `pts` is a whole number of fours as long
+/// as `made` and `notes`.
+#[target_feature(enable = "avx2")]
+pub(super) fn make_noted(
+    m: &RayMaker,
+    b: &CellBox,
+    c: &CellKeys,
+    halves: &Sides,
+    pts: &[[f32; 3]],
+    made: &mut [Ray],
+    notes: &mut [u64],
+) -> Option<ExtentSum> {
+    if !pts.len().is_multiple_of(4) || pts.len() != made.len() || made.len() != notes.len() {
+        return None;
+    }
+    let maker = Maker4::new(m);
+    let noter = Noter::new(b, c, halves);
+    let mut sums = [Acc::new(m.origin), Acc::new(m.origin)];
+    for ((p4, o4), n4) in (pts.chunks_exact(4))
+        .zip(made.chunks_exact_mut(4))
+        .zip(notes.chunks_exact_mut(4))
+    {
+        let m4 = maker.make(p4);
+        let lanes = m4.lanes();
+        let note = noter.note4(lanes);
+        // SAFETY: `n4` is four writable u64s; the store has no alignment requirement.
+        unsafe { _mm256_storeu_si256(n4.as_mut_ptr().cast(), note) };
+        let p = o4.as_mut_ptr().cast::<f64>();
+        for (j, r) in transpose4(lanes).into_iter().enumerate() {
+            // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes
+            // ray `j` whole (`Made4::rays`), all of its fields valid values.
+            unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
+            // Rays 4q + j alternate between the two sums, as in `ExtentSum::of`.
+            let sum = &mut sums[j % 2];
+            if m4.finite >> j & 1 == 0 {
+                sum.skipped += 1;
+            } else {
+                sum.add(r, m4.hit >> j & 1 != 0);
+            }
+        }
+    }
+    let [even, odd] = sums.map(|s| s.sum());
+    Some(ExtentSum::join(even, odd))
 }

@@ -12,6 +12,7 @@
 
 use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
 use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
+use crate::kernel::Kernel;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
 
@@ -140,11 +141,19 @@ fn make_run(
         .zip(sides.iter_mut())
     {
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
-        maker.make_all(made, pts);
-        sum = ExtentSum::join(sum, ExtentSum::of(origin, made, maker.kernel));
-        let t = Instant::now();
-        how.cells_box
-            .notes_of(how.cells, how.halves, maker.kernel, made, notes);
+        let (chunk_sum, t) = match make_noted(how, pts, made, notes) {
+            // Noted as made: the choosing's time starts with the marking.
+            Some(s) => (s, Instant::now()),
+            None => {
+                maker.make_all(made, pts);
+                let s = ExtentSum::of(origin, made, maker.kernel);
+                let t = Instant::now();
+                how.cells_box
+                    .notes_of(how.cells, how.halves, maker.kernel, made, notes);
+                (s, t)
+            }
+        };
+        sum = ExtentSum::join(sum, chunk_sum);
         // First the cells, marked with nothing else depending on the set's words, so that
         // their cache misses overlap; then the layout, from the notes.
         mark(notes, set);
@@ -158,6 +167,35 @@ fn make_run(
         took += t.elapsed();
     }
     (sum, cut, took)
+}
+
+/// The rays to `pts` made into `made`, their notes into `notes` and their sum, in one pass
+/// where a kernel does that (bit for bit the passes of [`make_run`]); `None`, with nothing
+/// written, otherwise.
+fn make_noted(
+    how: Chooser<'_>,
+    pts: &[[f32; 3]],
+    made: &mut [Ray],
+    notes: &mut [u64],
+) -> Option<ExtentSum> {
+    #[cfg(target_arch = "x86_64")]
+    if how.maker.kernel == Kernel::Avx2 {
+        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+        // (`Kernel::supported`), which is all `make_noted` needs.
+        return unsafe {
+            super::avx2::make_noted(
+                how.maker,
+                how.cells_box,
+                how.cells,
+                how.halves,
+                pts,
+                made,
+                notes,
+            )
+        };
+    }
+    let _ = (how, pts, made, notes);
+    None
 }
 
 /// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
@@ -186,7 +224,10 @@ fn lay_out(
     placed: &mut [u32],
     marked: &mut [u32],
 ) -> (usize, usize, u64) {
-    let (mut front, mut back, mut count, mut cut) = (0, out.len(), 0, 0);
+    let n = made.len();
+    assert!(notes.len() == n && out.len() == n && placed.len() == n && marked.len() >= n);
+    let (mut front, mut back, mut count, mut cut) = (0, n, 0, 0);
+    let (o, pl, mk) = (out.as_mut_ptr(), placed.as_mut_ptr(), marked.as_mut_ptr());
     for (r, &k) in made.iter().zip(notes) {
         if k == NONE {
             continue;
@@ -195,11 +236,19 @@ fn lay_out(
         // Written whatever the ray, counted only for the first: no branch on a cell's
         // novelty, a coin flip in many scans. Each ray laid out or not leaves a place
         // between `front` and `back`, and in `marked`.
-        marked[count] = b;
-        count += usize::from(first);
         let place = if behind { back - 1 } else { front };
-        out[place] = *r;
-        placed[place] = b;
+        // SAFETY: before the i-th ray at most i rays took a place, so `front < back <= n`
+        // and `place` (`front` or `back - 1`) is below `n`, the length of `out` and
+        // `placed`; `count` is at most i, below `n <= marked.len()`. A ray is 32 bytes,
+        // all initialised (explicit padding), copied as four words: as a `Ray` it was
+        // copied field by field, six loads and stores.
+        unsafe {
+            mk.add(count).write(b);
+            let words = std::ptr::from_ref(r).cast::<[u64; 4]>().read();
+            o.add(place).cast::<[u64; 4]>().write(words);
+            pl.add(place).write(b);
+        }
+        count += usize::from(first);
         front += usize::from(first & !behind);
         back -= usize::from(first & behind);
         cut += u64::from(first & !r.hit);
