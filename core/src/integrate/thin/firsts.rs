@@ -141,7 +141,7 @@ fn make_run(
         .zip(sides.iter_mut())
     {
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
-        let (chunk_sum, t) = match make_noted(how, pts, made, notes) {
+        let (chunk_sum, t) = match make_noted(how, pts, made, notes, set) {
             // Noted as made: the choosing's time starts with the marking.
             Some(s) => (s, Instant::now()),
             None => {
@@ -170,13 +170,15 @@ fn make_run(
 }
 
 /// The rays to `pts` made into `made`, their notes into `notes` and their sum, in one pass
-/// where a kernel does that (bit for bit the passes of [`make_run`]); `None`, with nothing
-/// written, otherwise.
+/// where a kernel does that (bit for bit the passes of [`make_run`]), asking on the way
+/// for the words of `set` that [`mark`] will read; `None`, with nothing written,
+/// otherwise.
 fn make_noted(
     how: Chooser<'_>,
     pts: &[[f32; 3]],
     made: &mut [Ray],
     notes: &mut [u64],
+    set: &[u64],
 ) -> Option<ExtentSum> {
     #[cfg(target_arch = "x86_64")]
     if how.maker.kernel == Kernel::Avx2 {
@@ -191,10 +193,11 @@ fn make_noted(
                 pts,
                 made,
                 notes,
+                set,
             )
         };
     }
-    let _ = (how, pts, made, notes);
+    let _ = (how, pts, made, notes, set);
     None
 }
 
