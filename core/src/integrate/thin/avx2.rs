@@ -1,9 +1,9 @@
 //! Cell keys and notes on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
 //! [`CellBox::note_of`]; and the rays made and noted in one pass ([`make_noted`]).
 
-use super::{CellBox, CellKeys, Ray, Sides, BEHIND};
+use super::{CellBox, CellKeys, Chooser, Ray, Sides, BEHIND};
 use crate::integrate::prepare::avx2::{transpose4, Acc, Maker4};
-use crate::integrate::prepare::{ExtentSum, RayMaker};
+use crate::integrate::prepare::ExtentSum;
 use std::arch::x86_64::*;
 
 /// Four rays (`rays.len() == 4`) as lanes: their x, y and z, and the word of key (bits
@@ -150,10 +150,7 @@ const PREFETCHED_SET: usize = 1 << 20;
 /// of fours as long as `made` and `notes`.
 #[target_feature(enable = "avx2")]
 pub(super) fn make_noted(
-    m: &RayMaker,
-    b: &CellBox,
-    c: &CellKeys,
-    halves: &Sides,
+    how: Chooser<'_>,
     pts: &[[f32; 3]],
     made: &mut [Ray],
     notes: &mut [u64],
@@ -162,8 +159,9 @@ pub(super) fn make_noted(
     if !pts.len().is_multiple_of(4) || pts.len() != made.len() || made.len() != notes.len() {
         return None;
     }
+    let m = how.maker;
     let maker = Maker4::new(m);
-    let noter = Noter::new(b, c, halves);
+    let noter = Noter::new(how.cells_box, how.cells, how.halves);
     let mut sums = [Acc::new(m.origin), Acc::new(m.origin)];
     // A set that fits the core's cache (unique-end's at 6 m, 0.5 MB) stays there.
     let ahead = if std::mem::size_of_val(set) > PREFETCHED_SET {

@@ -184,18 +184,7 @@ fn make_noted(
     if how.maker.kernel == Kernel::Avx2 {
         // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
         // (`Kernel::supported`), which is all `make_noted` needs.
-        return unsafe {
-            super::avx2::make_noted(
-                how.maker,
-                how.cells_box,
-                how.cells,
-                how.halves,
-                pts,
-                made,
-                notes,
-                set,
-            )
-        };
+        return unsafe { super::avx2::make_noted(how, pts, made, notes, set) };
     }
     let _ = (how, pts, made, notes, set);
     None
