@@ -12,6 +12,7 @@
 
 use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
 use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
+#[cfg(target_arch = "x86_64")]
 use crate::kernel::Kernel;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
