@@ -80,15 +80,18 @@ impl Maker4 {
         let surely = mask(_mm256_cmp_pd::<_CMP_LT_OQ>(len2, self.surely_in));
         // The square root only where a lane may end beyond max range: in most frames
         // rarely, and it is the slowest instruction here.
-        let hit = if surely == 0b1111 {
-            surely
-        } else {
-            let len = _mm256_sqrt_pd(len2);
-            surely | mask(_mm256_cmp_pd::<_CMP_LE_OQ>(len, self.range))
-        };
+        if surely == 0b1111 {
+            return Made4 {
+                e,
+                finite,
+                hit: surely,
+            };
+        }
+        let len = _mm256_sqrt_pd(len2);
+        let hit = surely | mask(_mm256_cmp_pd::<_CMP_LE_OQ>(len, self.range));
         let cut = finite & !hit;
         if cut != 0 {
-            let s = _mm256_div_pd(self.range, _mm256_sqrt_pd(len2));
+            let s = _mm256_div_pd(self.range, len);
             let cut_v = _mm256_castsi256_pd(lanes(cut));
             for a in 0..3 {
                 let c = _mm256_add_pd(self.origin[a], _mm256_mul_pd(d[a], s));
