@@ -19,7 +19,7 @@ pub(in crate::integrate) struct Maker4 {
 /// Four rays made: their ends per axis (lanes of a skipped point's are not ends), which
 /// are finite points and which hit (bit `j` for lane `j`).
 pub(in crate::integrate) struct Made4 {
-    pub(in crate::integrate) e: [__m256d; 3],
+    e: [__m256d; 3],
     pub(in crate::integrate) finite: u32,
     pub(in crate::integrate) hit: u32,
 }

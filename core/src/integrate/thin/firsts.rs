@@ -142,7 +142,17 @@ fn make_run(
         .zip(sides.iter_mut())
     {
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
-        let (chunk_sum, t) = match make_noted(how, pts, made, notes, set) {
+        // On AVX2 made, summed and noted in one pass (bit for bit the three below), which
+        // also asks for the words of `set` that `mark` will read.
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+        // (`Kernel::supported`), which is all `make_noted` needs.
+        let fused = (maker.kernel == Kernel::Avx2)
+            .then(|| unsafe { super::avx2::make_noted(how, pts, made, notes, set) })
+            .flatten();
+        #[cfg(not(target_arch = "x86_64"))]
+        let fused = None;
+        let (chunk_sum, t) = match fused {
             // Noted as made: the choosing's time starts with the marking.
             Some(s) => (s, Instant::now()),
             None => {
@@ -168,27 +178,6 @@ fn make_run(
         took += t.elapsed();
     }
     (sum, cut, took)
-}
-
-/// The rays to `pts` made into `made`, their notes into `notes` and their sum, in one pass
-/// where a kernel does that (bit for bit the passes of [`make_run`]), asking on the way
-/// for the words of `set` that [`mark`] will read; `None`, with nothing written,
-/// otherwise.
-fn make_noted(
-    how: Chooser<'_>,
-    pts: &[[f32; 3]],
-    made: &mut [Ray],
-    notes: &mut [u64],
-    set: &[u64],
-) -> Option<ExtentSum> {
-    #[cfg(target_arch = "x86_64")]
-    if how.maker.kernel == Kernel::Avx2 {
-        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-        // (`Kernel::supported`), which is all `make_noted` needs.
-        return unsafe { super::avx2::make_noted(how, pts, made, notes, set) };
-    }
-    let _ = (how, pts, made, notes, set);
-    None
 }
 
 /// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
