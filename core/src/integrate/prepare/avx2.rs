@@ -20,8 +20,8 @@ pub(in crate::integrate) struct Maker4 {
 /// are finite points and which hit (bit `j` for lane `j`).
 pub(in crate::integrate) struct Made4 {
     e: [__m256d; 3],
-    pub(in crate::integrate) finite: u32,
-    pub(in crate::integrate) hit: u32,
+    finite: u32,
+    hit: u32,
 }
 
 #[inline]
@@ -117,15 +117,22 @@ pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usiz
     let n = out.len().min(pts.len()) / 4 * 4;
     let maker = Maker4::new(m);
     for (o4, p4) in out[..n].chunks_exact_mut(4).zip(pts[..n].chunks_exact(4)) {
-        let rays = maker.make(p4).rays();
-        let p = o4.as_mut_ptr().cast::<f64>();
-        for (j, r) in rays.into_iter().enumerate() {
-            // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes
-            // ray `j` whole (`Made4::rays`), all of its fields valid values.
-            unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
-        }
+        store4(o4, maker.make(p4).rays());
     }
     n
+}
+
+/// Four rays whole (as [`Made4::rays`] gives them) into `o4`, one store each.
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(in crate::integrate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
+    assert_eq!(o4.len(), 4);
+    let p = o4.as_mut_ptr().cast::<f64>();
+    for (j, r) in rays.into_iter().enumerate() {
+        // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes ray
+        // `j` whole, all of its fields valid values (`Made4::rays`).
+        unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
+    }
 }
 
 impl Made4 {
@@ -155,6 +162,54 @@ impl Made4 {
         let w = _mm256_castsi256_pd(_mm256_setr_epi64x(word(0), word(1), word(2), word(3)));
         let [x, y, z] = self.e.map(|v| _mm256_and_pd(v, ok));
         [x, y, z, w]
+    }
+
+    /// Add the four rays (`rays`, as [`Self::rays`] gives them) to `sums`, ray `j` to sum
+    /// `j % 2`, as [`extent_of`] adds rays in scan order to its two sums.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(in crate::integrate) fn sum_into(&self, sums: &mut [Acc; 2], rays: &[__m256d; 4]) {
+        for (j, &r) in rays.iter().enumerate() {
+            let sum = &mut sums[j % 2];
+            if self.finite >> j & 1 == 0 {
+                sum.skipped += 1;
+            } else {
+                sum.add(r, self.hit >> j & 1 != 0);
+            }
+        }
+    }
+}
+
+/// The plane of a [`Sides`] in vectors, to tell for four ends at a time which lie behind
+/// it.
+pub(in crate::integrate) struct Side4 {
+    o: [__m256d; 3],
+    axis: [__m256d; 3],
+}
+
+impl Side4 {
+    #[target_feature(enable = "avx2")]
+    pub(in crate::integrate) fn new(halves: &Sides) -> Self {
+        Side4 {
+            o: halves.origin.map(|c| _mm256_set1_pd(c)),
+            axis: halves.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c)),
+        }
+    }
+
+    /// All ones in the lanes of the ends `e` behind the plane:
+    /// (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(in crate::integrate) fn behind(&self, e: [__m256d; 3]) -> __m256d {
+        let d = [0, 1, 2].map(|a| _mm256_sub_pd(e[a], self.o[a]));
+        let dot = _mm256_add_pd(
+            _mm256_add_pd(
+                _mm256_mul_pd(d[0], self.axis[0]),
+                _mm256_mul_pd(d[1], self.axis[1]),
+            ),
+            _mm256_mul_pd(d[2], self.axis[2]),
+        );
+        _mm256_cmp_pd::<_CMP_LT_OQ>(dot, _mm256_setzero_pd())
     }
 }
 
@@ -190,33 +245,23 @@ pub(super) fn make_laid_out(
         return None;
     }
     let maker = Maker4::new(m);
-    let o = halves.origin.map(|c| _mm256_set1_pd(c));
-    let axis = halves.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c));
-    let zero = _mm256_setzero_pd();
+    let side = Side4::new(halves);
     let mut sums = [Acc::new(halves.origin), Acc::new(halves.origin)];
     let (mut front, mut back) = (0, out.len());
     let mut order = ChunkOrder::default();
     for (q, p4) in pts.chunks_exact(4).enumerate() {
         let made = maker.make(p4);
-        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
-        let d = [0, 1, 2].map(|a| _mm256_sub_pd(made.e[a], o[a]));
-        let dot = _mm256_add_pd(
-            _mm256_add_pd(_mm256_mul_pd(d[0], axis[0]), _mm256_mul_pd(d[1], axis[1])),
-            _mm256_mul_pd(d[2], axis[2]),
-        );
-        let behind = mask(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)) & made.finite;
+        let behind = mask(side.behind(made.e)) & made.finite;
         let ahead = made.finite & !behind;
         let (w, b) = (4 * q / 64, 4 * q % 64);
         order.front[w] |= u64::from(ahead) << b;
         order.back[w] |= u64::from(behind) << b;
-        for (j, r) in made.rays().into_iter().enumerate() {
-            // Rays 4q + j alternate between the two sums, as in `extent_of`.
-            let sum = &mut sums[j % 2];
+        let rays = made.rays();
+        made.sum_into(&mut sums, &rays);
+        for (j, r) in rays.into_iter().enumerate() {
             if made.finite >> j & 1 == 0 {
-                sum.skipped += 1;
                 continue;
             }
-            sum.add(r, made.hit >> j & 1 != 0);
             let behind = behind >> j & 1 != 0;
             let place = if behind { back - 1 } else { front };
             front += usize::from(!behind);
@@ -291,7 +336,7 @@ pub(in crate::integrate) struct Acc {
     hi: __m256d,
     len: __m256d,
     cut: u64,
-    pub(in crate::integrate) skipped: u64,
+    skipped: u64,
 }
 
 impl Acc {

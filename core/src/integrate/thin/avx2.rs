@@ -2,7 +2,7 @@
 //! [`CellBox::note_of`]; and the rays made and noted in one pass ([`make_noted`]).
 
 use super::{CellBox, CellKeys, Chooser, Ray, Sides, BEHIND};
-use crate::integrate::prepare::avx2::{transpose4, Acc, Maker4};
+use crate::integrate::prepare::avx2::{store4, transpose4, Acc, Maker4, Side4};
 use crate::integrate::prepare::ExtentSum;
 use std::arch::x86_64::*;
 
@@ -56,8 +56,7 @@ struct Noter {
     last: [__m256d; 3],
     dx: __m256d,
     dy: __m256d,
-    o: [__m256d; 3],
-    axis: [__m256d; 3],
+    side: Side4,
     hit_bit: __m256i,
     shift: __m128i,
 }
@@ -72,8 +71,7 @@ impl Noter {
             last: b.dims.map(|d| _mm256_set1_pd((d - 1) as f64)),
             dx,
             dy,
-            o: halves.origin.map(|v| _mm256_set1_pd(v)),
-            axis: halves.axis.unwrap_or([0.0; 3]).map(|v| _mm256_set1_pd(v)),
+            side: Side4::new(halves),
             hit_bit: _mm256_set1_epi64x(b.hit_bit as i64),
             shift: _mm_set_epi64x(0, b.hit_bit as i64),
         }
@@ -99,17 +97,8 @@ impl Noter {
         let cell = _mm256_cvtepi32_epi64(_mm256_cvtpd_epi32(cell));
         let hit = _mm256_and_si256(_mm256_srli_epi64::<32>(w), self.hit_bit);
         let skipped = _mm256_cmpeq_epi64(_mm256_and_si256(w, low32), low32);
-        // (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
-        let [d0, d1, d2] = [(x, 0), (y, 1), (z, 2)].map(|(v, a)| _mm256_sub_pd(v, self.o[a]));
-        let dot = _mm256_add_pd(
-            _mm256_add_pd(
-                _mm256_mul_pd(d0, self.axis[0]),
-                _mm256_mul_pd(d1, self.axis[1]),
-            ),
-            _mm256_mul_pd(d2, self.axis[2]),
-        );
         let back = _mm256_and_si256(
-            _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LT_OQ>(dot, zero)),
+            _mm256_castpd_si256(self.side.behind([x, y, z])),
             _mm256_set1_epi64x(BEHIND as i64),
         );
         _mm256_or_si256(
@@ -183,19 +172,9 @@ pub(super) fn make_noted(
         for &k in n4.iter() {
             crate::prefetch::prefetch(ahead, k as u32 as usize / 64);
         }
-        let p = o4.as_mut_ptr().cast::<f64>();
-        for (j, r) in transpose4(lanes).into_iter().enumerate() {
-            // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes
-            // ray `j` whole (`Made4::rays`), all of its fields valid values.
-            unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
-            // Rays 4q + j alternate between the two sums, as in `ExtentSum::of`.
-            let sum = &mut sums[j % 2];
-            if m4.finite >> j & 1 == 0 {
-                sum.skipped += 1;
-            } else {
-                sum.add(r, m4.hit >> j & 1 != 0);
-            }
-        }
+        let rays = transpose4(lanes);
+        store4(o4, rays);
+        m4.sum_into(&mut sums, &rays);
     }
     let [even, odd] = sums.map(|s| s.sum());
     Some(ExtentSum::join(even, odd))
