@@ -19,6 +19,9 @@
 //! axis's next crossing is `i64::MAX` so that signed compares order the crossings, and
 //! dense marks are written lane by lane in scalar code, without being read first (see
 //! [`walk_dense`]).
+//! Its functions are compiled for the features `Kernel::Avx2` requires of the CPU (AVX2,
+//! BMI1 and BMI2: the marks' shifts by a register then need no move of the count), and
+//! "the CPU has AVX2" in its safety comments means all of them.
 //! Per lane the walk is `Dda::step` exactly: the same crossings, ties (x, y, z) and end
 //! voxel as `super::dense::walk_rays` and `super::sparse::walk_rays`. The dense walk stays
 //! inside the box because the origin's voxel and every end voxel are checked to be in it:
@@ -61,7 +64,7 @@ struct Axis {
 /// doubles to 64-bit integers): the significand with its implicit bit, shifted by the
 /// exponent. Shifts of 64 or more give 0, so one of the two shifts is the answer.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn trunc_u64(v: __m256d) -> __m256i {
     let bits = _mm256_castpd_si256(v);
     let exp = _mm256_srli_epi64::<52>(bits);
@@ -77,7 +80,7 @@ fn trunc_u64(v: __m256d) -> __m256i {
 }
 
 impl Axis {
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     fn new(o: f64, stride: i64, lo: i32, len: u64) -> Self {
         let s = o.floor();
         Axis {
@@ -96,7 +99,7 @@ impl Axis {
     /// `last` capped at [`T_CAP`]. Returns (t, d, last, inc, n, inside): `inside` all ones
     /// where the end voxel lies in the box.
     #[inline]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     fn setup(&self, e: __m256d) -> [__m256i; 6] {
         let t = _mm256_floor_pd(e);
         let inside = _mm256_and_pd(
@@ -196,7 +199,7 @@ fn from_array(a: [i64; 4]) -> __m256i {
 
 /// Bit `l` set for each lane `l` whose 64 bits are all ones in `m`.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn lanes(m: __m256i) -> u32 {
     _mm256_movemask_pd(_mm256_castsi256_pd(m)) as u32
 }
@@ -228,7 +231,7 @@ struct Queue {
 }
 
 impl Queue {
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     fn new() -> Self {
         let zero = [_mm256_setzero_si256(); 3];
         Queue {
@@ -259,7 +262,7 @@ impl Queue {
 
     /// Set up the next rays from `feed`; false if it has none left.
     #[inline(never)]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     fn fill(&mut self, feed: &mut Feed<'_>, from: &Start<'_>) -> bool {
         let Start {
             axes,
@@ -321,7 +324,7 @@ impl Queue {
     /// `start` skipped. Returns their steps left and the voxels they start from. The
     /// crossings made are estimated in doubles and then checked against the exact
     /// crossing times.
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     fn skip_covered(
         &mut self,
         g: usize,
@@ -396,14 +399,14 @@ impl Queue {
 
 /// The sum of three vectors.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn add3(v: &[__m256i; 3]) -> __m256i {
     _mm256_add_epi64(_mm256_add_epi64(v[0], v[1]), v[2])
 }
 
 /// `a * k` lane by lane, for `k < 2^32` and products below 2^63.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn mul_small(a: __m256i, k: __m256i) -> __m256i {
     _mm256_add_epi64(
         _mm256_mul_epu32(a, k),
@@ -413,7 +416,7 @@ fn mul_small(a: __m256i, k: __m256i) -> __m256i {
 
 /// `v` as a double, its low 10 bits dropped, for `0 <= v <= 2^62`: an estimate.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn approx_pd(v: __m256i) -> __m256d {
     // 2^52 as a double: OR-ed with an integer below 2^52 it is 2^52 plus that integer.
     let magic = _mm256_set1_epi64x(0x4330_0000_0000_0000);
@@ -447,7 +450,7 @@ pub(super) fn walks_grouped(walked: f64) -> bool {
 /// `avx512::test_first`'s frames): lane by lane in scalar code, the test's mispredicted
 /// branches cost more than the writes (random 500k 6 m 28.3 -> 23.5-24.5 ms, structured
 /// 21.9 -> 20.1, on AMD Zen 5).
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 pub(super) fn walk_dense(
     bits: &mut DenseBits,
     dbox: &DenseBox,
@@ -495,7 +498,7 @@ pub(super) fn walk_dense(
 /// `super::sparse::walk_rays`. The rays are sorted by direction and the lanes take the
 /// next ones in turn, so they walk side by side and find the bricks they flush in `cache`
 /// and in the CPU's caches. See [`SparseMarks`] for how marks are kept.
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let v = crate::coord::units_to_voxel(origin).expect("origin checked");
     let packed = Packed::around(v);
@@ -651,7 +654,7 @@ impl Marks for SparseMarks<'_, '_> {
         unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
     }
 
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,bmi1,bmi2")]
     unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
         let entry = to_array(self.entry);
         let mut plane = to_array(self.plane);
@@ -721,7 +724,7 @@ impl Marks for SparseMarks<'_, '_> {
 /// voxels on the rays and, of those, the ones skipped in `from.covered`. Voxel indices
 /// start at `from.start` (the origin's voxel), or where a ray leaves the covered box, and
 /// change by the axes' strides per step.
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
     let mut queues = [Queue::new(), Queue::new(), Queue::new(), Queue::new()];
     let never = _mm256_set1_epi64x(NEVER);
@@ -825,7 +828,7 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
 /// outside its covered box, and that bookkeeping cost more than the steps the shorter
 /// rays of a group walk idle (see docs/performance.md). Hits are marked from the end
 /// voxels the set-up computed.
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {
     let mut q = Queue::new();
     let sinks = _mm256_add_epi64(
@@ -839,9 +842,11 @@ fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>)
             for j in 4 * g..(4 * g + 4).min(q.len) {
                 steps += q.n[j] as u64 + 1;
                 most = most.max(q.n[j]);
-                if q.hit[j] {
-                    set_bit(marks.hits, q.end[j] as u64);
-                }
+                // Without a branch: whether a ray hits is a coin toss to the predictor
+                // (a third of a 6 m frame's rays are cut), and its misses cost more
+                // than a write of nothing.
+                let at = q.end[j] as u64;
+                marks.hits[(at / 64) as usize] |= u64::from(q.hit[j]) << (at % 64);
             }
             if most == 0 {
                 continue;
@@ -875,7 +880,7 @@ fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>)
 /// Every lane's first `n` voxels must lie in the box of `free`, and `sinks` be words of
 /// `free` outside it. The CPU must have AVX2.
 #[inline(never)]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 unsafe fn group_steps(
     k: i64,
     t: [__m256i; 3],
@@ -903,7 +908,7 @@ unsafe fn group_steps(
 
 /// All ones in lane `l` for each bit `l` of `lanes`.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn lane_mask(lanes: u32) -> __m256i {
     _mm256_cmpgt_epi64(
         _mm256_and_si256(
@@ -926,7 +931,7 @@ struct Fixed {
 /// the index increment. Each axis's next crossing (never after its last) is computed off
 /// the compare chain, as `Dda::step` does.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 fn step(t: [__m256i; 3], fixed: &Fixed) -> ([__m256i; 3], __m256i) {
     let never = _mm256_set1_epi64x(NEVER);
     let [tx, ty, tz] = t;
@@ -962,7 +967,7 @@ fn step(t: [__m256i; 3], fixed: &Fixed) -> ([__m256i; 3], __m256i) {
 /// Every voxel of every lane's `k` steps must lie in the box of `free`, or be the sink
 /// (its last word), which a lane without increments never leaves.
 #[inline(never)]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 unsafe fn walk_steps(
     k: i64,
     t: &mut [__m256i; 3],
@@ -989,7 +994,17 @@ unsafe fn walk_steps(
 /// Every lane's voxel must be a bit of `free`.
 #[inline(always)]
 unsafe fn mark(free: &mut [u64], p: __m256i) {
-    for q in to_array(p) {
+    #[repr(align(32))]
+    struct Lanes([i64; 4]);
+    let mut lanes = Lanes([0; 4]);
+    // The lanes stored once and loaded back one by one: fewer instructions than moving
+    // each to a general register (`vpextrq` is two micro-ops). The loads are volatile
+    // because the compiler otherwise turns them back into those moves.
+    // SAFETY: `lanes` is 32 bytes aligned to 32.
+    unsafe { _mm256_store_si256(lanes.0.as_mut_ptr().cast(), p) };
+    for q in &lanes.0 {
+        // SAFETY: `q` is a valid, aligned, initialised i64.
+        let q = unsafe { std::ptr::read_volatile(q) };
         let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
         // SAFETY: `word < free.len()`, as the caller guarantees.
         let w = unsafe { free.get_unchecked_mut(word) };
@@ -1007,7 +1022,7 @@ unsafe fn mark(free: &mut [u64], p: __m256i) {
 /// to its next at most once a step, an idle lane (increments 0) not at all. The CPU must
 /// have AVX2.
 #[inline(never)]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn sparse_steps(
     k: i64,

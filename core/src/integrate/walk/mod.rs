@@ -169,7 +169,7 @@ fn run_dense(
                         )
                     },
                     #[cfg(target_arch = "x86_64")]
-                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2, BMI1 and BMI2
                     // (`Kernel::supported`), which is all `walk_dense` needs.
                     Kernel::Avx2 => unsafe {
                         avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered, grouped)
@@ -228,7 +228,7 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
         #[cfg(target_arch = "x86_64")]
         Kernel::Avx2 => {
             rays.par_chunks(RAY_CHUNK)
-                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
+                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2, BMI1 and BMI2
                 // (`Kernel::supported`), which is all `walk_sparse` needs.
                 .map(|chunk| marks.with_cache(|c| unsafe { avx2::walk_sparse(c, origin, chunk) }))
                 .sum()
