@@ -213,6 +213,17 @@ impl Side4 {
     }
 }
 
+/// A ray whole in one vector: its x, y and z, and the word of key (bits 0-31) and hit
+/// flag (bit 32).
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(in crate::integrate) fn load_ray(r: &Ray) -> __m256d {
+    const _: () = assert!(std::mem::size_of::<Ray>() == 32);
+    // SAFETY: a `repr(C)` ray is 32 bytes, every byte initialised (explicit padding), the
+    // end first.
+    unsafe { _mm256_loadu_pd(std::ptr::from_ref(r).cast::<f64>()) }
+}
+
 /// The 4 x 4 doubles `rows` transposed: lane `j` of vector `i` becomes lane `i` of vector
 /// `j`. Four rays loaded whole become their x, y, z and words, and back.
 #[inline]
@@ -314,9 +325,7 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
             s.skipped += 1;
             return;
         }
-        // SAFETY: a `repr(C)` ray is 32 initialised bytes, the end first.
-        let v = unsafe { _mm256_loadu_pd(std::ptr::from_ref(r).cast::<f64>()) };
-        s.add(v, r.hit);
+        s.add(load_ray(r), r.hit);
     };
     let mut pairs = rays.chunks_exact(2);
     for p in &mut pairs {

@@ -2,7 +2,7 @@
 //! [`CellBox::note_of`]; and the rays made and noted in one pass ([`make_noted`]).
 
 use super::{CellBox, CellKeys, Chooser, Ray, Sides, BEHIND};
-use crate::integrate::prepare::avx2::{store4, transpose4, Acc, Maker4, Side4};
+use crate::integrate::prepare::avx2::{load_ray, store4, transpose4, Acc, Maker4, Side4};
 use crate::integrate::prepare::ExtentSum;
 use std::arch::x86_64::*;
 
@@ -11,12 +11,8 @@ use std::arch::x86_64::*;
 #[target_feature(enable = "avx2")]
 #[inline]
 fn load4(rays: &[Ray]) -> [__m256d; 4] {
-    const _: () = assert!(std::mem::size_of::<Ray>() == 32);
     assert_eq!(rays.len(), 4);
-    let p = rays.as_ptr().cast::<f64>();
-    // SAFETY: four `repr(C)` rays of 32 bytes, every byte initialised (explicit padding):
-    // load `j` reads ray `j` whole, as x, y, z and the word of key and hit.
-    transpose4([0, 1, 2, 3].map(|j| unsafe { _mm256_loadu_pd(p.add(4 * j)) }))
+    transpose4([0, 1, 2, 3].map(|j| load_ray(&rays[j])))
 }
 
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a

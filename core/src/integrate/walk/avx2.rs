@@ -32,6 +32,7 @@ use super::dense::{set_bit, DenseBits, DenseBox};
 use super::Packed;
 use crate::coord::VoxelCoord;
 use crate::integrate::marks::{BrickCache, Slot};
+use crate::integrate::prepare::avx2::{load_ray, transpose4};
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
 use crate::raycast::T_ONE;
@@ -165,14 +166,19 @@ impl<'r> Feed<'r> {
         Self::new(rays, ranges)
     }
 
-    fn next(&mut self) -> Option<&'r Ray> {
+    /// The next rays, at most `max`, as they lie in `rays`: empty when none are left.
+    fn run(&mut self, max: usize) -> &'r [Ray] {
         while let Some(r) = self.ranges.get_mut(self.at) {
-            if let Some(i) = r.next() {
-                return Some(&self.rays[i]);
+            if r.start >= r.end {
+                self.at += 1;
+                continue;
             }
-            self.at += 1;
+            let end = r.end.min(r.start + max);
+            let run = &self.rays[r.start..end];
+            r.start = end;
+            return run;
         }
-        None
+        &[]
     }
 
     /// Ask for the cache lines of the next `4 * GROUPS` rays.
@@ -219,7 +225,8 @@ struct Queue {
     last: [[__m256i; 3]; GROUPS],
     inc: [[__m256i; 3]; GROUPS],
     n: [i64; 4 * GROUPS],
-    hit: [bool; 4 * GROUPS],
+    /// Bit `j` set where entry `j`'s ray hits.
+    hits: u32,
     /// Each ray's first voxel: the walk's start, or where it leaves the covered box.
     p0: [i64; 4 * GROUPS],
     /// Each ray's end voxel.
@@ -240,7 +247,7 @@ impl Queue {
             last: [zero; GROUPS],
             inc: [zero; GROUPS],
             n: [0; 4 * GROUPS],
-            hit: [false; 4 * GROUPS],
+            hits: 0,
             p0: [0; 4 * GROUPS],
             end: [0; 4 * GROUPS],
             len: 0,
@@ -270,13 +277,19 @@ impl Queue {
             start,
             covered,
         } = *from;
-        // Entries without a ray end at the origin: no steps.
-        let mut ends = [origin; 4 * GROUPS];
+        // Each ray whole in a vector (end, then the word of key and hit flag); entries
+        // without a ray end at the origin: no steps.
+        let mut rows = [_mm256_setr_pd(origin[0], origin[1], origin[2], 0.0); 4 * GROUPS];
         self.len = 0;
-        while self.len < 4 * GROUPS {
-            let Some(r) = feed.next() else { break };
-            (ends[self.len], self.hit[self.len]) = (r.end, r.hit);
-            self.len += 1;
+        loop {
+            let run = feed.run(4 * GROUPS - self.len);
+            if run.is_empty() {
+                break;
+            }
+            for r in run {
+                rows[self.len] = load_ray(r);
+                self.len += 1;
+            }
         }
         // The next rays are read at the next fill: ask for them now, so that their misses
         // overlap this fill's set-up and the walk.
@@ -286,9 +299,15 @@ impl Queue {
         let groups = self.len.div_ceil(4);
         let mut n = [[_mm256_setzero_si256(); 3]; GROUPS];
         let mut span = [[_mm256_setzero_pd(); 3]; GROUPS];
-        for (g, ends) in ends.chunks_exact(4).enumerate().take(groups) {
-            for (a, axis) in axes.iter().enumerate() {
-                let e = _mm256_set_pd(ends[3][a], ends[2][a], ends[1][a], ends[0][a]);
+        self.hits = 0;
+        for (g, rows) in rows.chunks_exact(4).enumerate().take(groups) {
+            let [x, y, z, w] = transpose4(rows.try_into().expect("four rays"));
+            // The hit flag is bit 32 of the word: to the sign bit.
+            let hit = _mm256_movemask_pd(_mm256_castsi256_pd(_mm256_slli_epi64::<31>(
+                _mm256_castpd_si256(w),
+            )));
+            self.hits |= (hit as u32) << (4 * g);
+            for (a, (axis, e)) in axes.iter().zip([x, y, z]).enumerate() {
                 let [t, d, last, inc, na, ins] = axis.setup(e);
                 (self.t[g][a], self.d[g][a], self.last[g][a], self.inc[g][a]) = (t, d, last, inc);
                 n[g][a] = na;
@@ -756,7 +775,7 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
                 let n = q.n[j];
                 steps += n as u64 + 1;
                 if n == 0 {
-                    if q.hit[j] {
+                    if q.hits >> j & 1 != 0 {
                         marks.hit_at(q.p0[j] as u64);
                     }
                     continue;
@@ -776,7 +795,7 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
                 put(&mut fixed.inc, &q.inc[g]);
                 p = _mm256_blendv_epi8(p, _mm256_set1_epi64x(q.p0[j]), lane);
                 rem[l] = n;
-                hit = hit & !(1 << l) | u32::from(q.hit[j]) << l;
+                hit = hit & !(1 << l) | (q.hits >> j & 1) << l;
                 live |= 1 << l;
                 break;
             }
@@ -846,7 +865,7 @@ fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>)
                 // (a third of a 6 m frame's rays are cut), and its misses cost more
                 // than a write of nothing.
                 let at = q.end[j] as u64;
-                marks.hits[(at / 64) as usize] |= u64::from(q.hit[j]) << (at % 64);
+                marks.hits[(at / 64) as usize] |= u64::from(q.hits >> j & 1) << (at % 64);
             }
             if most == 0 {
                 continue;
