@@ -14,8 +14,9 @@ pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh:
 
 /// [`Observe`] with byte vectors: AVX2 has no byte-masked store, so each half of the word
 /// is blended (the observed bytes new, the others as they were, or zero when `FRESH`, which
-/// they are) and stored whole. The same values and marks as one at a time: an i8 add
-/// saturates only beyond the clamps, which are within i8.
+/// they are) and stored whole, both halves whatever their bits: which half of a plane a
+/// ray crosses is a coin toss to the branch predictor. The same values and marks as one
+/// at a time: an i8 add saturates only beyond the clamps, which are within i8.
 pub(in crate::integrate) struct Avx2;
 
 impl Observe for Avx2 {
@@ -65,9 +66,6 @@ pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
         let at = values[32 * half..].as_mut_ptr();
         let shift = 32 * half as u32;
         let (any_h, hit_h) = ((any >> shift) as u32, (hit >> shift) as u32);
-        if any_h == 0 {
-            continue;
-        }
         let delta = _mm256_blendv_epi8(miss_d, hit_d, bytes_of(hit_h));
         let old = if FRESH {
             _mm256_setzero_si256()
