@@ -111,19 +111,29 @@ impl<V: GridValue> LeafPool<V> {
     }
 
     fn push_zeroed(&mut self) -> u32 {
-        if self.len == self.chunks.len() * POOL_CHUNK {
-            self.chunks.push(if self.chunks.is_empty() {
+        self.push_zeroed_n(1)
+    }
+
+    /// `n` more zeroed leaves; returns the first one's index. The chunks they need are
+    /// mapped together ([`Zeroed::new_many`]).
+    fn push_zeroed_n(&mut self, n: usize) -> u32 {
+        let first = self.len;
+        let want = first + n;
+        let have = self.chunks.len() * POOL_CHUNK;
+        if want > have {
+            let mut more = (want - have).div_ceil(POOL_CHUNK);
+            if self.chunks.is_empty() {
                 // A small map's leaves: its first chunk comes from the allocator, and pays
                 // for the pages it touches, not a zeroed 2 MiB page (0.3 ms of a 50k-point
                 // 6 m frame). Where the allocator keeps freed memory (the service), it may
                 // be memory freed before, which the allocator clears: once per map.
-                Zeroed::from_allocator(POOL_CHUNK)
-            } else {
-                Zeroed::new(POOL_CHUNK)
-            });
+                self.chunks.push(Zeroed::from_allocator(POOL_CHUNK));
+                more -= 1;
+            }
+            self.chunks.extend(Zeroed::new_many(POOL_CHUNK, more));
         }
-        self.len += 1;
-        (self.len - 1) as u32
+        self.len = want;
+        first as u32
     }
 
     #[inline]
@@ -315,6 +325,121 @@ impl<V: GridValue> Grid<V> {
         node.child_mask[ci >> 6] |= 1 << (ci & 63);
         node.children[ci] = li;
         li
+    }
+
+    /// [`Self::leaf_index_or_insert`] for many leaves at once, in parallel on the current
+    /// rayon pool: `groups` of distinct leaf origins, each group inside one internal node
+    /// and no two groups in the same one. Returns, group after group, each origin's leaf
+    /// index, its tag and whether the leaf is new: what one call per origin, in this
+    /// order, would give. Groups that break the conditions are inserted one by one.
+    ///
+    /// # Panics
+    /// If a group repeats an origin.
+    pub fn leaf_indices_or_insert<T: Copy + Send + Sync>(
+        &mut self,
+        groups: &[Vec<(VoxelCoord, T)>],
+    ) -> Vec<(u32, (T, bool))> {
+        use rayon::prelude::*;
+        let first_new = self.leaves.len() as u32;
+        let key_of = |g: &[(VoxelCoord, T)]| g.first().map(|&(o, _)| internal_key(o));
+        let mut keys: Vec<VoxelCoord> = groups.iter().filter_map(|g| key_of(g)).collect();
+        keys.par_sort_unstable_by_key(|k| (k.z, k.y, k.x));
+        let apart = keys.windows(2).all(|w| w[0] != w[1])
+            && (groups.par_iter())
+                .all(|g| g.iter().all(|&(o, _)| Some(internal_key(o)) == key_of(g)));
+        if !apart {
+            let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
+            return (groups.iter().flatten())
+                .map(|&(o, tag)| {
+                    let l = self.leaf_index_or_insert(o, Some(&mut hint));
+                    (l, (tag, l >= first_new))
+                })
+                .collect();
+        }
+        // Each group's internal node, made where missing, in the groups' order as one by
+        // one; then how many leaves each group adds (all of them in a node just made:
+        // its memory is not read before it is written, see `apply` in the update), and
+        // the first one's index.
+        let old_nodes = self.internals.len();
+        let nodes: Vec<Option<usize>> = (groups.iter())
+            .map(|g| {
+                let key = key_of(g)?;
+                Some(*self.root.entry(key).or_insert_with(|| {
+                    self.internals
+                        .push(Internal::new(key.shl(INTERNAL_TOTAL_LOG2)));
+                    (self.internals.len() - 1) as u32
+                }) as usize)
+            })
+            .collect();
+        let internals = &self.internals;
+        let new: Vec<u32> = (groups.par_iter().zip(&nodes))
+            .map(|(g, &ii)| {
+                ii.map_or(0, |ii| {
+                    if ii >= old_nodes {
+                        return g.len() as u32;
+                    }
+                    let node = &internals[ii];
+                    g.iter()
+                        .filter(|&&(o, _)| node.child(child_index(o)).is_none())
+                        .count() as u32
+                })
+            })
+            .collect();
+        let mut next = first_new;
+        let starts: Vec<u32> = (new.iter())
+            .map(|&n| {
+                next += n;
+                next - n
+            })
+            .collect();
+        self.leaves.push_zeroed_n((next - first_new) as usize);
+        // The groups' nodes, each borrowed by its group alone (they are distinct).
+        let mut mine: Vec<Option<&mut Internal>> = (0..groups.len()).map(|_| None).collect();
+        let mut owner: Vec<(usize, usize)> = (nodes.iter().enumerate())
+            .filter_map(|(g, ii)| Some(((*ii)?, g)))
+            .collect();
+        owner.sort_unstable();
+        let mut owner = owner.into_iter().peekable();
+        for (ii, node) in self.internals.iter_mut().enumerate() {
+            if let Some((_, g)) = owner.next_if(|&(o, _)| o == ii) {
+                mine[g] = Some(node);
+            }
+        }
+        // Each group writes its own part of the output.
+        let total = groups.iter().map(Vec::len).sum();
+        let mut out = Vec::with_capacity(total);
+        let mut rest = &mut out.spare_capacity_mut()[..total];
+        let mut parts = Vec::with_capacity(groups.len());
+        for g in groups {
+            let (part, tail) = rest.split_at_mut(g.len());
+            parts.push(part);
+            rest = tail;
+        }
+        let added: Vec<u32> = (groups.par_iter().zip(mine).zip(parts).zip(&starts))
+            .map(|(((g, node), part), &start)| {
+                let Some(node) = node else { return 0 };
+                let mut next = start;
+                for (&(o, tag), at) in g.iter().zip(part.iter_mut()) {
+                    let ci = child_index(o);
+                    let l = match node.child(ci) {
+                        Some(l) => l,
+                        None => {
+                            node.child_mask[ci >> 6] |= 1 << (ci & 63);
+                            node.children[ci] = next;
+                            next += 1;
+                            next - 1
+                        }
+                    };
+                    at.write((l, (tag, l >= first_new)));
+                }
+                next - start
+            })
+            .collect();
+        assert_eq!(added, new, "a group repeats a leaf origin");
+        // SAFETY: the parts tile `out`'s first `total` elements, and each group wrote every
+        // element of its part, which is as long as the group.
+        unsafe { out.set_len(total) };
+        out
     }
 
     /// Every leaf as (origin, leaf), in no particular order.
@@ -561,6 +686,75 @@ mod tests {
             leaf_box_mask(VoxelCoord::new(-8, 0, 0), near, far),
             Mask512::FULL
         );
+    }
+
+    #[test]
+    fn leaves_inserted_by_groups_are_those_inserted_one_by_one() {
+        let mut rng = crate::test_rng::Rng(11);
+        let mut leaf = || {
+            VoxelCoord::new(rng.i(-300, 300), rng.i(-300, 300), rng.i(-40, 40))
+                .shr(LEAF_LOG2)
+                .shl(LEAF_LOG2)
+        };
+        let before: Vec<VoxelCoord> = (0..300).map(|_| leaf()).collect();
+        let mut origins: Vec<VoxelCoord> = (0..4000).map(|_| leaf()).collect();
+        let node = |o: &VoxelCoord| {
+            let k = internal_key(*o);
+            (k.z, k.y, k.x)
+        };
+        origins.sort_by_key(|o| (node(o), o.z, o.y, o.x));
+        origins.dedup();
+        // Grouped by internal node, in a scrambled order of nodes, one group empty.
+        let mut groups: Vec<Vec<(VoxelCoord, usize)>> = Vec::new();
+        for (i, &o) in origins.iter().enumerate() {
+            match groups.last_mut() {
+                Some(g) if internal_key(g[0].0) == internal_key(o) => g.push((o, i)),
+                _ => groups.push(vec![(o, i)]),
+            }
+        }
+        groups.reverse();
+        groups.swap(0, 3);
+        groups.insert(2, Vec::new());
+        // Two groups in one node, and a group across two nodes: the one-by-one path.
+        let mut shared = groups.clone();
+        let half = shared[1].len() / 2;
+        let tail = shared[1].split_off(half);
+        shared.push(tail);
+        let mut across = groups.clone();
+        let first = across.remove(0);
+        across[0].extend(first);
+        for (case, groups) in [groups, shared, across].iter().enumerate() {
+            let (mut grouped, mut single) = (Grid::<i8>::new(), Grid::<i8>::new());
+            for g in [&mut grouped, &mut single] {
+                for &o in &before {
+                    g.leaf_index_or_insert(o, None);
+                }
+            }
+            let first_new = single.leaf_count() as u32;
+            let want: Vec<(u32, (usize, bool))> = (groups.iter().flatten())
+                .map(|&(o, i)| {
+                    let l = single.leaf_index_or_insert(o, None);
+                    (l, (i, l >= first_new))
+                })
+                .collect();
+            let nodes_before = grouped.internals.len();
+            let got = grouped.leaf_indices_or_insert(groups);
+            assert!(grouped.internals.len() > nodes_before);
+            assert_eq!(got, want, "case {case}");
+            assert!(got.iter().any(|&(_, (_, new))| !new) && got.iter().any(|&(_, (_, new))| new));
+            assert_eq!(grouped.leaf_count(), single.leaf_count());
+            for &o in origins.iter().chain(&before) {
+                assert_eq!(
+                    grouped.leaf_index_or_insert(o, None),
+                    single.leaf_index_or_insert(o, None)
+                );
+            }
+            assert_eq!(
+                grouped.leaf_count(),
+                single.leaf_count(),
+                "nothing new after"
+            );
+        }
     }
 
     #[test]

@@ -44,23 +44,45 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
         Self::alloc(len, false)
     }
 
+    /// `count` arrays of `len` zeroed elements, as [`Self::new`] makes one, from one
+    /// mapping and one advice for all: two system calls, not two per array.
+    pub(crate) fn new_many(len: usize, count: usize) -> Vec<Self> {
+        Self::mapped(len, count)
+    }
+
     fn alloc(len: usize, huge: bool) -> Self {
+        if huge {
+            Self::mapped(len, 1).pop().expect("one array")
+        } else {
+            Self::boxed(len)
+        }
+    }
+
+    fn boxed(len: usize) -> Self {
+        let heap: Box<[T]> = bytemuck::allocation::zeroed_slice_box(len);
+        Zeroed {
+            ptr: NonNull::new(Box::into_raw(heap).cast()).expect("a box is non-null"),
+            len,
+            map: (std::ptr::null_mut(), 0),
+        }
+    }
+
+    /// `count` arrays of `len` elements in one mapping, each on its own huge pages; each
+    /// array owns its part of the mapping (the first one also the slack before, the last
+    /// one the slack after), which it unmaps alone.
+    fn mapped(len: usize, count: usize) -> Vec<Self> {
         const {
             assert!(!std::mem::needs_drop::<T>());
             assert!(std::mem::align_of::<T>() <= 4096);
         }
         let layout = std::alloc::Layout::array::<T>(len).expect("array size overflows");
-        if !huge || layout.size() == 0 {
-            let heap: Box<[T]> = bytemuck::allocation::zeroed_slice_box(len);
-            return Zeroed {
-                ptr: NonNull::new(Box::into_raw(heap).cast()).expect("a box is non-null"),
-                len,
-                map: (std::ptr::null_mut(), 0),
-            };
+        if layout.size() == 0 || count == 0 {
+            return (0..count).map(|_| Self::boxed(len)).collect();
         }
         let used = layout.size().next_multiple_of(HUGE_PAGE);
-        // One huge page more than needed, so that an aligned run of `used` bytes fits.
-        let map_len = used + HUGE_PAGE;
+        let all = used.checked_mul(count).expect("arrays' size overflows");
+        // One huge page more than needed, so that an aligned run of `all` bytes fits.
+        let map_len = all + HUGE_PAGE;
         // SAFETY: a new private anonymous mapping, which touches no existing memory.
         let p = unsafe {
             libc::mmap(
@@ -76,21 +98,34 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
             std::alloc::handle_alloc_error(layout);
         }
         let skip = (p as usize).next_multiple_of(HUGE_PAGE) - p as usize;
-        // SAFETY: skip < HUGE_PAGE, so the run [p + skip, p + skip + used) lies inside the
-        // mapping of used + HUGE_PAGE bytes.
+        // SAFETY: skip < HUGE_PAGE, so the run [p + skip, p + skip + all) lies inside the
+        // mapping of all + HUGE_PAGE bytes.
         let start = unsafe { p.cast::<u8>().add(skip) };
         #[cfg(target_os = "linux")]
         // SAFETY: advice on part of our own mapping; it never changes contents, and a
         // refusal (no transparent huge pages) leaves ordinary pages, so the result is
         // ignored.
         unsafe {
-            libc::madvise(start.cast(), used, libc::MADV_HUGEPAGE);
+            libc::madvise(start.cast(), all, libc::MADV_HUGEPAGE);
         }
-        Zeroed {
-            ptr: NonNull::new(start.cast()).expect("mmap returned a non-null address"),
-            len,
-            map: (p, map_len),
-        }
+        let end = p as usize + map_len;
+        (0..count)
+            .map(|i| {
+                // SAFETY: i * used < all: the array's run lies inside the aligned run.
+                let at = unsafe { start.add(i * used) };
+                let from = if i == 0 { p as usize } else { at as usize };
+                let to = if i + 1 == count {
+                    end
+                } else {
+                    at as usize + used
+                };
+                Zeroed {
+                    ptr: NonNull::new(at.cast()).expect("mmap returned a non-null address"),
+                    len,
+                    map: (from as *mut libc::c_void, to - from),
+                }
+            })
+            .collect()
     }
 }
 
@@ -118,8 +153,9 @@ impl<T> std::ops::DerefMut for Zeroed<T> {
 impl<T> Drop for Zeroed<T> {
     fn drop(&mut self) {
         if self.map.1 != 0 {
-            // SAFETY: unmaps exactly the mapping `alloc` made, once; T has no drop glue, and
-            // no reference into it outlives `self`.
+            // SAFETY: unmaps exactly this array's part of the mapping `mapped` made, once
+            // (page-aligned: the mapping's start, or a multiple of a huge page from it); T
+            // has no drop glue, and no reference into it outlives `self`.
             unsafe {
                 libc::munmap(self.map.0, self.map.1);
             }
@@ -135,6 +171,27 @@ impl<T> Drop for Zeroed<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn arrays_mapped_together_are_apart_zeroed_and_freed_one_by_one() {
+        let mut many = Zeroed::<u64>::new_many(HUGE_PAGE / 8 + 3, 3);
+        assert_eq!(many.len(), 3);
+        for (i, a) in many.iter_mut().enumerate() {
+            assert_eq!(a.as_ptr() as usize % HUGE_PAGE, 0);
+            assert!(a.iter().all(|&x| x == 0));
+            let n = a.len();
+            a[0] = i as u64 + 1;
+            a[n - 1] = i as u64 + 10;
+        }
+        // Freed out of order, the others stay whole.
+        drop(many.remove(1));
+        assert_eq!((many[0][0], many[1][0]), (1, 3));
+        assert_eq!(
+            (many[0][HUGE_PAGE / 8 + 2], many[1][HUGE_PAGE / 8 + 2]),
+            (10, 12)
+        );
+        assert!(Zeroed::<u64>::new_many(0, 2).iter().all(|a| a.is_empty()));
+    }
 
     #[test]
     fn zeroed_arrays_are_zero_aligned_and_writable() {

@@ -294,10 +294,6 @@ impl FrameMarks {
         f(&mut self.cache())
     }
 
-    pub(in crate::integrate) fn used_slots(&self) -> u32 {
-        self.slots.used()
-    }
-
     pub(in crate::integrate) fn slot(&self, s: u32) -> &Slot {
         self.slots.get(s)
     }
@@ -333,6 +329,30 @@ impl FrameMarks {
             (c / (dx * dy)) as i32,
         );
         let base = self.lo + cell.shl(3 + CELL_LOG2);
+        let at = |e: usize| {
+            let v = VoxelCoord::new(
+                (e & m) as i32,
+                (e >> CELL_LOG2 & m) as i32,
+                (e >> (2 * CELL_LOG2)) as i32,
+            );
+            base + v.shl(3)
+        };
+        if let [only] = entries[..] {
+            // One table's, as most cells are away from the sensor: no slots to join, and
+            // each entry written whether used or not, counted if used (a coin toss for the
+            // branch predictor in a sparse frame).
+            let ids = &only.0;
+            let used = ids.iter().filter(|s| s.load(Relaxed) != 0).count();
+            let mut out = vec![(base, 0); used + 1];
+            let mut k = 0;
+            for (e, s) in ids.iter().enumerate() {
+                let s = s.load(Relaxed);
+                out[k] = (at(e), s.wrapping_sub(1));
+                k += usize::from(s != 0);
+            }
+            out.truncate(k);
+            return out;
+        }
         (0..CELL_ENTRIES)
             .filter_map(|e| {
                 let mut ids = entries
@@ -342,12 +362,7 @@ impl FrameMarks {
                 let first = ids.next()? - 1;
                 let slot = self.slots.get(first);
                 ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
-                let at = VoxelCoord::new(
-                    (e & m) as i32,
-                    (e >> CELL_LOG2 & m) as i32,
-                    (e >> (2 * CELL_LOG2)) as i32,
-                );
-                Some((base + at.shl(3), first))
+                Some((at(e), first))
             })
             .collect()
     }
