@@ -345,8 +345,10 @@ impl<V: GridValue> Grid<V> {
         let mut keys: Vec<VoxelCoord> = groups.iter().filter_map(|g| key_of(g)).collect();
         keys.par_sort_unstable_by_key(|k| (k.z, k.y, k.x));
         let apart = keys.windows(2).all(|w| w[0] != w[1])
-            && (groups.par_iter())
-                .all(|g| g.iter().all(|&(o, _)| Some(internal_key(o)) == key_of(g)));
+            && (groups.par_iter()).all(|g| {
+                let key = key_of(g);
+                g.iter().all(|&(o, _)| Some(internal_key(o)) == key)
+            });
         if !apart {
             let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
             return (groups.iter().flatten())

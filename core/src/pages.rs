@@ -44,15 +44,9 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
         Self::alloc(len, false)
     }
 
-    /// `count` arrays of `len` zeroed elements, as [`Self::new`] makes one, from one
-    /// mapping and one advice for all: two system calls, not two per array.
-    pub(crate) fn new_many(len: usize, count: usize) -> Vec<Self> {
-        Self::mapped(len, count)
-    }
-
     fn alloc(len: usize, huge: bool) -> Self {
         if huge {
-            Self::mapped(len, 1).pop().expect("one array")
+            Self::new_many(len, 1).pop().expect("one array")
         } else {
             Self::boxed(len)
         }
@@ -67,10 +61,11 @@ impl<T: bytemuck::Zeroable> Zeroed<T> {
         }
     }
 
-    /// `count` arrays of `len` elements in one mapping, each on its own huge pages; each
-    /// array owns its part of the mapping (the first one also the slack before, the last
-    /// one the slack after), which it unmaps alone.
-    fn mapped(len: usize, count: usize) -> Vec<Self> {
+    /// `count` arrays of `len` zeroed elements, as [`Self::new`] makes one, from one
+    /// mapping and one advice for all: two system calls, not two per array. Each array
+    /// owns its part of the mapping (the first one also the slack before, the last one
+    /// the slack after), which it unmaps alone.
+    pub(crate) fn new_many(len: usize, count: usize) -> Vec<Self> {
         const {
             assert!(!std::mem::needs_drop::<T>());
             assert!(std::mem::align_of::<T>() <= 4096);
@@ -153,7 +148,7 @@ impl<T> std::ops::DerefMut for Zeroed<T> {
 impl<T> Drop for Zeroed<T> {
     fn drop(&mut self) {
         if self.map.1 != 0 {
-            // SAFETY: unmaps exactly this array's part of the mapping `mapped` made, once
+            // SAFETY: unmaps exactly this array's part of the mapping `new_many` made, once
             // (page-aligned: the mapping's start, or a multiple of a huge page from it); T
             // has no drop glue, and no reference into it outlives `self`.
             unsafe {
