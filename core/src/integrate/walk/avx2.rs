@@ -28,7 +28,7 @@
 //! a walk moves along each axis monotonically from the one to the other.
 
 use super::covered::Covered;
-use super::dense::{set_bit, DenseBits, DenseBox};
+use super::dense::{or_bit, set_bit, DenseBits, DenseBox};
 use super::Packed;
 use crate::coord::VoxelCoord;
 use crate::integrate::marks::{BrickCache, Slot};
@@ -864,8 +864,7 @@ fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>)
                 // Without a branch: whether a ray hits is a coin toss to the predictor
                 // (a third of a 6 m frame's rays are cut), and its misses cost more
                 // than a write of nothing.
-                let at = q.end[j] as u64;
-                marks.hits[(at / 64) as usize] |= u64::from(q.hits >> j & 1) << (at % 64);
+                or_bit(marks.hits, q.end[j] as u64, q.hits >> j & 1 != 0);
             }
             if most == 0 {
                 continue;

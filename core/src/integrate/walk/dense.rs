@@ -9,7 +9,7 @@
 
 use super::covered::Covered;
 use crate::coord::VoxelCoord;
-use crate::integrate::marks::FrameMarks;
+use crate::integrate::marks::{BrickCache, FrameMarks};
 use crate::integrate::prepare::Ray;
 use crate::raycast::Dda;
 use rayon::prelude::*;
@@ -132,7 +132,13 @@ pub(in crate::integrate) fn with_live<R>(
 /// Set bit `index` of `words`.
 #[inline(always)]
 pub(super) fn set_bit(words: &mut [u64], index: u64) {
-    words[(index / 64) as usize] |= 1 << (index % 64);
+    or_bit(words, index, true);
+}
+
+/// Set bit `index` of `words` if `on`, without a branch: a write of nothing otherwise.
+#[inline(always)]
+pub(super) fn or_bit(words: &mut [u64], index: u64, on: bool) {
+    words[(index / 64) as usize] |= u64::from(on) << (index % 64);
 }
 
 /// Walk the rays `rays[ranges[l]]` from `origin` one at a time, setting their free and hit
@@ -199,6 +205,52 @@ pub(super) fn walk_rays(
 pub(in crate::integrate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let row_words = (dbox.n[0] / 64) as usize;
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
+    // A brick row's marks into `cache`'s table.
+    let fold_row = |cache: &mut BrickCache<'_>, r: usize| {
+        let (by, bz) = (r % nby, r / nby);
+        for wx in 0..row_words {
+            // Word (wx) of the 64 rows of this brick row: [z][y].
+            let mut free = [[0u64; 8]; 8];
+            let mut hit = [[0u64; 8]; 8];
+            let mut any = 0;
+            for z in 0..8 {
+                for y in 0..8 {
+                    let i = wx + row_words * (by * 8 + y + ny * (bz * 8 + z));
+                    for b in bits {
+                        free[z][y] |= b.free[i];
+                        hit[z][y] |= b.hit[i];
+                    }
+                    any |= free[z][y] | hit[z][y];
+                }
+            }
+            if any == 0 {
+                continue;
+            }
+            // Byte k of a row word is brick k's row; a brick's word z holds its rows y as
+            // bytes y.
+            for k in 0..8 {
+                let brick_word = |rows: &[u64; 8]| {
+                    (0..8).fold(0u64, |w, y| w | (rows[y] >> (8 * k) & 0xff) << (8 * y))
+                };
+                let f: [u64; 8] = std::array::from_fn(|z| brick_word(&free[z]));
+                let h: [u64; 8] = std::array::from_fn(|z| brick_word(&hit[z]));
+                if f.iter().chain(&h).all(|&w| w == 0) {
+                    continue;
+                }
+                let origin = dbox.lo
+                    + VoxelCoord::new((wx * 64 + k * 8) as i32, (by * 8) as i32, (bz * 8) as i32);
+                let slot = cache.slot_for(origin.shr(3));
+                // Each brick belongs to one row, and only this pass writes slots: plain
+                // stores suffice.
+                for (w, v) in slot.free.iter().zip(f) {
+                    w.store(v, Relaxed);
+                }
+                for (w, v) in slot.hit.iter().zip(h) {
+                    w.store(v, Relaxed);
+                }
+            }
+        }
+    };
     // Runs of rows, a few per thread, each with one cache: a cache starts with 96 KiB of
     // empty entries, which a cache per row (225 rows in a small frame's box) spent 10% of
     // the frame filling.
@@ -207,53 +259,7 @@ pub(in crate::integrate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits:
     (0..rows.div_ceil(per)).into_par_iter().for_each(|run| {
         marks.with_cache(|cache| {
             for r in run * per..(run * per + per).min(rows) {
-                let (by, bz) = (r % nby, r / nby);
-                for wx in 0..row_words {
-                    // Word (wx) of the 64 rows of this brick row: [z][y].
-                    let mut free = [[0u64; 8]; 8];
-                    let mut hit = [[0u64; 8]; 8];
-                    let mut any = 0;
-                    for z in 0..8 {
-                        for y in 0..8 {
-                            let i = wx + row_words * (by * 8 + y + ny * (bz * 8 + z));
-                            for b in bits {
-                                free[z][y] |= b.free[i];
-                                hit[z][y] |= b.hit[i];
-                            }
-                            any |= free[z][y] | hit[z][y];
-                        }
-                    }
-                    if any == 0 {
-                        continue;
-                    }
-                    // Byte k of a row word is brick k's row; a brick's word z holds its rows y as
-                    // bytes y.
-                    for k in 0..8 {
-                        let brick_word = |rows: &[u64; 8]| {
-                            (0..8).fold(0u64, |w, y| w | (rows[y] >> (8 * k) & 0xff) << (8 * y))
-                        };
-                        let f: [u64; 8] = std::array::from_fn(|z| brick_word(&free[z]));
-                        let h: [u64; 8] = std::array::from_fn(|z| brick_word(&hit[z]));
-                        if f.iter().chain(&h).all(|&w| w == 0) {
-                            continue;
-                        }
-                        let origin = dbox.lo
-                            + VoxelCoord::new(
-                                (wx * 64 + k * 8) as i32,
-                                (by * 8) as i32,
-                                (bz * 8) as i32,
-                            );
-                        let slot = cache.slot_for(origin.shr(3));
-                        // Each brick belongs to one row, and only this pass writes slots: plain
-                        // stores suffice.
-                        for (w, v) in slot.free.iter().zip(f) {
-                            w.store(v, Relaxed);
-                        }
-                        for (w, v) in slot.hit.iter().zip(h) {
-                            w.store(v, Relaxed);
-                        }
-                    }
-                }
+                fold_row(cache, r);
             }
         })
     });
