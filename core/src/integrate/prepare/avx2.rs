@@ -131,7 +131,7 @@ pub(in crate::integrate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
     for (j, r) in rays.into_iter().enumerate() {
         // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes ray
         // `j` whole, all of its fields valid values (`Made4::rays`).
-        unsafe { _mm256_storeu_pd(p.add(4 * j), r) };
+        unsafe { _mm256_store_pd(p.add(4 * j), r) };
     }
 }
 
@@ -221,7 +221,7 @@ pub(in crate::integrate) fn load_ray(r: &Ray) -> __m256d {
     const _: () = assert!(std::mem::size_of::<Ray>() == 32);
     // SAFETY: a `repr(C)` ray is 32 bytes, every byte initialised (explicit padding), the
     // end first.
-    unsafe { _mm256_loadu_pd(std::ptr::from_ref(r).cast::<f64>()) }
+    unsafe { _mm256_load_pd(std::ptr::from_ref(r).cast::<f64>()) }
 }
 
 /// The 4 x 4 doubles `rows` transposed: lane `j` of vector `i` becomes lane `i` of vector
@@ -280,7 +280,7 @@ pub(super) fn make_laid_out(
             // SAFETY: `place` is below `out.len()` (each ray made takes one place between
             // `front` and `back`); a ray is 32 bytes, `repr(C)`, end first, and `r` holds
             // one whole with valid fields (`Made4::rays`).
-            unsafe { _mm256_storeu_pd(out.as_mut_ptr().add(place).cast::<f64>(), r) };
+            unsafe { _mm256_store_pd(out.as_mut_ptr().add(place).cast::<f64>(), r) };
         }
     }
     out[front..back].fill(Ray::new([0.0; 3], SKIPPED, false));
