@@ -4,6 +4,7 @@
 use crate::coord::VoxelCoord;
 use crate::grid::leaf_offset;
 use crate::pages::{Zeroed, HUGE_PAGE};
+use crossbeam_utils::CachePadded;
 use rayon::prelude::*;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering::*};
@@ -87,14 +88,17 @@ impl Zero for Slot {
 /// storage persist across frames; `clear` re-zeroes what was used.
 pub(in crate::integrate) struct Pool<T, const CHUNK: usize> {
     pub(in crate::integrate) chunks: Vec<OnceLock<Zeroed<T>>>,
-    pub(in crate::integrate) next: AtomicU32,
+    /// On cache lines of its own: the threads bump it while they read the fields beside
+    /// it on every lookup, and on their lines each bump took those from the other
+    /// threads' caches.
+    pub(in crate::integrate) next: CachePadded<AtomicU32>,
 }
 
 impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
     fn default() -> Self {
         Self {
             chunks: Vec::new(),
-            next: AtomicU32::new(0),
+            next: CachePadded::new(AtomicU32::new(0)),
         }
     }
 }
@@ -195,6 +199,11 @@ pub(in crate::integrate) struct FrameMarks {
     pub(in crate::integrate) cells: Vec<AtomicU32>,
     /// Whether each table is held by a live [`BrickCache`].
     pub(in crate::integrate) taken: Vec<AtomicBool>,
+    /// Per table, the slot ids its last cache reserved and left unused (start << 32 |
+    /// end), for its next: a task's leftover batch is not lost, so that a batch can be
+    /// large and only the tables' last batches stay unused. Read and written only by the
+    /// table's holder.
+    pub(in crate::integrate) spare: Vec<AtomicU64>,
     pub(in crate::integrate) entries: Pool<CellEntries, ENTRIES_CHUNK>,
     pub(in crate::integrate) slots: Pool<Slot, SLOT_CHUNK>,
 }
@@ -209,13 +218,15 @@ pub(in crate::integrate) struct BrickCache<'a> {
     pub(in crate::integrate) cell: usize,
     pub(in crate::integrate) cell_entries: Option<u32>,
     pub(in crate::integrate) bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
-    /// Slot ids this task has reserved and not yet used: one shared counter increment
-    /// per SLOT_BATCH new bricks instead of one per brick, which at 60 m (a new slot every
-    /// few steps) made the two threads fight over the counter's cache line.
+    /// Slot ids this table has reserved and not yet used: one shared counter increment
+    /// per [`SLOT_BATCH`] new bricks instead of one per brick, which at 60 m (a new slot
+    /// every few steps) made the threads fight over the counter's cache line; and each
+    /// thread's new slots lie together.
     pub(in crate::integrate) spare_slots: Range<u32>,
 }
 
-pub(in crate::integrate) const SLOT_BATCH: u32 = 16;
+/// Slot ids a table reserves at once.
+pub(in crate::integrate) const SLOT_BATCH: u32 = 512;
 
 /// Bricks in a [`BrickCache`], 16 per axis (96 KiB, in L2). A chunk's rays cross about
 /// 170 bricks each at 60 m, in a cone wider than 8 bricks: with 512 (8 per axis), the
@@ -229,15 +240,8 @@ pub(in crate::integrate) fn brick_cache_index(b: VoxelCoord) -> usize {
 }
 
 impl FrameMarks {
-    /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast in `chunks` tasks (each may
-    /// leave up to a batch of reserved slot ids unused) on `tables` threads.
-    pub(in crate::integrate) fn reset(
-        &mut self,
-        lo: VoxelCoord,
-        hi: VoxelCoord,
-        chunks: usize,
-        tables: usize,
-    ) {
+    /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast on `tables` threads.
+    pub(in crate::integrate) fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, tables: usize) {
         let tables = tables.max(1);
         self.lo = lo.shr(3 + CELL_LOG2).shl(3 + CELL_LOG2);
         let d = hi.shr(3 + CELL_LOG2) - lo.shr(3 + CELL_LOG2);
@@ -248,9 +252,12 @@ impl FrameMarks {
             .resize_with(self.ncells * tables, || AtomicU32::new(0));
         self.taken.clear();
         self.taken.resize_with(tables, || AtomicBool::new(false));
+        self.spare.clear();
+        self.spare.resize_with(tables, || AtomicU64::new(0));
         self.entries.reserve(self.ncells * tables);
+        // Each table may leave a batch of reserved ids unused.
         self.slots
-            .reserve(self.ncells * tables * CELL_ENTRIES + chunks * SLOT_BATCH as usize);
+            .reserve((self.ncells * CELL_ENTRIES + SLOT_BATCH as usize) * tables);
     }
 
     /// Take a free table for one task. Each thread holds at most one cache at a time and
@@ -273,13 +280,14 @@ impl FrameMarks {
                 std::thread::yield_now();
             }
         };
+        let spare = self.spare[table].load(Relaxed);
         BrickCache {
             marks: self,
             table,
             cell: 0,
             cell_entries: None,
             bricks: [None; BRICK_CACHE],
-            spare_slots: 0..0,
+            spare_slots: (spare >> 32) as u32..spare as u32,
         }
     }
 
@@ -438,7 +446,10 @@ impl<'a> BrickCache<'a> {
 
 impl Drop for BrickCache<'_> {
     fn drop(&mut self) {
-        // Release: the next task to take this table, on any thread, sees these marks.
+        let Range { start, end } = self.spare_slots;
+        self.marks.spare[self.table].store(u64::from(start) << 32 | u64::from(end), Relaxed);
+        // Release: the next task to take this table, on any thread, sees these marks and
+        // the spare ids.
         self.marks.taken[self.table].store(false, Release);
     }
 }

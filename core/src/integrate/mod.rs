@@ -36,7 +36,7 @@ use crate::kernel::Kernel;
 use crate::map::OccupancyMap;
 use marks::FrameMarks;
 use nalgebra::{Isometry3, Point3};
-use prepare::{Extent, Ray, Sides, RAY_CHUNK};
+use prepare::{Extent, Ray, Sides};
 use std::time::{Duration, Instant};
 
 mod marks;
@@ -401,12 +401,7 @@ impl Integrator {
             if !report.dense {
                 prepare::order_by_direction(rays, sides, origin);
             }
-            marks.reset(
-                lo,
-                hi,
-                rays.len().div_ceil(RAY_CHUNK) + dense_box.map_or(0, |b| b.brick_rows()),
-                rayon::current_num_threads(),
-            );
+            marks.reset(lo, hi, rayon::current_num_threads());
             let t1 = Instant::now();
             // Walk.
             let input = walk::WalkInput {

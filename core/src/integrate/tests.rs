@@ -2,7 +2,7 @@
 //! kernels, thread counts and trade-off modes.
 
 use super::marks::FrameMarks;
-use super::prepare::{RayMaker, Sides, SKIPPED};
+use super::prepare::{RayMaker, Sides, RAY_CHUNK, SKIPPED};
 #[cfg(target_arch = "x86_64")]
 use super::update::{avx512::Avx512, observe_scalar};
 use super::*;
@@ -333,7 +333,7 @@ fn observing_a_word_at_once_equals_bit_by_bit() {
 fn tables_are_held_one_cache_each_and_merge_their_marks() {
     let mut marks = FrameMarks::default();
     let lo = VoxelCoord::new(-300, 0, 0);
-    marks.reset(lo, VoxelCoord::new(300, 15, 15), 4, 2);
+    marks.reset(lo, VoxelCoord::new(300, 15, 15), 2);
     // Bricks (voxel coordinates >> 3) at both ends of the box and one in between.
     let shared = VoxelCoord::new(-1, 1, 0);
     let (only_a, only_b) = (VoxelCoord::new(-37, 0, 0), VoxelCoord::new(37, 1, 1));
@@ -366,6 +366,24 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
     assert_eq!(hit, [0, 0, 0, 0, 0, 0, 0, 1 << 63]);
     assert_eq!(words(bricks[0].1).0, [0, 2, 0, 0, 0, 0, 0, 0]);
     assert_eq!(words(bricks[2].1).0, [0, 0, 8, 0, 0, 0, 0, 0]);
+    // A table's reserved ids that a cache left unused go to the table's next caches: one
+    // batch per table, however many tasks take it, so distinct new bricks get distinct
+    // ids from it; a new frame starts without them.
+    let reserved = marks.slots.used();
+    assert_eq!(reserved, 2 * super::marks::SLOT_BATCH);
+    let mut ids = Vec::new();
+    for x in 0..5 {
+        let mut c = marks.cache();
+        ids.push(c.slot_for(VoxelCoord::new(x, 1, 1)) as *const _);
+    }
+    assert_eq!(marks.slots.used(), reserved);
+    ids.sort();
+    ids.dedup();
+    assert_eq!(ids.len(), 5);
+    marks.clear_used();
+    marks.reset(lo, VoxelCoord::new(300, 15, 15), 2);
+    marks.cache().slot_for(only_a);
+    assert_eq!(marks.slots.used(), super::marks::SLOT_BATCH);
 }
 
 #[test]
