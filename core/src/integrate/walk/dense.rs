@@ -200,8 +200,7 @@ pub(super) fn walk_rays(
 }
 
 /// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
-/// mark get a slot. `marks` must be reset for the frame's box with room for one batch of
-/// spare slots per brick row.
+/// mark get a slot. `marks` must be reset for the frame's box.
 pub(in crate::integrate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let row_words = (dbox.n[0] / 64) as usize;
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
