@@ -24,7 +24,7 @@ pub(super) const RAY_CHUNK: usize = 512;
 /// `end` at offset 0, `key` at 24, `hit` at 28, 32 bytes in all. Aligned to its size, so
 /// that the vector kernels load and store a ray whole in one aligned access (unaligned
 /// 32-byte accesses are split in two by the compiler's generic x86-64 tuning).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, bytemuck::Zeroable)]
 #[repr(C, align(32))]
 pub(in crate::integrate) struct Ray {
     pub(in crate::integrate) end: [f64; 3],

@@ -14,6 +14,7 @@ use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
 use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 #[cfg(target_arch = "x86_64")]
 use crate::kernel::Kernel;
+use crate::prefetch::own_lines;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
 
@@ -142,6 +143,12 @@ fn make_run(
         .zip(sides.iter_mut())
     {
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
+        // The layout's stores find their lines here, not on the core that read the rays
+        // in the last walk: with one store a line, many of those fetches overlap, where
+        // among the layout's other stores few did (it took four times as long).
+        own_lines(out);
+        own_lines(placed);
+        own_lines(&mut marked[*count..*count + pts.len()]);
         // On AVX2 made, summed and noted in one pass (bit for bit the three below), which
         // also asks for the words of `set` that `mark` will read.
         #[cfg(target_arch = "x86_64")]
