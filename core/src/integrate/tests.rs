@@ -15,7 +15,6 @@ use crate::raycast::for_each_voxel;
 use crate::test_rng::Rng;
 use hashbrown::HashMap;
 use nalgebra::{Translation3, UnitQuaternion};
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
 /// Integrate `pts` seen from the origin, exact mode, 2 threads.
 fn at_origin(map: &mut OccupancyMap, max_range: f64, pts: &[[f32; 3]]) -> IntegrateReport {
@@ -356,10 +355,11 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
     let bricks: Vec<_> = marks.bricks_in_order().concat();
     let origins: Vec<_> = bricks.iter().map(|&(o, _)| o).collect();
     assert_eq!(origins, [only_a.shl(3), shared.shl(3), only_b.shl(3)]);
+    // Read as the update reads them, leaving the slots zero for `clear_used` below.
     let words = |s: u32| {
         let slot = marks.slot(s);
-        let load = |w: &[AtomicU64; 8]| w.each_ref().map(|x| x.load(Relaxed));
-        (load(&slot.free), load(&slot.hit))
+        let taken: [(u64, u64); 8] = std::array::from_fn(|w| slot.take(w));
+        (taken.map(|t| t.0), taken.map(|t| t.1))
     };
     let (free, hit) = words(bricks[1].1);
     assert_eq!(free, [5, 0, 0, 0, 0, 0, 0, 1 << 63]);
@@ -380,6 +380,8 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
     ids.sort();
     ids.dedup();
     assert_eq!(ids.len(), 5);
+    // Listed, as a frame lists its bricks, so that the tables are empty again.
+    assert_eq!(marks.bricks_in_order().concat().len(), 5);
     marks.clear_used();
     marks.reset(lo, VoxelCoord::new(300, 15, 15), 2);
     marks.cache().slot_for(only_a);

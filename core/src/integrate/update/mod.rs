@@ -7,14 +7,14 @@ use crate::grid::Leaf;
 use crate::kernel::Kernel;
 use crate::mask::BitIter;
 use crate::model::QuantizedModel;
-use std::sync::atomic::Ordering::Relaxed;
 
 #[cfg(target_arch = "x86_64")]
 pub(super) mod avx2;
 #[cfg(target_arch = "x86_64")]
 pub(super) mod avx512;
 
-/// Apply one brick's marks to its leaf; returns the voxels updated. `fresh`: the leaf was
+/// Apply one brick's marks to its leaf, leaving the slot zero ([`Slot::take`]); returns
+/// the voxels updated. `fresh`: the leaf was
 /// created by this frame's merge, so it is all zero and may sit on a page never touched.
 /// Such a leaf is only written, never read: a page first touched by a read is mapped to
 /// the shared zero page, and the first write then copies it with a TLB flush that
@@ -77,8 +77,7 @@ pub(super) fn apply_with<O: Observe>(
 ) -> u64 {
     let mut n = 0;
     for w in 0..8 {
-        let free = slot.free[w].load(Relaxed);
-        let hit = slot.hit[w].load(Relaxed);
+        let (free, hit) = slot.take(w);
         let any = free | hit;
         if any == 0 {
             continue;
