@@ -58,8 +58,8 @@ impl Slot {
 
     /// Word `w`'s free and hit marks, leaving them zero for the next frame: the update
     /// takes a slot's marks as it reads them, while its lines are in cache, so that no
-    /// pass over all the frame's slots has to zero them again (at 60 m, 160 MB a
-    /// frame). Only the task updating the slot's leaf reads or writes the slot.
+    /// pass over all the frame's slots (hundreds of MB at 60 m) has to zero them again.
+    /// Only the task updating the slot's leaf reads or writes the slot.
     #[inline]
     pub(in crate::integrate) fn take(&self, w: usize) -> (u64, u64) {
         let (free, hit) = (self.free[w].load(Relaxed), self.hit[w].load(Relaxed));
@@ -178,8 +178,8 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
     }
 
     /// Hand ids out from the first again. The items used must be zero by now (checked in
-    /// debug builds): zeroing them here, a pass of its own over memory long out of the
-    /// cache, took 7 ms of a random 60 m frame.
+    /// debug builds): their readers zero them while they have them in cache, where a pass
+    /// of its own here went over memory long out of the cache.
     pub(in crate::integrate) fn restart(&mut self) {
         if cfg!(debug_assertions) {
             let n = self.used() as usize;

@@ -145,7 +145,7 @@ fn make_run(
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
         // The layout's stores find their lines here, not on the core that read the rays
         // in the last walk: with one store a line, many of those fetches overlap, where
-        // among the layout's other stores few did (it took four times as long).
+        // among the layout's other stores few did.
         own_lines(out);
         own_lines(placed);
         own_lines(&mut marked[*count..*count + pts.len()]);

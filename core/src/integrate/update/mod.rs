@@ -14,8 +14,8 @@ pub(super) mod avx2;
 pub(super) mod avx512;
 
 /// Apply one brick's marks to its leaf, leaving the slot zero ([`Slot::take`]); returns
-/// the voxels updated. `fresh`: the leaf was
-/// created by this frame's merge, so it is all zero and may sit on a page never touched.
+/// the voxels updated. `fresh`: the leaf was created by this frame's merge, so it is all
+/// zero and may sit on a page never touched.
 /// Such a leaf is only written, never read: a page first touched by a read is mapped to
 /// the shared zero page, and the first write then copies it with a TLB flush that
 /// interrupts every other core running the process (a fifth of a 60 m frame's time with
