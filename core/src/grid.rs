@@ -43,6 +43,24 @@ fn child_index(v: VoxelCoord) -> usize {
     ((l.x & m) | (l.y & m) << INTERNAL_LOG2 | (l.z & m) << (2 * INTERNAL_LOG2)) as usize
 }
 
+/// The origin of child `child` (`x | y << 4 | z << 8`, in leaves) of the internal node at
+/// `node`.
+#[inline]
+pub fn child_origin(node: VoxelCoord, child: u16) -> VoxelCoord {
+    let (c, m) = (i32::from(child), (1 << INTERNAL_LOG2) - 1);
+    let l = VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2));
+    node + l.shl(LEAF_LOG2)
+}
+
+/// Leaves of one internal node, for [`Grid::leaf_indices_or_insert`]: the node's origin (a
+/// multiple of its 128 voxels on each axis) and its children (`x | y << 4 | z << 8`, in
+/// leaves, below [`INTERNAL_CHILDREN`]), each with a tag.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct NodeLeaves<T> {
+    pub node: VoxelCoord,
+    pub children: Vec<(u16, T)>,
+}
+
 /// Values a grid can hold: plain old data whose all-zero pattern is the background.
 pub trait GridValue: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug {}
 impl<T: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug> GridValue for T {}
@@ -328,61 +346,68 @@ impl<V: GridValue> Grid<V> {
     }
 
     /// [`Self::leaf_index_or_insert`] for many leaves at once, in parallel on the current
-    /// rayon pool: `groups` of distinct leaf origins, each group inside one internal node
-    /// and no two groups in the same one. Returns, group after group, each origin's leaf
-    /// index, its tag and whether the leaf is new: what one call per origin, in this
-    /// order, would give. Groups that break the conditions are inserted one by one.
+    /// rayon pool: `groups` of distinct leaves of one internal node each, no two groups of
+    /// the same node. Returns, group after group, each leaf's index, its tag and whether
+    /// the leaf is new: what one call per leaf, in this order, would give. Where two groups
+    /// share a node, all are inserted one by one.
     ///
     /// # Panics
-    /// If a group repeats an origin.
+    /// If a group repeats a child, names one out of range, or gives a node origin that is
+    /// not one.
     pub fn leaf_indices_or_insert<T: Copy + Send + Sync>(
         &mut self,
-        groups: &[Vec<(VoxelCoord, T)>],
+        groups: &[NodeLeaves<T>],
     ) -> Vec<(u32, (T, bool))> {
         use rayon::prelude::*;
         let first_new = self.leaves.len() as u32;
-        let key_of = |g: &[(VoxelCoord, T)]| g.first().map(|&(o, _)| internal_key(o));
-        let mut keys: Vec<VoxelCoord> = groups.iter().filter_map(|g| key_of(g)).collect();
+        let key_of = |g: &NodeLeaves<T>| {
+            let key = internal_key(g.node);
+            assert!(key.shl(INTERNAL_TOTAL_LOG2) == g.node, "not a node origin");
+            (!g.children.is_empty()).then_some(key)
+        };
+        let mut keys: Vec<VoxelCoord> = groups.iter().filter_map(key_of).collect();
         keys.par_sort_unstable_by_key(|k| (k.z, k.y, k.x));
-        let apart = keys.windows(2).all(|w| w[0] != w[1])
-            && (groups.par_iter()).all(|g| {
-                let key = key_of(g);
-                g.iter().all(|&(o, _)| Some(internal_key(o)) == key)
-            });
-        if !apart {
+        if keys.windows(2).any(|w| w[0] == w[1]) {
+            let leaves: Vec<(VoxelCoord, T)> = (groups.iter())
+                .flat_map(|g| (g.children.iter()).map(|&(c, tag)| (child_origin(g.node, c), tag)))
+                .collect();
             let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
-            return (groups.iter().flatten())
-                .map(|&(o, tag)| {
+            return (leaves.into_iter())
+                .map(|(o, tag)| {
                     let l = self.leaf_index_or_insert(o, Some(&mut hint));
                     (l, (tag, l >= first_new))
                 })
                 .collect();
         }
-        // Each group's internal node, made where missing, in the groups' order as one by
-        // one; then how many leaves each group adds (all of them in a node just made:
-        // its memory is not read before it is written, see `apply` in the update), and
-        // the first one's index.
+        // Each group's internal node, made where missing (in parallel: a node is 16 KiB
+        // to zero) and numbered in the groups' order as one by one; then how many leaves
+        // each group adds (all of them in a node just made: its memory is not read before
+        // it is written, see `apply` in the update), and the first one's index.
         let old_nodes = self.internals.len();
+        let missing: Vec<VoxelCoord> = (groups.iter())
+            .filter_map(key_of)
+            .filter(|k| !self.root.contains_key(k))
+            .collect();
+        let made: Vec<Box<Internal>> = (missing.par_iter())
+            .map(|k| Internal::new(k.shl(INTERNAL_TOTAL_LOG2)))
+            .collect();
+        for (&key, node) in missing.iter().zip(made) {
+            self.root.insert(key, self.internals.len() as u32);
+            self.internals.push(node);
+        }
         let nodes: Vec<Option<usize>> = (groups.iter())
-            .map(|g| {
-                let key = key_of(g)?;
-                Some(*self.root.entry(key).or_insert_with(|| {
-                    self.internals
-                        .push(Internal::new(key.shl(INTERNAL_TOTAL_LOG2)));
-                    (self.internals.len() - 1) as u32
-                }) as usize)
-            })
+            .map(|g| Some(self.root[&key_of(g)?] as usize))
             .collect();
         let internals = &self.internals;
         let new: Vec<u32> = (groups.par_iter().zip(&nodes))
             .map(|(g, &ii)| {
                 ii.map_or(0, |ii| {
                     if ii >= old_nodes {
-                        return g.len() as u32;
+                        return g.children.len() as u32;
                     }
                     let node = &internals[ii];
-                    g.iter()
-                        .filter(|&&(o, _)| node.child(child_index(o)).is_none())
+                    (g.children.iter())
+                        .filter(|&&(c, _)| node.child(usize::from(c)).is_none())
                         .count() as u32
                 })
             })
@@ -408,12 +433,12 @@ impl<V: GridValue> Grid<V> {
             }
         }
         // Each group writes its own part of the output.
-        let total = groups.iter().map(Vec::len).sum();
+        let total = groups.iter().map(|g| g.children.len()).sum();
         let mut out = Vec::with_capacity(total);
         let mut rest = &mut out.spare_capacity_mut()[..total];
         let mut parts = Vec::with_capacity(groups.len());
         for g in groups {
-            let (part, tail) = rest.split_at_mut(g.len());
+            let (part, tail) = rest.split_at_mut(g.children.len());
             parts.push(part);
             rest = tail;
         }
@@ -421,8 +446,8 @@ impl<V: GridValue> Grid<V> {
             .map(|(((g, node), part), &start)| {
                 let Some(node) = node else { return 0 };
                 let mut next = start;
-                for (&(o, tag), at) in g.iter().zip(part.iter_mut()) {
-                    let ci = child_index(o);
+                for (&(c, tag), at) in g.children.iter().zip(part.iter_mut()) {
+                    let ci = usize::from(c);
                     let l = match node.child(ci) {
                         Some(l) => l,
                         None => {
@@ -437,7 +462,7 @@ impl<V: GridValue> Grid<V> {
                 next - start
             })
             .collect();
-        assert_eq!(added, new, "a group repeats a leaf origin");
+        assert_eq!(added, new, "a group repeats a child");
         // SAFETY: the parts tile `out`'s first `total` elements, and each group wrote every
         // element of its part, which is as long as the group.
         unsafe { out.set_len(total) };
@@ -716,16 +741,44 @@ mod tests {
         }
         groups.reverse();
         groups.swap(0, 3);
-        groups.insert(2, Vec::new());
-        // Two groups in one node, and a group across two nodes: the one-by-one path.
-        let mut shared = groups.clone();
-        let half = shared[1].len() / 2;
-        let tail = shared[1].split_off(half);
-        shared.push(tail);
-        let mut across = groups.clone();
-        let first = across.remove(0);
-        across[0].extend(first);
-        for (case, groups) in [groups, shared, across].iter().enumerate() {
+        let as_nodes = |groups: &[Vec<(VoxelCoord, usize)>]| -> Vec<NodeLeaves<usize>> {
+            (groups.iter())
+                .map(|g| {
+                    let node = internal_key(g[0].0).shl(INTERNAL_TOTAL_LOG2);
+                    let children = g.iter().map(|&(o, i)| (child_index(o) as u16, i));
+                    let children: Vec<_> = children.collect();
+                    for (&(o, _), &(c, _)) in g.iter().zip(&children) {
+                        assert_eq!(child_origin(node, c), o);
+                    }
+                    NodeLeaves { node, children }
+                })
+                .collect()
+        };
+        let mut nodes = as_nodes(&groups);
+        let empty = NodeLeaves {
+            node: VoxelCoord::new(128, 0, -256),
+            children: Vec::new(),
+        };
+        nodes.insert(2, empty);
+        // Refused: a child out of range, a node origin that is not one.
+        for bad in [(0, 1 << 12), (1, 0)] {
+            let mut refused = nodes.clone();
+            refused[1].node.x += bad.0;
+            refused[1].children[0].0 += bad.1;
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                Grid::<i8>::new().leaf_indices_or_insert(&refused)
+            }));
+            assert!(r.is_err(), "{bad:?} must be refused");
+        }
+        // Two groups in one node: the one-by-one path.
+        let mut shared = nodes.clone();
+        let half = shared[1].children.len() / 2;
+        let tail = shared[1].children.split_off(half);
+        shared.push(NodeLeaves {
+            node: shared[1].node,
+            children: tail,
+        });
+        for (case, groups) in [nodes, shared].iter().enumerate() {
             let (mut grouped, mut single) = (Grid::<i8>::new(), Grid::<i8>::new());
             for g in [&mut grouped, &mut single] {
                 for &o in &before {
@@ -733,8 +786,9 @@ mod tests {
                 }
             }
             let first_new = single.leaf_count() as u32;
-            let want: Vec<(u32, (usize, bool))> = (groups.iter().flatten())
-                .map(|&(o, i)| {
+            let want: Vec<(u32, (usize, bool))> = (groups.iter())
+                .flat_map(|g| (g.children.iter()).map(|&(c, i)| (child_origin(g.node, c), i)))
+                .map(|(o, i)| {
                     let l = single.leaf_index_or_insert(o, None);
                     (l, (i, l >= first_new))
                 })

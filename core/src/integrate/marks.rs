@@ -2,7 +2,7 @@
 //! (free) and ended in (hit), per touched brick, kept apart from the map until the update.
 
 use crate::coord::VoxelCoord;
-use crate::grid::leaf_offset;
+use crate::grid::{leaf_offset, NodeLeaves};
 use crate::pages::{Zeroed, HUGE_PAGE};
 use crossbeam_utils::CachePadded;
 use rayon::prelude::*;
@@ -340,12 +340,14 @@ impl FrameMarks {
         self.slots.get(s)
     }
 
-    /// Every touched brick as (origin voxel, slot), per coarse cell in (z, y, x) order of
-    /// cells and, within a cell, of bricks; a brick with slots in several tables gets the
-    /// others' marks ORed into the first. The cells are read in parallel, and their
-    /// entries left zero (the frame's marks are then only in the listed slots). Call
-    /// once a frame, between its phases, when no cache is live.
-    pub(in crate::integrate) fn bricks_in_order(&self) -> Vec<Vec<(VoxelCoord, u32)>> {
+    /// Every touched brick's slot, per coarse cell in (z, y, x) order of cells and, within
+    /// a cell, of bricks: a cell is one internal node of the map (see `merge`), and its
+    /// bricks are named by their index in it, as the map's nodes name their children. A
+    /// brick with slots in several tables gets the others' marks ORed into the first. The
+    /// cells are read in parallel, and their entries left zero (the frame's marks are then
+    /// only in the listed slots). Call once a frame, between its phases, when no cache is
+    /// live.
+    pub(in crate::integrate) fn bricks_in_order(&self) -> Vec<NodeLeaves<u32>> {
         (0..self.ncells)
             .into_par_iter()
             .map(|c| self.cell_bricks(c))
@@ -353,64 +355,61 @@ impl FrameMarks {
     }
 
     /// The touched bricks of coarse cell `c`, as [`FrameMarks::bricks_in_order`] lists them.
-    fn cell_bricks(&self, c: usize) -> Vec<(VoxelCoord, u32)> {
+    fn cell_bricks(&self, c: usize) -> NodeLeaves<u32> {
         let [dx, dy, _] = self.cells_dim;
         let (n, tables) = (self.ncells, self.taken.len());
-        let m = (1 << CELL_LOG2) - 1;
+        let cell = VoxelCoord::new(
+            (c % dx) as i32,
+            (c / dx % dy) as i32,
+            (c / (dx * dy)) as i32,
+        );
+        let node = self.lo + cell.shl(3 + CELL_LOG2);
         let entries: Vec<&CellEntries> = (0..tables)
             .filter_map(|l| match self.cells[l * n + c].load(Relaxed) {
                 0 => None,
                 b => Some(self.entries.get(b - 1)),
             })
             .collect();
-        if entries.is_empty() {
-            return Vec::new();
-        }
-        let cell = VoxelCoord::new(
-            (c % dx) as i32,
-            (c / dx % dy) as i32,
-            (c / (dx * dy)) as i32,
-        );
-        let base = self.lo + cell.shl(3 + CELL_LOG2);
-        let at = |e: usize| {
-            let v = VoxelCoord::new(
-                (e & m) as i32,
-                (e >> CELL_LOG2 & m) as i32,
-                (e >> (2 * CELL_LOG2)) as i32,
-            );
-            base + v.shl(3)
-        };
-        if let [only] = entries[..] {
-            // One table's, as most cells are away from the sensor: no slots to join, and
-            // each entry written whether used or not, counted if used (a coin toss for the
-            // branch predictor in a sparse frame).
-            let ids = &only.0;
-            let used = ids.iter().filter(|s| s.load(Relaxed) != 0).count();
-            let mut out = vec![(base, 0); used + 1];
-            let mut k = 0;
-            for (e, s) in ids.iter().enumerate() {
-                let s = s.load(Relaxed);
-                out[k] = (at(e), s.wrapping_sub(1));
-                k += usize::from(s != 0);
+        let children = match entries[..] {
+            [] => Vec::new(),
+            [only] => {
+                // One table's, as most cells are away from the sensor: no slots to join,
+                // and each entry written whether used or not, counted if used (a coin toss
+                // for the branch predictor in a sparse frame).
+                let ids = &only.0;
+                let used = ids.iter().filter(|s| s.load(Relaxed) != 0).count();
+                let mut out = Vec::with_capacity(used + 1);
+                let room = &mut out.spare_capacity_mut()[..used + 1];
+                let mut k = 0;
+                for (e, s) in ids.iter().enumerate() {
+                    let s = s.load(Relaxed);
+                    room[k].write((e as u16, s.wrapping_sub(1)));
+                    k += usize::from(s != 0);
+                }
+                // SAFETY: the loop wrote `room[k]` before every increment of `k` (and `k`
+                // ends at `used`, the entries it counted), so the first `k` elements are
+                // initialised.
+                unsafe { out.set_len(k) };
+                only.zero();
+                out
             }
-            out.truncate(k);
-            only.zero();
-            return out;
-        }
-        let out = (0..CELL_ENTRIES)
-            .filter_map(|e| {
-                let mut ids = entries
-                    .iter()
-                    .map(|b| b.0[e].load(Relaxed))
-                    .filter(|&s| s != 0);
-                let first = ids.next()? - 1;
-                let slot = self.slots.get(first);
-                ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
-                Some((at(e), first))
-            })
-            .collect();
-        entries.iter().for_each(|b| b.zero());
-        out
+            _ => {
+                let out = (0..CELL_ENTRIES)
+                    .filter_map(|e| {
+                        let mut ids = (entries.iter())
+                            .map(|b| b.0[e].load(Relaxed))
+                            .filter(|&s| s != 0);
+                        let first = ids.next()? - 1;
+                        let slot = self.slots.get(first);
+                        ids.for_each(|s| slot.absorb(self.slots.get(s - 1)));
+                        Some((e as u16, first))
+                    })
+                    .collect();
+                entries.iter().for_each(|b| b.zero());
+                out
+            }
+        };
+        NodeLeaves { node, children }
     }
 
     /// Ready the pools for the next frame, keeping their memory. Everything this frame

@@ -14,10 +14,13 @@ pub(super) fn attach_leaves(marks: &FrameMarks, map: &mut OccupancyMap) -> Vec<(
     // the cells' bricks get their leaves in parallel, numbered as one by one in cell
     // order: new leaves are laid out in space order.
     const _: () = assert!(CELL_LOG2 == crate::tree::INTERNAL_LOG2);
+    let before = map.grid().leaf_count();
     let mut items = map
         .grid_mut()
         .leaf_indices_or_insert(&marks.bricks_in_order());
-    if !items.par_windows(2).all(|w| w[0].0 < w[1].0) {
+    // All of them new, the leaves are numbered in the order listed: no need to check.
+    let all_new = map.grid().leaf_count() - before == items.len();
+    if !all_new && !items.par_windows(2).all(|w| w[0].0 < w[1].0) {
         items.par_sort_unstable_by_key(|&(l, _)| l);
     }
     items
