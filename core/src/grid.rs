@@ -45,8 +45,15 @@ fn child_index(v: VoxelCoord) -> usize {
 
 /// The origin of child `child` (`x | y << 4 | z << 8`, in leaves) of the internal node at
 /// `node`.
+///
+/// # Panics
+/// If `child` is not below [`INTERNAL_CHILDREN`].
 #[inline]
 pub fn child_origin(node: VoxelCoord, child: u16) -> VoxelCoord {
+    assert!(
+        usize::from(child) < INTERNAL_CHILDREN,
+        "child index out of range"
+    );
     let (c, m) = (i32::from(child), (1 << INTERNAL_LOG2) - 1);
     let l = VoxelCoord::new(c & m, c >> INTERNAL_LOG2 & m, c >> (2 * INTERNAL_LOG2));
     node + l.shl(LEAF_LOG2)
@@ -360,12 +367,15 @@ impl<V: GridValue> Grid<V> {
     ) -> Vec<(u32, (T, bool))> {
         use rayon::prelude::*;
         let first_new = self.leaves.len() as u32;
-        let key_of = |g: &NodeLeaves<T>| {
-            let key = internal_key(g.node);
-            assert!(key.shl(INTERNAL_TOTAL_LOG2) == g.node, "not a node origin");
-            (!g.children.is_empty()).then_some(key)
-        };
-        let mut keys: Vec<VoxelCoord> = groups.iter().filter_map(key_of).collect();
+        // Each group's node key, none for an empty group.
+        let group_keys: Vec<Option<VoxelCoord>> = (groups.iter())
+            .map(|g| {
+                let key = internal_key(g.node);
+                assert!(key.shl(INTERNAL_TOTAL_LOG2) == g.node, "not a node origin");
+                (!g.children.is_empty()).then_some(key)
+            })
+            .collect();
+        let mut keys: Vec<VoxelCoord> = group_keys.iter().flatten().copied().collect();
         keys.par_sort_unstable_by_key(|k| (k.z, k.y, k.x));
         if keys.windows(2).any(|w| w[0] == w[1]) {
             let leaves: Vec<(VoxelCoord, T)> = (groups.iter())
@@ -384,9 +394,9 @@ impl<V: GridValue> Grid<V> {
         // each group adds (all of them in a node just made: its memory is not read before
         // it is written, see `apply` in the update), and the first one's index.
         let old_nodes = self.internals.len();
-        let missing: Vec<VoxelCoord> = (groups.iter())
-            .filter_map(key_of)
-            .filter(|k| !self.root.contains_key(k))
+        let missing: Vec<VoxelCoord> = (group_keys.iter().flatten())
+            .filter(|&k| !self.root.contains_key(k))
+            .copied()
             .collect();
         let made: Vec<Box<Internal>> = (missing.par_iter())
             .map(|k| Internal::new(k.shl(INTERNAL_TOTAL_LOG2)))
@@ -395,8 +405,8 @@ impl<V: GridValue> Grid<V> {
             self.root.insert(key, self.internals.len() as u32);
             self.internals.push(node);
         }
-        let nodes: Vec<Option<usize>> = (groups.iter())
-            .map(|g| Some(self.root[&key_of(g)?] as usize))
+        let nodes: Vec<Option<usize>> = (group_keys.iter())
+            .map(|k| Some(self.root[k.as_ref()?] as usize))
             .collect();
         let internals = &self.internals;
         let new: Vec<u32> = (groups.par_iter().zip(&nodes))
@@ -760,16 +770,6 @@ mod tests {
             children: Vec::new(),
         };
         nodes.insert(2, empty);
-        // Refused: a child out of range, a node origin that is not one.
-        for bad in [(0, 1 << 12), (1, 0)] {
-            let mut refused = nodes.clone();
-            refused[1].node.x += bad.0;
-            refused[1].children[0].0 += bad.1;
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                Grid::<i8>::new().leaf_indices_or_insert(&refused)
-            }));
-            assert!(r.is_err(), "{bad:?} must be refused");
-        }
         // Two groups in one node: the one-by-one path.
         let mut shared = nodes.clone();
         let half = shared[1].children.len() / 2;
@@ -778,6 +778,19 @@ mod tests {
             node: shared[1].node,
             children: tail,
         });
+        // Refused on either path: a child out of range, a node origin that is not one.
+        for (base, bad) in [&nodes, &shared]
+            .into_iter()
+            .flat_map(|b| [(b, (0, 1 << 12)), (b, (1, 0))])
+        {
+            let mut refused = base.clone();
+            refused[1].node.x += bad.0;
+            refused[1].children[0].0 += bad.1;
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                Grid::<i8>::new().leaf_indices_or_insert(&refused)
+            }));
+            assert!(r.is_err(), "{bad:?} must be refused");
+        }
         for (case, groups) in [nodes, shared].iter().enumerate() {
             let (mut grouped, mut single) = (Grid::<i8>::new(), Grid::<i8>::new());
             for g in [&mut grouped, &mut single] {
