@@ -470,18 +470,8 @@ fn bundle_dense(
     let mut counts: Vec<Vec<u32>> = (bufs.bits.par_chunks_mut(per))
         .zip(bufs.keys.par_chunks(per))
         .map(|(bits, keys)| {
-            let mut c = vec![0u32; buckets];
-            for (b, &k) in bits.iter_mut().zip(keys) {
-                *b = if k == NONE {
-                    u32::MAX
-                } else {
-                    cells.bit(k) as u32
-                };
-                if k != NONE {
-                    c[(*b >> BUCKET_BITS) as usize] += 1;
-                }
-            }
-            c
+            cells.bits_of(keys, bits);
+            bucket_counts(bits, buckets)
         })
         .collect();
     let mut starts = Vec::with_capacity(buckets + 1);
@@ -531,7 +521,11 @@ fn bundle_dense(
                 .min(buckets)
         })
         .collect();
+    // Every ray is kept unless a bundle drops it: the grouping writes only the drops, a
+    // byte at a place the other thread's buckets may share a line with.
     let keep = &bufs.keep;
+    keep.par_iter()
+        .for_each(|k| k.store(true, Ordering::Relaxed));
     // Per cell of a bucket (its low bits): rays, the first, the sum of the ends; zeroed
     // once per worker (128 KiB), each bucket leaving them as it found them.
     let tables = || {
@@ -561,9 +555,10 @@ fn bundle_dense(
                 }
                 for x in items.iter().map(|x| x.load(Ordering::Relaxed)) {
                     let (l, p) = (low(x), x as u32);
-                    let bundled = count[l] > threshold;
-                    keep[p as usize].store(!bundled || p == first[l], Ordering::Relaxed);
-                    if bundled {
+                    if count[l] > threshold {
+                        if p != first[l] {
+                            keep[p as usize].store(false, Ordering::Relaxed);
+                        }
                         let e = rays[p as usize].end;
                         (0..3).for_each(|a| sum[l][a] += e[a]);
                     }
@@ -581,6 +576,22 @@ fn bundle_dense(
             out
         })
         .collect()
+}
+
+/// How many of `bits` (but `u32::MAX`) fall in each of the `buckets` of
+/// [`BUCKET_BITS`] cells.
+fn bucket_counts(bits: &[u32], buckets: usize) -> Vec<u32> {
+    // Four tables in turn: a scene's rays in scan order often fall in one bucket, where a
+    // single table would chain each count on the one before. Bucket `buckets` takes the
+    // skipped points.
+    let mut c = vec![[0u32; 4]; buckets + 1];
+    let bucket = |b: u32| ((b >> BUCKET_BITS) as usize).min(buckets);
+    let mut quads = bits.chunks_exact(4);
+    for q in &mut quads {
+        (0..4).for_each(|i| c[bucket(q[i])][i] += 1);
+    }
+    quads.remainder().iter().for_each(|&b| c[bucket(b)][0] += 1);
+    c[..buckets].iter().map(|t| t.iter().sum()).collect()
 }
 
 /// The runs of rays in scan order that [`firsts_dense`] and [`bundle_dense`] cut a
@@ -677,6 +688,24 @@ impl CellBox {
         };
         for (b, r) in out.iter_mut().zip(rays).skip(done) {
             *b = self.note_of(cells, halves, r);
+        }
+    }
+
+    /// `bits[i]` the bit of `keys[i]` ([`Self::bit`]), `u32::MAX` for [`NONE`]; in 32-bit
+    /// lanes, which the compiler vectorises (a box has at most 2^25 bits).
+    fn bits_of(&self, keys: &[u64], bits: &mut [u32]) {
+        let lo = self.lo.map(|l| l as i32);
+        let top = self.dims.map(|d| d as i32 - 1);
+        let [d0, d1] = [self.dims[0] as u32, self.dims[1] as u32];
+        let hit_bit = self.hit_bit as u32;
+        for (b, &k) in bits.iter_mut().zip(keys) {
+            let axis = |a: usize| {
+                let f = (k >> (21 * a) & CellKeys::FIELD) as i32;
+                (f - lo[a]).clamp(0, top[a]) as u32
+            };
+            let cell = (axis(2) * d1 + axis(1)) * d0 + axis(0);
+            let bit = cell << hit_bit | (k >> 63) as u32 & hit_bit;
+            *b = if k == NONE { u32::MAX } else { bit };
         }
     }
 
@@ -869,6 +898,36 @@ mod tests {
             .collect();
         s.sort_unstable();
         s
+    }
+
+    /// The vectorised bits agree with [`CellBox::bit`] key by key: ends inside the box,
+    /// outside it (clamped to its faces), hit or not, and skipped points.
+    #[test]
+    fn bits_of_agrees_with_bit() {
+        let mut rng = Rng(7);
+        let origin = [0.25, 0.5, -0.75];
+        for factor in [1, 2] {
+            let cells = CellKeys::new(origin, factor);
+            let rays: Vec<Ray> = (0..20_000)
+                .map(|i| {
+                    let end = [0, 1, 2].map(|a| origin[a] + rng.f() * 12.0 - 6.0);
+                    Ray::new(end, 0, i % 3 != 0)
+                })
+                .collect();
+            // A box of the first few ends only: most keys lie outside it.
+            let small = bounds(&rays[..50], origin);
+            for extent in [bounds(&rays, origin), small] {
+                let b = CellBox::new(&extent, &cells).unwrap();
+                let mut keys: Vec<u64> = rays.iter().map(|r| cells.key(r)).collect();
+                keys.insert(7, NONE);
+                let mut bits = vec![0; keys.len()];
+                b.bits_of(&keys, &mut bits);
+                for (&k, &got) in keys.iter().zip(&bits) {
+                    let want = if k == NONE { u32::MAX } else { b.bit(k) as u32 };
+                    assert_eq!(got, want, "key {k:#x}");
+                }
+            }
+        }
     }
 
     /// The bit-set path keeps exactly the rays, with the ends, that the
