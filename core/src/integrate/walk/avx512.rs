@@ -192,12 +192,24 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
             }
         } else {
             // Every lane ORs its bit in; a lane without a ray marks the sink bit. One
-            // vector of bit indices, split into word and bit by scalar shifts:
-            // extracting vectors of words and of bits took twice the lane extracts,
-            // which compete with the walk for the vector port (the compiler extracts
-            // rather than reloads `at`; forcing the reload was slower still).
-            for q in to_array(_mm512_mask_mov_epi64(self.sink, live, p)) {
-                set_bit(free, q);
+            // vector of bit indices, split into word and bit by scalar shifts: vectors
+            // of words and of bits took twice the lane moves. The vector is stored once
+            // and its lanes loaded back: moved to general registers one by one, eight
+            // extracts a step held the vector ports the step needs. The loads are
+            // volatile because the compiler otherwise turns them back into extracts.
+            #[repr(align(64))]
+            struct Lanes([u64; 8]);
+            let mut lanes = Lanes([0; 8]);
+            // SAFETY: `lanes` is 64 bytes aligned to 64.
+            unsafe {
+                _mm512_store_si512(
+                    lanes.0.as_mut_ptr().cast(),
+                    _mm512_mask_mov_epi64(self.sink, live, p),
+                )
+            };
+            for q in &lanes.0 {
+                // SAFETY: `q` is a valid, aligned, initialised u64.
+                set_bit(free, unsafe { std::ptr::read_volatile(q) });
             }
         }
     }
