@@ -615,11 +615,12 @@ fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
 /// The cells ([`CellKeys`]) over a box of voxels (a frame's, or all a sensor's rays can
 /// reach), indexed densely, each as two bits (hit or not), or one where every ray hits.
 pub(in crate::integrate) struct CellBox {
-    /// The key field of the box's first cell on each axis.
-    lo: [i64; 3],
-    dims: [u64; 3],
+    /// The key field of the box's first cell on each axis. In 32 bits, as the dims: a
+    /// box has at most [`DENSE_CELL_BITS`] (2^25) bits, so the bit of a cell fits too.
+    lo: [i32; 3],
+    dims: [u32; 3],
     /// 1 where a cell has two bits, else 0.
-    hit_bit: u64,
+    hit_bit: u32,
 }
 
 impl CellBox {
@@ -627,7 +628,7 @@ impl CellBox {
     /// [`DENSE_CELL_BITS`] bits.
     pub(in crate::integrate) fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
-        let hit_bit = u64::from(extent.cut_rays > 0);
+        let hit_bit = u32::from(extent.cut_rays > 0);
         Self::of_voxels(lo.map(i64::from), hi.map(i64::from), hit_bit, cells)
     }
 
@@ -645,18 +646,27 @@ impl CellBox {
     }
 
     /// The box of voxels `lo..=hi`.
-    fn of_voxels(lo: [i64; 3], hi: [i64; 3], hit_bit: u64, cells: &CellKeys) -> Option<Self> {
+    fn of_voxels(lo: [i64; 3], hi: [i64; 3], hit_bit: u32, cells: &CellKeys) -> Option<Self> {
         let f = cells.f as i64;
         let lo = [0, 1, 2].map(|a| lo[a] * f - cells.base[a] as i64);
         let dims = [0, 1, 2].map(|a| ((hi[a] + 1) * f - cells.base[a] as i64 - lo[a]) as u64);
         let n = dims[0]
             .checked_mul(dims[1])
             .and_then(|c| c.checked_mul(dims[2]))?;
-        (n.checked_mul(1 << hit_bit)? <= DENSE_CELL_BITS).then_some(CellBox { lo, dims, hit_bit })
+        if n.checked_mul(1 << hit_bit)? > DENSE_CELL_BITS {
+            return None;
+        }
+        let [l0, l1, l2] = lo.map(i32::try_from);
+        Some(CellBox {
+            lo: [l0.ok()?, l1.ok()?, l2.ok()?],
+            // Each below 2^25, as their product is.
+            dims: dims.map(|d| d as u32),
+            hit_bit,
+        })
     }
 
     fn bits(&self) -> usize {
-        ((self.dims[0] * self.dims[1] * self.dims[2]) << self.hit_bit) as usize
+        (self.dims.iter().product::<u32>() << self.hit_bit) as usize
     }
 
     /// The bit of `r`'s cell, with [`BEHIND`] if `r` lies behind the plane of `halves`;
@@ -691,20 +701,13 @@ impl CellBox {
         }
     }
 
-    /// `bits[i]` the bit of `keys[i]` ([`Self::bit`]), `u32::MAX` for [`NONE`]; in 32-bit
-    /// lanes, which the compiler vectorises (a box has at most 2^25 bits).
+    /// `bits[i]` the bit of `keys[i]` ([`Self::bit`]), `u32::MAX` for [`NONE`]; the
+    /// compiler vectorises the loop, `bit` being 32-bit arithmetic.
     fn bits_of(&self, keys: &[u64], bits: &mut [u32]) {
-        let lo = self.lo.map(|l| l as i32);
-        let top = self.dims.map(|d| d as i32 - 1);
-        let [d0, d1] = [self.dims[0] as u32, self.dims[1] as u32];
-        let hit_bit = self.hit_bit as u32;
         for (b, &k) in bits.iter_mut().zip(keys) {
-            let axis = |a: usize| {
-                let f = (k >> (21 * a) & CellKeys::FIELD) as i32;
-                (f - lo[a]).clamp(0, top[a]) as u32
-            };
-            let cell = (axis(2) * d1 + axis(1)) * d0 + axis(0);
-            let bit = cell << hit_bit | (k >> 63) as u32 & hit_bit;
+            // Computed for `NONE` too, then dropped: a select, where a branch around the
+            // call was not vectorised.
+            let bit = self.bit(k);
             *b = if k == NONE { u32::MAX } else { bit };
         }
     }
@@ -712,15 +715,14 @@ impl CellBox {
     /// The bit of a cell key (not [`NONE`]). Ends lie in the box, whose voxel bounds the
     /// extent gives; a float end on the box's upper face is clamped into its last cell.
     #[inline]
-    fn bit(&self, key: u64) -> usize {
+    fn bit(&self, key: u64) -> u32 {
         // Spelled out per axis: as `[0, 1, 2].map` it was an out-of-line call per ray.
         let axis = |a: usize| {
-            let k = (key >> (21 * a) & CellKeys::FIELD) as i64 - self.lo[a];
-            k.clamp(0, self.dims[a] as i64 - 1) as u64
+            let k = (key >> (21 * a) & CellKeys::FIELD) as i32 - self.lo[a];
+            k.clamp(0, self.dims[a] as i32 - 1) as u32
         };
-        let c = [axis(0), axis(1), axis(2)];
-        let cell = (c[2] * self.dims[1] + c[1]) * self.dims[0] + c[0];
-        (cell << self.hit_bit | (key >> 63 & self.hit_bit)) as usize
+        let cell = (axis(2) * self.dims[1] + axis(1)) * self.dims[0] + axis(0);
+        cell << self.hit_bit | (key >> 63) as u32 & self.hit_bit
     }
 }
 
@@ -759,8 +761,8 @@ fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
                     continue;
                 }
                 let b = cells.bit(k);
-                let (w, m) = (b / 64, 1u64 << (b % 64));
-                *n = b as u32 | if set[w] & m == 0 { FIRST } else { 0 };
+                let (w, m) = (b as usize / 64, 1u64 << (b % 64));
+                *n = b | if set[w] & m == 0 { FIRST } else { 0 };
                 set[w] |= m;
             }
         });
@@ -900,10 +902,23 @@ mod tests {
         s
     }
 
-    /// The vectorised bits agree with [`CellBox::bit`] key by key: ends inside the box,
-    /// outside it (clamped to its faces), hit or not, and skipped points.
+    /// A cell's bit in 64-bit arithmetic, from the box's definition: the reference for
+    /// [`CellBox::bit`]'s 32 bits.
+    fn bit_in_64_bits(b: &CellBox, key: u64) -> u64 {
+        let c = [0, 1, 2].map(|a| {
+            let k = (key >> (21 * a) & CellKeys::FIELD) as i64 - i64::from(b.lo[a]);
+            k.clamp(0, i64::from(b.dims[a]) - 1) as u64
+        });
+        let d = b.dims.map(u64::from);
+        let cell = (c[2] * d[1] + c[1]) * d[0] + c[0];
+        cell << b.hit_bit | (key >> 63 & u64::from(b.hit_bit))
+    }
+
+    /// [`CellBox::bits_of`] (vectorised, 32 bits) agrees with the 64-bit reference key by
+    /// key: ends inside the box, outside it (clamped to its faces), hit or not, and
+    /// skipped points.
     #[test]
-    fn bits_of_agrees_with_bit() {
+    fn bits_of_agrees_with_64_bit_reference() {
         let mut rng = Rng(7);
         let origin = [0.25, 0.5, -0.75];
         for factor in [1, 2] {
@@ -923,7 +938,12 @@ mod tests {
                 let mut bits = vec![0; keys.len()];
                 b.bits_of(&keys, &mut bits);
                 for (&k, &got) in keys.iter().zip(&bits) {
-                    let want = if k == NONE { u32::MAX } else { b.bit(k) as u32 };
+                    let want = if k == NONE {
+                        u32::MAX
+                    } else {
+                        bit_in_64_bits(&b, k) as u32
+                    };
+                    assert!(want < b.bits() as u32 || k == NONE);
                     assert_eq!(got, want, "key {k:#x}");
                 }
             }
