@@ -29,7 +29,7 @@
 
 use super::covered::Covered;
 use super::dense::{or_bit, set_bit, DenseBits, DenseBox};
-use super::Packed;
+use super::{Packed, Spill};
 use crate::coord::VoxelCoord;
 use crate::integrate::marks::{BrickCache, Slot};
 use crate::integrate::prepare::avx2::{load_ray, transpose4};
@@ -1012,17 +1012,10 @@ unsafe fn walk_steps(
 /// Every lane's voxel must be a bit of `free`.
 #[inline(always)]
 unsafe fn mark(free: &mut [u64], p: __m256i) {
-    #[repr(align(32))]
-    struct Lanes([i64; 4]);
-    let mut lanes = Lanes([0; 4]);
-    // The lanes stored once and loaded back one by one: fewer instructions than moving
-    // each to a general register (`vpextrq` is two micro-ops). The loads are volatile
-    // because the compiler otherwise turns them back into those moves.
-    // SAFETY: `lanes` is 32 bytes aligned to 32.
-    unsafe { _mm256_store_si256(lanes.0.as_mut_ptr().cast(), p) };
-    for q in &lanes.0 {
-        // SAFETY: `q` is a valid, aligned, initialised i64.
-        let q = unsafe { std::ptr::read_volatile(q) };
+    let mut lanes = Spill::<4>::new();
+    // SAFETY: the spill is 32 bytes aligned to 64, all `_mm256_store_si256` writes.
+    unsafe { _mm256_store_si256(lanes.ptr().cast(), p) };
+    for q in lanes.lanes() {
         let (word, bit) = ((q >> 6) as usize, 1u64 << (q & 63));
         // SAFETY: `word < free.len()`, as the caller guarantees.
         let w = unsafe { free.get_unchecked_mut(word) };

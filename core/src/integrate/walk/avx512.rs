@@ -18,7 +18,7 @@
 
 use super::covered::Covered;
 use super::dense::{set_bit, DenseBits, DenseBox};
-use super::Packed;
+use super::{Packed, Spill};
 use crate::integrate::marks::BrickCache;
 use crate::integrate::prepare::Ray;
 use crate::mask::BitIter;
@@ -193,23 +193,18 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
         } else {
             // Every lane ORs its bit in; a lane without a ray marks the sink bit. One
             // vector of bit indices, split into word and bit by scalar shifts: vectors
-            // of words and of bits took twice the lane moves. The vector is stored once
-            // and its lanes loaded back: moved to general registers one by one, eight
-            // extracts a step held the vector ports the step needs. The loads are
-            // volatile because the compiler otherwise turns them back into extracts.
-            #[repr(align(64))]
-            struct Lanes([u64; 8]);
-            let mut lanes = Lanes([0; 8]);
-            // SAFETY: `lanes` is 64 bytes aligned to 64.
+            // of words and of bits took twice the lane moves. The lanes are spilled
+            // ([`Spill`]): eight extracts a step held the vector ports the step needs.
+            let mut lanes = Spill::<8>::new();
+            // SAFETY: the spill is 64 bytes aligned to 64, all `_mm512_store_si512` writes.
             unsafe {
                 _mm512_store_si512(
-                    lanes.0.as_mut_ptr().cast(),
+                    lanes.ptr().cast(),
                     _mm512_mask_mov_epi64(self.sink, live, p),
                 )
             };
-            for q in &lanes.0 {
-                // SAFETY: `q` is a valid, aligned, initialised u64.
-                set_bit(free, unsafe { std::ptr::read_volatile(q) });
+            for q in lanes.lanes() {
+                set_bit(free, q);
             }
         }
     }

@@ -240,6 +240,35 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
     }
 }
 
+/// A vector's lanes stored once and loaded back one by one, for the vector walks' marks:
+/// fewer instructions than moving each lane to a general register (`vpextrq` is two
+/// micro-ops, and the moves hold the vector ports a step needs).
+#[cfg(target_arch = "x86_64")]
+#[repr(align(64))]
+struct Spill<const N: usize>([u64; N]);
+
+#[cfg(target_arch = "x86_64")]
+impl<const N: usize> Spill<N> {
+    #[inline(always)]
+    fn new() -> Self {
+        Spill([0; N])
+    }
+
+    /// Where a vector store puts the lanes: `8 * N` bytes, aligned to 64.
+    #[inline(always)]
+    fn ptr(&mut self) -> *mut u64 {
+        self.0.as_mut_ptr()
+    }
+
+    /// The lanes, each loaded from memory. The loads are volatile because the compiler
+    /// otherwise turns them back into lane moves.
+    #[inline(always)]
+    fn lanes(&self) -> impl Iterator<Item = u64> + '_ {
+        // SAFETY: each `q` is a valid, aligned, initialised u64 of `self`.
+        self.0.iter().map(|q| unsafe { std::ptr::read_volatile(q) })
+    }
+}
+
 /// A voxel of a sparse walk packed in one `u64`, 21 bits per axis, relative to an origin
 /// near the rays' start: a step is one add of a stride, a field's low 3 bits are the
 /// voxel's offset in its brick, and a change above them is a new brick.
