@@ -124,10 +124,6 @@ pub(super) fn notes(
     n
 }
 
-/// The size above which [`make_noted`] asks for the words of its set ahead: a level 2
-/// cache's (0.5-2 MiB).
-const PREFETCHED_SET: usize = 1 << 20;
-
 /// `RayMaker::make_all`, `ExtentSum::of` and [`notes`] in one pass, bit for bit: four
 /// rays made at a time, stored to `made`, summed and noted from the vectors they were
 /// made in; and the word of `set` holding each note's bit asked for, which the marking
@@ -148,12 +144,7 @@ pub(super) fn make_noted(
     let maker = Maker4::new(m);
     let noter = Noter::new(how.cells_box, how.cells, how.halves);
     let mut sums = [Acc::new(m.origin), Acc::new(m.origin)];
-    // A set that fits the core's cache (unique-end's at 6 m, 0.5 MB) stays there.
-    let ahead = if std::mem::size_of_val(set) > PREFETCHED_SET {
-        set
-    } else {
-        &[]
-    };
+    let ahead = super::firsts::prefetched(set);
     for ((p4, o4), n4) in (pts.chunks_exact(4))
         .zip(made.chunks_exact_mut(4))
         .zip(notes.chunks_exact_mut(4))

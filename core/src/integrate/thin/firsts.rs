@@ -162,12 +162,19 @@ fn make_run(
         let (chunk_sum, t) = match fused {
             // Noted as made: the choosing's time starts with the marking.
             Some(s) => (s, Instant::now()),
+            // Noted first and the set's words asked for, so that they come while the
+            // extent is summed.
             None => {
                 maker.make_all(made, pts);
-                let s = ExtentSum::of(origin, made, maker.kernel);
                 let t = Instant::now();
                 how.cells_box
                     .notes_of(how.cells, how.halves, maker.kernel, made, notes);
+                let ahead = prefetched(set);
+                notes
+                    .iter()
+                    .for_each(|&k| crate::prefetch::prefetch(ahead, k as u32 as usize / 64));
+                // (The choosing's time takes in the sum: a pass over the chunk in cache.)
+                let s = ExtentSum::of(origin, made, maker.kernel);
                 (s, t)
             }
         };
@@ -185,6 +192,17 @@ fn make_run(
         took += t.elapsed();
     }
     (sum, cut, took)
+}
+
+/// `set` if its words are to be asked for before they are marked, else nothing: a set
+/// that fits the core's level 2 cache (0.5-2 MiB; unique-end's at 6 m is 0.5 MB) stays
+/// there.
+pub(super) fn prefetched(set: &[u64]) -> &[u64] {
+    if std::mem::size_of_val(set) > 1 << 20 {
+        set
+    } else {
+        &[]
+    }
 }
 
 /// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
