@@ -929,10 +929,15 @@ mod tests {
                     Ray::new(end, 0, i % 3 != 0)
                 })
                 .collect();
-            // A box of the first few ends only: most keys lie outside it.
+            // A box of the first few ends only: most keys lie outside it. And one of a
+            // cell a bit (no ray cut at max range).
             let small = bounds(&rays[..50], origin);
-            for extent in [bounds(&rays, origin), small] {
+            let mut one_bit = bounds(&rays, origin);
+            one_bit.cut_rays = 0;
+            let mut hit_bits = Vec::new();
+            for extent in [bounds(&rays, origin), small, one_bit] {
                 let b = CellBox::new(&extent, &cells).unwrap();
+                hit_bits.push(b.hit_bit);
                 let mut keys: Vec<u64> = rays.iter().map(|r| cells.key(r)).collect();
                 keys.insert(7, NONE);
                 let mut bits = vec![0; keys.len()];
@@ -947,6 +952,7 @@ mod tests {
                     assert_eq!(got, want, "key {k:#x}");
                 }
             }
+            assert_eq!(hit_bits, [1, 1, 0]);
         }
     }
 
