@@ -615,8 +615,9 @@ fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
 /// The cells ([`CellKeys`]) over a box of voxels (a frame's, or all a sensor's rays can
 /// reach), indexed densely, each as two bits (hit or not), or one where every ray hits.
 pub(in crate::integrate) struct CellBox {
-    /// The key field of the box's first cell on each axis. In 32 bits, as the dims: a
-    /// box has at most [`DENSE_CELL_BITS`] (2^25) bits, so the bit of a cell fits too.
+    /// The key field of the box's first cell on each axis (below 2^30 either way). In 32
+    /// bits, as the dims: a box has at most [`DENSE_CELL_BITS`] (2^25) bits, so the bit
+    /// of a cell fits too.
     lo: [i32; 3],
     dims: [u32; 3],
     /// 1 where a cell has two bits, else 0.
@@ -656,9 +657,10 @@ impl CellBox {
         if n.checked_mul(1 << hit_bit)? > DENSE_CELL_BITS {
             return None;
         }
-        let [l0, l1, l2] = lo.map(i32::try_from);
+        // Below 2^30 either way, so that a key field (below 2^21) minus it fits an i32.
+        let [l0, l1, l2] = lo.map(|l| (l.unsigned_abs() < 1 << 30).then_some(l as i32));
         Some(CellBox {
-            lo: [l0.ok()?, l1.ok()?, l2.ok()?],
+            lo: [l0?, l1?, l2?],
             // Each below 2^25, as their product is.
             dims: dims.map(|d| d as u32),
             hit_bit,
