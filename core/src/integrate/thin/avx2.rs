@@ -155,10 +155,8 @@ pub(super) fn make_noted(
         // SAFETY: `n4` is four writable u64s; the store has no alignment requirement.
         unsafe { _mm256_storeu_si256(n4.as_mut_ptr().cast(), note) };
         // The marking reads each cell's word of `set` after the chunk is made: ask for
-        // them now (a skipped point's note is past the set).
-        for &k in n4.iter() {
-            crate::prefetch::prefetch(ahead, k as u32 as usize / 64);
-        }
+        // them now.
+        super::firsts::ask_for_words(ahead, n4);
         let rays = transpose4(lanes);
         store4(o4, rays);
         m4.sum_into(&mut sums, &rays);

@@ -169,10 +169,7 @@ fn make_run(
                 let t = Instant::now();
                 how.cells_box
                     .notes_of(how.cells, how.halves, maker.kernel, made, notes);
-                let ahead = prefetched(set);
-                notes
-                    .iter()
-                    .for_each(|&k| crate::prefetch::prefetch(ahead, k as u32 as usize / 64));
+                ask_for_words(prefetched(set), notes);
                 // (The choosing's time takes in the sum: a pass over the chunk in cache.)
                 let s = ExtentSum::of(origin, made, maker.kernel);
                 (s, t)
@@ -202,6 +199,16 @@ pub(super) fn prefetched(set: &[u64]) -> &[u64] {
         set
     } else {
         &[]
+    }
+}
+
+/// Ask for the words of `ahead` (a set as [`prefetched`] gives it) that hold the cells of
+/// `notes`, which [`mark`] reads next. A skipped point's note ([`NONE`]) lies past the set
+/// and asks for nothing.
+#[inline(always)]
+pub(super) fn ask_for_words(ahead: &[u64], notes: &[u64]) {
+    for &k in notes {
+        crate::prefetch::prefetch(ahead, k as u32 as usize / 64);
     }
 }
 
