@@ -138,8 +138,8 @@ pub struct DistanceField {
     window: Option<(VoxelCoord, VoxelCoord)>,
     /// Per pool thread: the transform's buffers.
     scratch: Vec<Mutex<Scratch>>,
-    /// The kernel the transform is compiled for (the process's).
-    kernel: crate::kernel::Kernel,
+    /// The kernel the transform runs (the process's).
+    kernels: &'static crate::kernel::Kernels,
 }
 
 impl std::fmt::Debug for DistanceField {
@@ -165,7 +165,7 @@ impl DistanceField {
             band_count: 0,
             window: None,
             scratch: Vec::new(),
-            kernel: crate::kernel::Kernel::process(),
+            kernels: crate::kernel::Kernels::process_or_scalar(),
         })
     }
 
@@ -478,11 +478,11 @@ impl DistanceField {
         while self.scratch.len() < threads {
             self.scratch.push(Mutex::new(Scratch::default()));
         }
-        let (scratch, radius, policy, kernel, window) = (
+        let (scratch, radius, policy, kernels, window) = (
             &self.scratch,
             self.radius,
             self.cfg.unknown,
-            self.kernel,
+            self.kernels,
             self.window,
         );
         let grid = map.grid();
@@ -511,7 +511,7 @@ impl DistanceField {
                 }
                 let slot = rayon::current_thread_index().unwrap_or(0) % scratch.len();
                 let mut s = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
-                if !tile::transform(&mut s, grid, policy, origin, radius, kernel, region) {
+                if !tile::transform(&mut s, grid, policy, origin, radius, kernels, region) {
                     return leaves.into_iter().map(|(o, _)| (o, None)).collect();
                 }
                 let far = tile::far_key(radius);

@@ -19,7 +19,7 @@ use crate::coord::ConfigError;
 #[cfg(feature = "map")]
 mod esdf;
 #[cfg(feature = "map")]
-mod tile;
+pub(crate) mod tile;
 
 #[cfg(all(test, feature = "map"))]
 mod tests;

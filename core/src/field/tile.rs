@@ -23,7 +23,7 @@
 use super::{UnknownPolicy, MAX_RADIUS};
 use crate::coord::VoxelCoord;
 use crate::grid::{Grid, Leaf};
-use crate::kernel::Kernel;
+use crate::kernel::Kernels;
 use crate::mask::Mask512;
 
 /// log2 of a tile's edge in voxels.
@@ -93,7 +93,7 @@ pub(super) fn absent_obstacles(policy: UnknownPolicy) -> Mask512 {
 
 /// Per-thread buffers of the transform, reused from tile to tile.
 #[derive(Default)]
-pub(super) struct Scratch {
+pub(crate) struct Scratch {
     obs: Vec<u8>,
     run: Vec<u8>,
     below: Vec<u8>,
@@ -106,7 +106,7 @@ pub(super) struct Scratch {
 }
 
 /// A box of a tile's voxels, `(lo, hi)` per axis x, y, z, hi exclusive.
-pub(super) type Region = ([usize; 3], [usize; 3]);
+pub(crate) type Region = ([usize; 3], [usize; 3]);
 
 /// Transform the tile with minimum corner `origin` (a multiple of [`TILE`]) where it is
 /// needed: fills `scratch.keys` for the voxels of `region` (their whole rows along x).
@@ -118,7 +118,7 @@ pub(super) fn transform(
     policy: UnknownPolicy,
     origin: VoxelCoord,
     radius: u32,
-    kernel: Kernel,
+    kernels: &Kernels,
     region: Region,
 ) -> bool {
     let (r, t) = (radius as usize, TILE);
@@ -131,16 +131,7 @@ pub(super) fn transform(
     scratch.keyz.resize(t * n * n, 0);
     scratch.keyy.resize(t * t * n, 0);
     scratch.keys.resize(t * t * t, 0);
-    match kernel {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512 F, DQ and BW
-        // (`Kernel::supported`), the features `passes_avx512` enables.
-        Kernel::Avx512 => unsafe { passes_avx512(scratch, n, r, region) },
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
-        Kernel::Avx2 => unsafe { passes_avx2(scratch, n, r, region) },
-        _ => passes(scratch, n, r, region),
-    }
+    (kernels.field_passes)(scratch, n, r, region);
     true
 }
 
@@ -196,7 +187,7 @@ fn fill_obstacles(
 /// The three passes over a filled scratch (`n = TILE + 2r`). Written as loops over
 /// fixed-length rows with no branches, so that each inlined copy vectorizes.
 #[inline(always)]
-fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
+pub(crate) fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
     let t = TILE;
     let ([_, y0, z0], [_, y1, z1]) = b;
     let plane = n * n;
@@ -355,7 +346,7 @@ fn step(run: &mut [u8], o: &[u8], cap: u8) {
 /// The CPU must have AVX2 (`Kernel::Avx2.supported()` checks it).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize, b: Region) {
+pub(crate) unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize, b: Region) {
     passes(s, n, r, b)
 }
 
@@ -365,6 +356,6 @@ unsafe fn passes_avx2(s: &mut Scratch, n: usize, r: usize, b: Region) {
 /// The CPU must have AVX-512 F and BW (`Kernel::Avx512.supported()` checks them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw")]
-unsafe fn passes_avx512(s: &mut Scratch, n: usize, r: usize, b: Region) {
+pub(crate) unsafe fn passes_avx512(s: &mut Scratch, n: usize, r: usize, b: Region) {
     passes(s, n, r, b)
 }

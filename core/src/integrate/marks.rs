@@ -11,28 +11,27 @@ use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering::*};
 use std::sync::OnceLock;
 
 /// Bricks per coarse-cell edge (a coarse cell is 16^3 bricks, 128^3 voxels).
-pub(in crate::integrate) const CELL_LOG2: u32 = 4;
-pub(in crate::integrate) const CELL_ENTRIES: usize = 1 << (3 * CELL_LOG2);
+pub(crate) const CELL_LOG2: u32 = 4;
+pub(crate) const CELL_ENTRIES: usize = 1 << (3 * CELL_LOG2);
 /// Pool chunks of one huge page each (see [`Zeroed`]).
-pub(in crate::integrate) const SLOT_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Slot>();
-pub(in crate::integrate) const ENTRIES_CHUNK: usize =
-    HUGE_PAGE / std::mem::size_of::<CellEntries>();
+pub(crate) const SLOT_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Slot>();
+pub(crate) const ENTRIES_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<CellEntries>();
 
 /// Free and hit marks of one 8x8x8 brick, bit `x | y << 3 | z << 6` as in a leaf. Aligned
 /// to 64 bytes, so each of the two is one cache line and the vector walks OR it with
 /// aligned accesses.
 #[derive(bytemuck::Zeroable)]
 #[repr(C, align(64))]
-pub(in crate::integrate) struct Slot {
-    pub(in crate::integrate) free: [AtomicU64; 8],
-    pub(in crate::integrate) hit: [AtomicU64; 8],
+pub(crate) struct Slot {
+    pub(crate) free: [AtomicU64; 8],
+    pub(crate) hit: [AtomicU64; 8],
 }
 
 impl Slot {
     /// OR free marks in: plain loads and stores, no test first, as only the task holding
     /// the slot's table writes it, and the line is about to be read anyway.
     #[inline]
-    pub(in crate::integrate) fn or_free(&self, bits: &[u64; 8]) {
+    pub(crate) fn or_free(&self, bits: &[u64; 8]) {
         for (w, &b) in self.free.iter().zip(bits) {
             w.store(w.load(Relaxed) | b, Relaxed);
         }
@@ -41,14 +40,14 @@ impl Slot {
     /// Ask for the slot's two cache lines to be loaded, for a loop that reads it a few
     /// iterations later. Only speed changes.
     #[inline]
-    pub(in crate::integrate) fn prefetch(&self) {
+    pub(crate) fn prefetch(&self) {
         crate::prefetch::prefetch(std::slice::from_ref(&self.free), 0);
         crate::prefetch::prefetch(std::slice::from_ref(&self.hit), 0);
     }
 
     /// OR `other`'s marks into this one's, leaving `other` zero. Only between phases,
     /// when no walk writes.
-    pub(in crate::integrate) fn absorb(&self, other: &Slot) {
+    pub(crate) fn absorb(&self, other: &Slot) {
         let pairs = self.free.iter().zip(&other.free);
         for (w, o) in pairs.chain(self.hit.iter().zip(&other.hit)) {
             w.store(w.load(Relaxed) | o.load(Relaxed), Relaxed);
@@ -61,7 +60,7 @@ impl Slot {
     /// pass over all the frame's slots (hundreds of MB at 60 m) has to zero them again.
     /// Only the task updating the slot's leaf reads or writes the slot.
     #[inline]
-    pub(in crate::integrate) fn take(&self, w: usize) -> (u64, u64) {
+    pub(crate) fn take(&self, w: usize) -> (u64, u64) {
         let (free, hit) = (self.free[w].load(Relaxed), self.hit[w].load(Relaxed));
         if free | hit != 0 {
             self.free[w].store(0, Relaxed);
@@ -78,7 +77,7 @@ const _: () = assert!(3 + CELL_LOG2 == crate::grid::INTERNAL_TOTAL_LOG2);
 
 /// The brick entries of one coarse cell: slot id + 1, or 0.
 #[derive(bytemuck::Zeroable)]
-pub(in crate::integrate) struct CellEntries(pub(in crate::integrate) [AtomicU32; CELL_ENTRIES]);
+pub(crate) struct CellEntries(pub(crate) [AtomicU32; CELL_ENTRIES]);
 
 impl Zero for CellEntries {
     fn zero(&self) {
@@ -91,7 +90,7 @@ impl Zero for CellEntries {
 }
 
 /// Pool items: valid all-zero, and zeroed in place.
-pub(in crate::integrate) trait Zero: bytemuck::Zeroable + Send + Sync {
+pub(crate) trait Zero: bytemuck::Zeroable + Send + Sync {
     fn zero(&self);
     fn is_zero(&self) -> bool;
 }
@@ -115,12 +114,12 @@ impl Zero for Slot {
 /// A growable pool of zero-initialised `T`, handed out by id from any thread. Ids and
 /// storage persist across frames; the items' readers leave them zero, and `restart` hands
 /// the same ids out again.
-pub(in crate::integrate) struct Pool<T, const CHUNK: usize> {
-    pub(in crate::integrate) chunks: Vec<OnceLock<Zeroed<T>>>,
+pub(crate) struct Pool<T, const CHUNK: usize> {
+    pub(crate) chunks: Vec<OnceLock<Zeroed<T>>>,
     /// On cache lines of its own: the threads bump it while they read the fields beside
     /// it on every lookup, and on their lines each bump took those from the other
     /// threads' caches.
-    pub(in crate::integrate) next: CachePadded<AtomicU32>,
+    pub(crate) next: CachePadded<AtomicU32>,
 }
 
 impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
@@ -133,14 +132,14 @@ impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
 }
 
 impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
-    pub(in crate::integrate) fn reserve(&mut self, n: usize) {
+    pub(crate) fn reserve(&mut self, n: usize) {
         let want = n.div_ceil(CHUNK);
         while self.chunks.len() < want {
             self.chunks.push(OnceLock::new());
         }
     }
 
-    pub(in crate::integrate) fn alloc(&self) -> u32 {
+    pub(crate) fn alloc(&self) -> u32 {
         let id = self.next.fetch_add(1, Relaxed);
         self.get_or_init(id);
         id
@@ -148,13 +147,13 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
 
     /// Reserve `n` consecutive ids at once; each must be initialised with `get_or_init`
     /// before use. Ids reserved but never used stay zero, and are cleared like used ones.
-    pub(in crate::integrate) fn reserve_ids(&self, n: u32) -> Range<u32> {
+    pub(crate) fn reserve_ids(&self, n: u32) -> Range<u32> {
         let first = self.next.fetch_add(n, Relaxed);
         first..first + n
     }
 
     #[inline]
-    pub(in crate::integrate) fn get_or_init(&self, id: u32) -> &T {
+    pub(crate) fn get_or_init(&self, id: u32) -> &T {
         let id = id as usize;
         let new_chunk = || {
             let items = Zeroed::<T>::new(CHUNK);
@@ -168,19 +167,19 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
     }
 
     #[inline]
-    pub(in crate::integrate) fn get(&self, id: u32) -> &T {
+    pub(crate) fn get(&self, id: u32) -> &T {
         let id = id as usize;
         &self.chunks[id / CHUNK].get().expect("allocated id")[id % CHUNK]
     }
 
-    pub(in crate::integrate) fn used(&self) -> u32 {
+    pub(crate) fn used(&self) -> u32 {
         self.next.load(Relaxed)
     }
 
     /// Hand ids out from the first again. The items used must be zero by now (checked in
     /// debug builds): their readers zero them while they have them in cache, where a pass
     /// of its own here went over memory long out of the cache.
-    pub(in crate::integrate) fn restart(&mut self) {
+    pub(crate) fn restart(&mut self) {
         if cfg!(debug_assertions) {
             let n = self.used() as usize;
             for (c, chunk) in self.chunks[..n.div_ceil(CHUNK)].iter().enumerate() {
@@ -200,7 +199,7 @@ impl<T: Zero, const CHUNK: usize> Pool<T, CHUNK> {
 /// The id stored in a table's `entry` (as id + 1), allocated on first use. No other task
 /// writes the table meanwhile, so a plain load and store suffice.
 #[inline]
-pub(in crate::integrate) fn claim(entry: &AtomicU32, alloc: impl FnOnce() -> u32) -> u32 {
+pub(crate) fn claim(entry: &AtomicU32, alloc: impl FnOnce() -> u32) -> u32 {
     match entry.load(Relaxed) {
         0 => {
             let id = alloc();
@@ -224,58 +223,58 @@ pub(in crate::integrate) fn claim(entry: &AtomicU32, alloc: impl FnOnce() -> u32
 /// cost little: rayon gives each thread long runs of neighbouring chunks, and rays sorted
 /// by direction, so the tables share bricks only near the sensor.
 #[derive(Default)]
-pub(in crate::integrate) struct FrameMarks {
-    pub(in crate::integrate) lo: VoxelCoord,
-    pub(in crate::integrate) cells_dim: [usize; 3],
+pub(crate) struct FrameMarks {
+    pub(crate) lo: VoxelCoord,
+    pub(crate) cells_dim: [usize; 3],
     /// Coarse cells of the box.
-    pub(in crate::integrate) ncells: usize,
+    pub(crate) ncells: usize,
     /// Table t's cells are `cells[t * ncells..][..ncells]`: [`CellEntries`] id + 1, or 0.
-    pub(in crate::integrate) cells: Vec<AtomicU32>,
+    pub(crate) cells: Vec<AtomicU32>,
     /// Whether each table is held by a live [`BrickCache`].
-    pub(in crate::integrate) taken: Vec<AtomicBool>,
+    pub(crate) taken: Vec<AtomicBool>,
     /// Per table, the slot ids its last cache reserved and left unused (start << 32 |
     /// end), for its next: a task's leftover batch is not lost, so that a batch can be
     /// large and only the tables' last batches stay unused. Read and written only by the
     /// table's holder.
-    pub(in crate::integrate) spare: Vec<AtomicU64>,
-    pub(in crate::integrate) entries: Pool<CellEntries, ENTRIES_CHUNK>,
-    pub(in crate::integrate) slots: Pool<Slot, SLOT_CHUNK>,
+    pub(crate) spare: Vec<AtomicU64>,
+    pub(crate) entries: Pool<CellEntries, ENTRIES_CHUNK>,
+    pub(crate) slots: Pool<Slot, SLOT_CHUNK>,
 }
 
 /// A task's hold on one table of the [`FrameMarks`], with its recent lookups: the last
 /// cell's entries, and a direct-mapped cache of bricks (by the low bits of their coordinates) to
 /// slots. Sorted rays revisit the same bricks near the sensor over and over; a hit here
 /// skips the table walk.
-pub(in crate::integrate) struct BrickCache<'a> {
-    pub(in crate::integrate) marks: &'a FrameMarks,
-    pub(in crate::integrate) table: usize,
-    pub(in crate::integrate) cell: usize,
-    pub(in crate::integrate) cell_entries: Option<u32>,
-    pub(in crate::integrate) bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
+pub(crate) struct BrickCache<'a> {
+    pub(crate) marks: &'a FrameMarks,
+    pub(crate) table: usize,
+    pub(crate) cell: usize,
+    pub(crate) cell_entries: Option<u32>,
+    pub(crate) bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
     /// Slot ids this table has reserved and not yet used: one shared counter increment
     /// per [`SLOT_BATCH`] new bricks instead of one per brick, which at 60 m (a new slot
     /// every few steps) made the threads fight over the counter's cache line; and each
     /// thread's new slots lie together.
-    pub(in crate::integrate) spare_slots: Range<u32>,
+    pub(crate) spare_slots: Range<u32>,
 }
 
 /// Slot ids a table reserves at once.
-pub(in crate::integrate) const SLOT_BATCH: u32 = 512;
+pub(crate) const SLOT_BATCH: u32 = 512;
 
 /// Bricks in a [`BrickCache`], 16 per axis (96 KiB, in L2). A chunk's rays cross about
 /// 170 bricks each at 60 m, in a cone wider than 8 bricks: with 512 (8 per axis), the
 /// AVX-512 sparse walk's ray phase took 1539-1805 ms against 1267-1367 ms (random 500k
 /// 60 m, one thread, three alternated runs).
-pub(in crate::integrate) const BRICK_CACHE: usize = 4096;
+pub(crate) const BRICK_CACHE: usize = 4096;
 
 #[inline]
-pub(in crate::integrate) fn brick_cache_index(b: VoxelCoord) -> usize {
+pub(crate) fn brick_cache_index(b: VoxelCoord) -> usize {
     ((b.x & 15) | (b.y & 15) << 4 | (b.z & 15) << 8) as usize
 }
 
 impl FrameMarks {
     /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast on `tables` threads.
-    pub(in crate::integrate) fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, tables: usize) {
+    pub(crate) fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, tables: usize) {
         let tables = tables.max(1);
         self.lo = lo.shr(3 + CELL_LOG2).shl(3 + CELL_LOG2);
         let d = hi.shr(3 + CELL_LOG2) - lo.shr(3 + CELL_LOG2);
@@ -297,7 +296,7 @@ impl FrameMarks {
     /// Take a free table for one task. Each thread holds at most one cache at a time and
     /// there are as many tables as threads, so one is free; the thread's own index is tried
     /// first, so that a thread keeps finding its own cells' entries.
-    pub(in crate::integrate) fn cache(&self) -> BrickCache<'_> {
+    pub(crate) fn cache(&self) -> BrickCache<'_> {
         let n = self.taken.len();
         let first = rayon::current_thread_index().unwrap_or(0);
         let mut i = 0;
@@ -329,14 +328,11 @@ impl FrameMarks {
     /// [`BRICK_CACHE`] bricks (96 KiB), which, inlined into a rayon task, sat in each level
     /// of rayon's recursion and overflowed a worker's 2 MiB stack.
     #[inline(never)]
-    pub(in crate::integrate) fn with_cache<R>(
-        &self,
-        f: impl FnOnce(&mut BrickCache<'_>) -> R,
-    ) -> R {
+    pub(crate) fn with_cache<R>(&self, f: impl FnOnce(&mut BrickCache<'_>) -> R) -> R {
         f(&mut self.cache())
     }
 
-    pub(in crate::integrate) fn slot(&self, s: u32) -> &Slot {
+    pub(crate) fn slot(&self, s: u32) -> &Slot {
         self.slots.get(s)
     }
 
@@ -347,7 +343,7 @@ impl FrameMarks {
     /// cells are read in parallel, and their entries left zero (the frame's marks are then
     /// only in the listed slots). Call once a frame, between its phases, when no cache is
     /// live.
-    pub(in crate::integrate) fn bricks_in_order(&self) -> Vec<NodeLeaves<u32>> {
+    pub(crate) fn bricks_in_order(&self) -> Vec<NodeLeaves<u32>> {
         (0..self.ncells)
             .into_par_iter()
             .map(|c| self.cell_bricks(c))
@@ -415,7 +411,7 @@ impl FrameMarks {
     /// Ready the pools for the next frame, keeping their memory. Everything this frame
     /// used must be zero again: the tables' entries by [`Self::bricks_in_order`], each
     /// brick's slot by the update ([`Slot::take`]) or by the slot that absorbed it.
-    pub(in crate::integrate) fn clear_used(&mut self) {
+    pub(crate) fn clear_used(&mut self) {
         self.slots.restart();
         self.entries.restart();
     }
@@ -423,7 +419,7 @@ impl FrameMarks {
 
 impl<'a> BrickCache<'a> {
     #[inline]
-    pub(in crate::integrate) fn slot_for(&mut self, brick: VoxelCoord) -> &'a Slot {
+    pub(crate) fn slot_for(&mut self, brick: VoxelCoord) -> &'a Slot {
         let ci = brick_cache_index(brick);
         if let Some((b, slot)) = self.bricks[ci] {
             if b == brick {
@@ -436,7 +432,7 @@ impl<'a> BrickCache<'a> {
     }
 
     #[inline(never)]
-    pub(in crate::integrate) fn slot_lookup(&mut self, brick: VoxelCoord) -> &'a Slot {
+    pub(crate) fn slot_lookup(&mut self, brick: VoxelCoord) -> &'a Slot {
         let marks = self.marks;
         let r = brick - marks.lo.shr(3);
         let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
@@ -470,12 +466,12 @@ impl<'a> BrickCache<'a> {
 
     /// OR a brick's free marks into its slot ([`Slot::or_free`]).
     #[inline]
-    pub(in crate::integrate) fn or_free(&mut self, brick: VoxelCoord, bits: &[u64; 8]) {
+    pub(crate) fn or_free(&mut self, brick: VoxelCoord, bits: &[u64; 8]) {
         self.slot_for(brick).or_free(bits);
     }
 
     #[inline]
-    pub(in crate::integrate) fn set_hit(&mut self, v: VoxelCoord) {
+    pub(crate) fn set_hit(&mut self, v: VoxelCoord) {
         let slot = self.slot_for(v.shr(3));
         let i = leaf_offset(v);
         let w = &slot.hit[i >> 6];

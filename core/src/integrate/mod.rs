@@ -23,8 +23,9 @@
 //! - **table**: one thread's share of the mark tables; **lane**: one ray of a vector walk.
 //! - **chunk**: [`prepare::RAY_CHUNK`] rays, the unit of parallel work and of the layout.
 //!
-//! Each phase with a vector form runs the integrator's [`Kernel`], picked once when it is
-//! created (`VOXMAP_KERNEL` forces one); every kernel gives the same map.
+//! Each phase with a vector form calls its entry in the process's [`Kernels`] table (the
+//! kernel chosen once per process, `VOXMAP_KERNEL` forcing one); every kernel gives the
+//! same map.
 //!
 //! The walks are 2-4x faster dense than sparse with AVX-512, 1.3-2x without. The sparse walk
 //! is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread dense grids made
@@ -32,19 +33,19 @@
 //! bricks only near the sensor.
 
 use crate::coord::{ConfigError, MAX_VOXEL_INDEX};
-use crate::kernel::Kernel;
+use crate::kernel::{Kernel, Kernels};
 use crate::map::OccupancyMap;
 use marks::FrameMarks;
 use nalgebra::{Isometry3, Point3};
 use prepare::{Extent, Ray, Sides};
 use std::time::{Duration, Instant};
 
-mod marks;
+pub(crate) mod marks;
 mod merge;
-mod prepare;
-mod thin;
-mod update;
-mod walk;
+pub(crate) mod prepare;
+pub(crate) mod thin;
+pub(crate) mod update;
+pub(crate) mod walk;
 
 #[cfg(test)]
 mod tests;
@@ -233,8 +234,8 @@ pub struct Integrator {
     frames: u64,
     /// Which walk to take (tests compare them).
     walk: Walk,
-    /// Which kernels run the phases (tests compare them).
-    kernel: Kernel,
+    /// The kernel's entry points (tests compare kernels).
+    kernels: &'static Kernels,
 }
 
 impl Integrator {
@@ -270,7 +271,7 @@ impl Integrator {
             }
             _ => {}
         }
-        let kernel = Kernel::from_env().map_err(ConfigError::Kernel)?;
+        let kernels = Kernels::process().map_err(ConfigError::Kernel)?;
         let cpus = if cfg.pin_threads {
             crate::cpus::allowed()
         } else {
@@ -300,7 +301,7 @@ impl Integrator {
             thin: Default::default(),
             frames: 0,
             walk: Walk::Auto,
-            kernel,
+            kernels,
         })
     }
 
@@ -314,9 +315,9 @@ impl Integrator {
         &self.cfg
     }
 
-    /// The kernels this integrator runs: the CPU's best, or `VOXMAP_KERNEL`'s.
+    /// The kernel this integrator runs: the CPU's best, or `VOXMAP_KERNEL`'s.
     pub fn kernel(&self) -> Kernel {
-        self.kernel
+        self.kernels.kernel()
     }
 
     /// Whether this integrator can work on a map of `resolution`: its max range spans at
@@ -350,7 +351,7 @@ impl Integrator {
         let mode = self.cfg.mode;
         self.frames += 1;
         let frame_no = self.frames;
-        let (pool, marks, rays, sides, thin, dense, walk, kernel) = (
+        let (pool, marks, rays, sides, thin, dense, walk, kernels) = (
             &self.pool,
             &mut self.marks,
             &mut self.rays,
@@ -358,7 +359,7 @@ impl Integrator {
             &mut self.thin,
             &self.dense,
             self.walk,
-            self.kernel,
+            self.kernels,
         );
         let mut report = IntegrateReport {
             points: frame.points.len() as u64,
@@ -377,7 +378,7 @@ impl Integrator {
                 origin,
                 range_units,
                 mode,
-                kernel,
+                kernels,
                 thin,
             );
             let Extent {
@@ -412,7 +413,7 @@ impl Integrator {
                 bounds: (lo, hi),
                 range: range_units,
                 walk,
-                kernel,
+                kernels,
             };
             (report.voxel_steps, report.covered_steps) =
                 walk::run(&input, marks, dense, dense_box.as_ref(), frame_no);
@@ -430,7 +431,7 @@ impl Integrator {
             report.touched_voxels = map.grid_mut().leaf_pool_mut().par_update(
                 &items,
                 |&(slot, _)| marks.slot(slot).prefetch(),
-                |leaf, &(slot, fresh)| update::apply(kernel, leaf, marks.slot(slot), &q, fresh),
+                |leaf, &(slot, fresh)| (kernels.observe_leaf)(leaf, marks.slot(slot), &q, fresh),
             );
             marks.clear_used();
             let t4 = Instant::now();

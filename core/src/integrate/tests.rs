@@ -124,7 +124,7 @@ fn matches_the_reference_update_over_several_frames() {
     for kernel in kernels("matches_the_reference_update_over_several_frames") {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let mut integ = integrator(2, 3.0, RayMode::Exact);
-        integ.kernel = kernel;
+        integ.kernels = kernel.table().unwrap();
         for (pose, pts) in &frames {
             let frame = Frame {
                 pose: *pose,
@@ -153,10 +153,10 @@ fn result_is_identical_for_any_thread_count() {
             (pose, pts)
         })
         .collect();
-    let run = |kernel, threads, mode| {
+    let run = |kernel: Kernel, threads, mode| {
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         let mut integ = integrator(threads, 10.0, mode);
-        integ.kernel = kernel;
+        integ.kernels = kernel.table().unwrap();
         let mut steps = 0;
         for (pose, pts) in &frames {
             steps += integ
@@ -473,7 +473,7 @@ fn dense_and_sparse_walks_agree() {
             let mut map = OccupancyMap::new(*resolution, SensorModel::default()).unwrap();
             let mut integ = integrator(2, 40.0, RayMode::Exact);
             integ.walk = walk;
-            integ.kernel = kernel;
+            integ.kernels = kernel.table().unwrap();
             let mut reports = Vec::new();
             for (pose, pts) in frames {
                 let frame = Frame {
@@ -672,7 +672,7 @@ fn leaves_mark_voxels_at_the_threshold() {
         assert_eq!(q.threshold, q.hit);
         let mut integ = integrator(2, 5.0, RayMode::Exact);
         integ.walk = walk;
-        integ.kernel = kernel;
+        integ.kernels = kernel.table().unwrap();
         let mut rng = Rng(5);
         for _ in 0..3 {
             let (pose, pts) = random_frame(&mut rng, 2000, 4.0);
@@ -740,7 +740,7 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
         }
         let frame = Frame { pose, points: &pts };
         for kernel in kernels("rays_made_in_bulk_equal_rays_made_one_by_one") {
-            let maker = RayMaker::new(&frame, &tf, o, range, kernel);
+            let maker = RayMaker::new(&frame, &tf, o, range, kernel.table().unwrap());
             let mut bulk = vec![Ray::new([0.0; 3], 0, false); pts.len()];
             maker.make_all(&mut bulk, &pts);
             for (p, b) in pts.iter().zip(&bulk) {
@@ -756,7 +756,7 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
             for factor in [1, 2, 64] {
                 let cells = super::thin::CellKeys::new(o, factor);
                 let mut keys = vec![0; bulk.len()];
-                cells.keys(kernel, &bulk, &mut keys);
+                cells.keys(kernel.table().unwrap(), &bulk, &mut keys);
                 for (r, &k) in bulk.iter().zip(&keys) {
                     assert_eq!(k, cells.key(r), "{kernel:?}, factor {factor}, {r:?}");
                 }
@@ -773,7 +773,7 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                     .flat_map(|b| sides.iter().map(move |s| (b, s)))
                 {
                     let mut notes = vec![0; bulk.len()];
-                    b.notes_of(&cells, s, kernel, &bulk, &mut notes);
+                    b.notes_of(&cells, s, kernel.table().unwrap(), &bulk, &mut notes);
                     for (r, &k) in bulk.iter().zip(&notes) {
                         let want = b.note_of(&cells, s, r);
                         assert_eq!(k, want, "{kernel:?}, factor {factor}, {r:?}");
@@ -786,7 +786,7 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
             };
             for n in [0, 1, 2, 5, bulk.len()] {
                 assert_eq!(
-                    sum(super::prepare::ExtentSum::of(o, &bulk[..n], kernel)),
+                    sum((kernel.table().unwrap().extent_of)(o, &bulk[..n])),
                     sum(super::prepare::ExtentSum::of_scalar(o, &bulk[..n])),
                     "{kernel:?}, {n} rays"
                 );
@@ -795,7 +795,7 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
             // places, the same orders and extent as the scalar kernel's, in whole chunks
             // and in shorter ones (a length not a multiple of four takes the two passes).
             // The last plane passes through a ray's end: that ray lies on it, in front.
-            let scalar = RayMaker::new(&frame, &tf, o, range, Kernel::Scalar);
+            let scalar = RayMaker::new(&frame, &tf, o, range, Kernel::Scalar.table().unwrap());
             let on = bulk.iter().find(|r| r.key != SKIPPED).unwrap().end;
             let planes = [
                 (o, None),
@@ -1059,7 +1059,8 @@ fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
                 };
                 let origin = tf.point_to_units(&Point3::from(pose.translation.vector));
                 let range = range_m / tf.resolution();
-                let maker = RayMaker::new(&frame, &tf, origin, range, Kernel::Scalar);
+                let maker =
+                    RayMaker::new(&frame, &tf, origin, range, Kernel::Scalar.table().unwrap());
                 let mut want: Vec<Ray> = (pts.iter().map(|p| maker.make(p)))
                     .filter(|r| r.key != SKIPPED)
                     .collect();
@@ -1079,7 +1080,15 @@ fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
                 let (skipped, extent, _) = pool.install(|| {
                     let halves = Sides::new(&frame, origin, threads);
                     prepare_rays(
-                        &mut rays, &mut sides, halves, &frame, &tf, origin, range, mode, kernel,
+                        &mut rays,
+                        &mut sides,
+                        halves,
+                        &frame,
+                        &tf,
+                        origin,
+                        range,
+                        mode,
+                        kernel.table().unwrap(),
                         &mut thin,
                     )
                 });

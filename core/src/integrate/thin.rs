@@ -24,16 +24,16 @@
 
 use super::prepare::{direction_key, ChunkOrder, Extent, Ones, Ray, Sides, RAY_CHUNK, SKIPPED};
 use super::RayMode;
-use crate::kernel::Kernel;
+use crate::kernel::Kernels;
 use hashbrown::{HashMap, HashSet};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 #[cfg(target_arch = "x86_64")]
-mod avx2;
+pub(crate) mod avx2;
 mod firsts;
 
-pub(in crate::integrate) use firsts::{make_firsts, Chooser};
+pub(crate) use firsts::{make_firsts, Chooser};
 
 /// Most cells (times two, hit or not) a frame's box may have for the bit-set path: 2^25
 /// bits, 4 MiB per thread (and bit indices below 2^31).
@@ -45,7 +45,7 @@ const NONE: u64 = u64::MAX;
 /// The buffers the trade-off modes reuse from frame to frame: in fresh memory a frame's
 /// would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
-pub(in crate::integrate) struct Buffers {
+pub(crate) struct Buffers {
     /// Each ray's cell key in scan order ([`CellKeys`]), written as the rays are made.
     keys: Vec<u64>,
     /// Per chunk, where the layout put each ray of its scan.
@@ -63,12 +63,12 @@ pub(in crate::integrate) struct Buffers {
     sets: Vec<Vec<u64>>,
     marked: Option<(usize, usize, usize)>,
     /// [`make_firsts`]'s sets and notes.
-    pub(in crate::integrate) firsts: firsts::Firsts,
+    pub(crate) firsts: firsts::Firsts,
 }
 
 impl Buffers {
     /// Room for the notes of a frame of `n` points: a key per ray and an order per chunk.
-    pub(in crate::integrate) fn notes(&mut self, n: usize) -> (&mut [u64], &mut [ChunkOrder]) {
+    pub(crate) fn notes(&mut self, n: usize) -> (&mut [u64], &mut [ChunkOrder]) {
         sized(&mut self.keys, n, || NONE);
         sized(&mut self.orders, n.div_ceil(RAY_CHUNK), ChunkOrder::default);
         (&mut self.keys, &mut self.orders)
@@ -110,7 +110,7 @@ fn sized<T>(v: &mut Vec<T>, n: usize, new: impl FnMut() -> T) {
 /// in one `u64`: 21 bits an axis, relative to the origin's cell and biased by 2^20, and
 /// the hit flag on top. Rays end within max range (8192 voxels) of the origin and the
 /// factor is at most 64, so a field lies within 2^20 ± (2^19 + 1): never all ones.
-pub(in crate::integrate) struct CellKeys {
+pub(crate) struct CellKeys {
     f: f64,
     /// The cell that keys to 0 on each axis, as a float (an integer).
     base: [f64; 3],
@@ -120,7 +120,7 @@ impl CellKeys {
     const BIAS: f64 = (1 << 20) as f64;
     const FIELD: u64 = (1 << 21) - 1;
 
-    pub(in crate::integrate) fn new(origin: [f64; 3], factor: u32) -> Self {
+    pub(crate) fn new(origin: [f64; 3], factor: u32) -> Self {
         let f = f64::from(factor);
         CellKeys {
             f,
@@ -130,7 +130,7 @@ impl CellKeys {
 
     /// The key of `r`, [`NONE`] for a skipped point's.
     #[inline]
-    pub(in crate::integrate) fn key(&self, r: &Ray) -> u64 {
+    pub(crate) fn key(&self, r: &Ray) -> u64 {
         if r.key == SKIPPED {
             return NONE;
         }
@@ -140,14 +140,8 @@ impl CellKeys {
     }
 
     /// `out[i] = self.key(&rays[i])`, four at a time with the vector kernels.
-    pub(in crate::integrate) fn keys(&self, kernel: Kernel, rays: &[Ray], out: &mut [u64]) {
-        let done = match kernel {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
-            // AVX2 (`Kernel::supported`), which is all `avx2::keys` needs.
-            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::keys(self, rays, out) },
-            _ => 0,
-        };
+    pub(crate) fn keys(&self, kernels: &Kernels, rays: &[Ray], out: &mut [u64]) {
+        let done = (kernels.cell_keys)(self, rays, out);
         for (k, r) in out.iter_mut().zip(rays).skip(done) {
             *k = self.key(r);
         }
@@ -163,7 +157,7 @@ pub(super) fn cell_factor(mode: RayMode) -> u32 {
 }
 
 /// Which rays a trade-off mode keeps (by place in the scan), and as what.
-pub(in crate::integrate) struct Kept<'a> {
+pub(crate) struct Kept<'a> {
     keep: Keep<'a>,
     /// Unique-end: each ray kept goes to the centre of its end voxel.
     centre: bool,
@@ -175,7 +169,7 @@ impl Kept<'_> {
     /// place `p` (back places counted from the chunk's end); and how many rays kept are
     /// cut at max range.
     #[inline]
-    pub(in crate::integrate) fn by_place(
+    pub(crate) fn by_place(
         &self,
         at: usize,
         len: usize,
@@ -200,13 +194,13 @@ impl Kept<'_> {
     }
 
     /// Whether [`Self::finish`] changes rays.
-    pub(in crate::integrate) fn centres(&self) -> bool {
+    pub(crate) fn centres(&self) -> bool {
         self.centre
     }
 
     /// A ray kept, as the mode casts it.
     #[inline]
-    pub(in crate::integrate) fn finish(&self, r: &Ray) -> Ray {
+    pub(crate) fn finish(&self, r: &Ray) -> Ray {
         if self.centre {
             to_centre(r)
         } else {
@@ -259,7 +253,7 @@ enum Keep<'a> {
 }
 
 /// Marks a cell's bit in [`CellBox::note_of`] as that of a ray behind the sides' plane.
-pub(in crate::integrate) const BEHIND: u64 = 1 << 33;
+pub(crate) const BEHIND: u64 = 1 << 33;
 
 /// Marks a noted cell bit first in its run ([`Keep::Firsts`]).
 const FIRST: u32 = 1 << 31;
@@ -614,7 +608,7 @@ fn set_means(rays: &mut [Ray], origin: [f64; 3], means: Vec<Vec<Mean>>) {
 
 /// The cells ([`CellKeys`]) over a box of voxels (a frame's, or all a sensor's rays can
 /// reach), indexed densely, each as two bits (hit or not), or one where every ray hits.
-pub(in crate::integrate) struct CellBox {
+pub(crate) struct CellBox {
     /// The key field of the box's first cell on each axis (below 2^30 either way). In 32
     /// bits, as the dims: a box has at most [`DENSE_CELL_BITS`] (2^25) bits, so the bit
     /// of a cell fits too.
@@ -627,7 +621,7 @@ pub(in crate::integrate) struct CellBox {
 impl CellBox {
     /// The box of a frame's `extent`; `None` when its cells need more than
     /// [`DENSE_CELL_BITS`] bits.
-    pub(in crate::integrate) fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
+    pub(crate) fn new(extent: &Extent, cells: &CellKeys) -> Option<Self> {
         let (lo, hi) = (extent.lo.to_array(), extent.hi.to_array());
         let hit_bit = u32::from(extent.cut_rays > 0);
         Self::of_voxels(lo.map(i64::from), hi.map(i64::from), hit_bit, cells)
@@ -636,11 +630,7 @@ impl CellBox {
     /// The box of every end a ray from `origin` (voxel units) can have, within `range`
     /// voxels, with a voxel to spare each way for rounding; `None` when it needs more
     /// than [`DENSE_CELL_BITS`] bits.
-    pub(in crate::integrate) fn around(
-        origin: [f64; 3],
-        range: f64,
-        cells: &CellKeys,
-    ) -> Option<Self> {
+    pub(crate) fn around(origin: [f64; 3], range: f64, cells: &CellKeys) -> Option<Self> {
         let lo = origin.map(|c| (c - range).floor() as i64 - 1);
         let hi = origin.map(|c| (c + range).floor() as i64 + 1);
         Self::of_voxels(lo, hi, 1, cells)
@@ -674,7 +664,7 @@ impl CellBox {
     /// The bit of `r`'s cell, with [`BEHIND`] if `r` lies behind the plane of `halves`;
     /// [`NONE`] for a skipped point's ray.
     #[inline]
-    pub(in crate::integrate) fn note_of(&self, cells: &CellKeys, halves: &Sides, r: &Ray) -> u64 {
+    pub(crate) fn note_of(&self, cells: &CellKeys, halves: &Sides, r: &Ray) -> u64 {
         match cells.key(r) {
             NONE => NONE,
             k => self.bit(k) as u64 | if halves.behind(r.end) { BEHIND } else { 0 },
@@ -683,21 +673,15 @@ impl CellBox {
 
     /// `out[i] = self.note_of(cells, halves, &rays[i])`, four at a time with the vector
     /// kernels.
-    pub(in crate::integrate) fn notes_of(
+    pub(crate) fn notes_of(
         &self,
         cells: &CellKeys,
         halves: &Sides,
-        kernel: Kernel,
+        kernels: &Kernels,
         rays: &[Ray],
         out: &mut [u64],
     ) {
-        let done = match kernel {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
-            // AVX2 (`Kernel::supported`), which is all `avx2::notes` needs.
-            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::notes(self, cells, halves, rays, out) },
-            _ => 0,
-        };
+        let done = (kernels.notes)(self, cells, halves, rays, out);
         for (b, r) in out.iter_mut().zip(rays).skip(done) {
             *b = self.note_of(cells, halves, r);
         }
@@ -775,7 +759,7 @@ fn firsts_dense(cells: &CellBox, bufs: &mut Buffers) -> (usize, usize) {
 /// The trade-off modes in one pass in scan order over a hash set (bundle: a sort): the
 /// reference the faster paths are tested against.
 #[cfg(test)]
-pub(in crate::integrate) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
+pub(crate) fn thin_hashed(rays: &mut Vec<Ray>, origin: [f64; 3], mode: RayMode) {
     use super::prepare::set_direction_keys;
     match mode {
         RayMode::Exact => {}
@@ -843,13 +827,14 @@ mod tests {
         axis: Option<[f64; 3]>,
     ) -> Vec<Ray> {
         let mut got: Option<Vec<Ray>> = None;
-        for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+        for kernel in crate::kernel::Kernel::available() {
+            let kernels = kernel.table().expect("an available kernel");
             let cells = CellKeys::new(origin, cell_factor(mode));
             let halves = Sides { origin, axis };
             let mut laid = rays.to_vec();
             let mut sides = Vec::new();
             let (keys, orders) = bufs.notes(rays.len());
-            cells.keys(kernel, rays, keys);
+            cells.keys(kernels, rays, keys);
             for ((made, out), order) in (rays.chunks(RAY_CHUNK))
                 .zip(laid.chunks_mut(RAY_CHUNK))
                 .zip(orders.iter_mut())

@@ -301,7 +301,7 @@ fn compress_rows(
         let n = present.count_ones() as usize;
         assert!(n <= out.len(), "record shorter than its rows");
         // SAFETY: an `Avx512Encode` exists only where the CPU has AVX-512F and VBMI2
-        // (`Avx512Encode::detect`), and n <= out.len() (checked above).
+        // (`Avx512Encode::new`), and n <= out.len() (checked above).
         return unsafe { compress_rows_vbmi2(rows, present, out) };
     }
     let _ = avx512;
@@ -314,38 +314,19 @@ fn compress_rows(
     at
 }
 
-/// Proof that the snapshot encoder may run its AVX-512 form: the process runs the AVX-512
-/// kernel ([`crate::kernel::Kernel::process`]) and the CPU has every feature that
-/// `writer::encode_piece_avx512` enables (the list in `detect` is the same).
+/// Proof that the CPU has AVX-512F and VBMI2, so that the record encoder may compress rows
+/// with one store. Made by the AVX-512 snapshot encoder (`writer::encode_piece_avx512`),
+/// which enables those features, and by the tests after checking the CPU.
 #[derive(Clone, Copy, Debug)]
 #[cfg(feature = "map")]
 pub(crate) struct Avx512Encode(());
 
 #[cfg(feature = "map")]
 impl Avx512Encode {
-    /// `Some` where the CPU and kernel allow it; checked once per process.
-    pub fn detect() -> Option<Avx512Encode> {
-        #[cfg(target_arch = "x86_64")]
-        {
-            static YES: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-            let yes = *YES.get_or_init(|| {
-                use std::arch::is_x86_feature_detected as has;
-                crate::kernel::Kernel::process() == crate::kernel::Kernel::Avx512
-                    && has!("avx512f")
-                    && has!("avx512bw")
-                    && has!("avx512vl")
-                    && has!("avx512vbmi2")
-                    && has!("avx512vpopcntdq")
-                    && has!("bmi1")
-                    && has!("bmi2")
-                    && has!("lzcnt")
-                    && has!("popcnt")
-            });
-            if yes {
-                return Some(Avx512Encode(()));
-            }
-        }
-        None
+    /// # Safety
+    /// The CPU must have AVX-512F and VBMI2.
+    pub(crate) unsafe fn new() -> Avx512Encode {
+        Avx512Encode(())
     }
 }
 
@@ -591,12 +572,15 @@ mod tests {
                 .for_each(|(o, k)| *o &= k);
             masks.push((known, occ));
         }
-        let avx512 = Avx512Encode::detect();
-        if avx512.is_none() {
+        let avx512 = if crate::kernel::Kernel::Avx512.supported() {
+            // SAFETY: the AVX-512 kernel's features include AVX-512F and VBMI2.
+            Some(unsafe { Avx512Encode::new() })
+        } else {
             crate::kernel::skip_notice(format_args!(
-                "the AVX-512 record encoder is skipped (CPU or VOXMAP_KERNEL)"
+                "the AVX-512 record encoder is skipped: this CPU lacks the AVX-512 kernel"
             ));
-        }
+            None
+        };
         for (known, occ) in masks {
             let (ck, co) = (choose_known(&known), choose_occupied(&occ));
             kinds[ck.kind as usize] += 1;

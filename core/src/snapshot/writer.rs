@@ -44,7 +44,7 @@ pub struct Meta {
     pub with_values: bool,
 }
 
-struct PlannedLeaf<'a> {
+pub(crate) struct PlannedLeaf<'a> {
     origin: VoxelCoord,
     leaf: &'a Leaf<i8>,
     /// The kinds of its known and occupied masks.
@@ -91,7 +91,7 @@ fn keep_of<'k>(keeps: &'k [Mask512], p: &'k PlannedLeaf<'_>) -> &'k Mask512 {
 /// Encode the records of one piece of leaves: their bytes, sums and how many had nothing
 /// known. Inlined into [`encode_piece_avx512`] too, so that one body serves both.
 #[inline(always)]
-fn encode_piece(
+pub(crate) fn encode_piece(
     piece: &mut [PlannedLeaf<'_>],
     keeps: &[Mask512],
     avx512: Option<record::Avx512Encode>,
@@ -136,17 +136,17 @@ fn encode_piece(
 /// [`encode_piece`] compiled for AVX-512: the mask work, popcounts and VBMI2 stores.
 ///
 /// # Safety
-/// The CPU must have every feature enabled here; `token` proves it
-/// (`record::Avx512Encode::detect` checks the same list).
+/// The CPU must have every feature enabled here (`Kernel::Avx512.supported()` checks them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(
     enable = "avx512f,avx512bw,avx512vl,avx512vbmi2,avx512vpopcntdq,bmi1,bmi2,lzcnt,popcnt"
 )]
-unsafe fn encode_piece_avx512(
+pub(crate) unsafe fn encode_piece_avx512(
     piece: &mut [PlannedLeaf<'_>],
     keeps: &[Mask512],
-    token: record::Avx512Encode,
 ) -> (Vec<u8>, Sums, usize) {
+    // SAFETY: this function runs only where the CPU has AVX-512F and VBMI2 (enabled here).
+    let token = unsafe { record::Avx512Encode::new() };
     encode_piece(piece, keeps, Some(token))
 }
 
@@ -157,7 +157,7 @@ unsafe fn encode_piece_avx512(
 /// The CPU must have every feature enabled here (`Kernel::Avx2.supported()` checks them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn encode_piece_avx2(
+pub(crate) unsafe fn encode_piece_avx2(
     piece: &mut [PlannedLeaf<'_>],
     keeps: &[Mask512],
 ) -> (Vec<u8>, Sums, usize) {
@@ -172,7 +172,7 @@ fn take<'b>(bytes: &mut &'b mut [u8], len: usize) -> &'b mut [u8] {
 }
 
 /// Counts and bounds gathered while writing leaves.
-struct Sums {
+pub(crate) struct Sums {
     known: u64,
     occupied: u64,
     lo: [i32; 3],
@@ -456,23 +456,10 @@ impl<'a> Plan<'a> {
         // Encode every leaf's record once, in pieces; `record` is the offset within the
         // piece until the pieces' offsets are known. Leaves with nothing known (possible
         // only in the whole scope) get no record and are dropped after.
-        let avx512 = record::Avx512Encode::detect();
-        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
-        let avx2 = crate::kernel::Kernel::process() != crate::kernel::Kernel::Scalar
-            && crate::kernel::Kernel::Avx2.supported();
+        let encode = crate::kernel::Kernels::process_or_scalar().encode_piece;
         let pieces: Vec<(Vec<u8>, Sums, usize)> = leaves
             .par_chunks_mut(PIECE)
-            .map(|piece| match avx512 {
-                #[cfg(target_arch = "x86_64")]
-                // SAFETY: `Avx512Encode::detect` checked every feature `encode_piece_avx512`
-                // enables.
-                Some(t) => unsafe { encode_piece_avx512(piece, &keeps, t) },
-                #[cfg(target_arch = "x86_64")]
-                // SAFETY: `Kernel::Avx2.supported()` checked every feature
-                // `encode_piece_avx2` enables.
-                None if avx2 => unsafe { encode_piece_avx2(piece, &keeps) },
-                _ => encode_piece(piece, &keeps, None),
-            })
+            .map(|piece| encode(piece, &keeps))
             .collect();
         let mut starts = Vec::with_capacity(pieces.len());
         let mut at = 0u64;

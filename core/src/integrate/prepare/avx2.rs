@@ -1,12 +1,12 @@
 //! Ray making on AVX2: four points at a time, bit for bit as [`RayMaker::make`]; the
-//! extent of rays, bit for bit as [`ExtentSum::of`]; and both with the layout by sides in
+//! extent of rays, bit for bit as [`ExtentSum::of_scalar`]; and both with the layout by sides in
 //! one pass, bit for bit as [`Sides::make`](super::Sides::make).
 
 use super::{ChunkOrder, ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 use std::arch::x86_64::*;
 
 /// The pose, grid and range of a [`RayMaker`] in vectors, to make four rays at a time.
-pub(in crate::integrate) struct Maker4 {
+pub(crate) struct Maker4 {
     res: __m256d,
     snap: __m256d,
     range: __m256d,
@@ -18,7 +18,7 @@ pub(in crate::integrate) struct Maker4 {
 
 /// Four rays made: their ends per axis (lanes of a skipped point's are not ends), which
 /// are finite points and which hit (bit `j` for lane `j`).
-pub(in crate::integrate) struct Made4 {
+pub(crate) struct Made4 {
     e: [__m256d; 3],
     finite: u32,
     hit: u32,
@@ -32,7 +32,7 @@ fn mask(v: __m256d) -> u32 {
 
 impl Maker4 {
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn new(m: &RayMaker) -> Self {
+    pub(crate) fn new(m: &RayMaker) -> Self {
         Maker4 {
             res: _mm256_set1_pd(m.tf.resolution()),
             snap: _mm256_set1_pd(crate::coord::FACE_SNAP),
@@ -48,7 +48,7 @@ impl Maker4 {
     /// the same rays; no FMA, which would round differently).
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn make(&self, p4: &[[f32; 3]]) -> Made4 {
+    pub(crate) fn make(&self, p4: &[[f32; 3]]) -> Made4 {
         let zero = _mm256_setzero_pd();
         let sign = _mm256_set1_pd(-0.0);
         let [x, y, z] = deinterleave(p4).map(|c| _mm256_cvtps_pd(c));
@@ -113,7 +113,7 @@ fn lanes(bits: u32) -> __m256i {
 /// `out[i] = m.make(&pts[i])` for four points at a time; returns how many it made, a
 /// multiple of four. The rest is left to the caller.
 #[target_feature(enable = "avx2")]
-pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
+pub(crate) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
     let n = out.len().min(pts.len()) / 4 * 4;
     let maker = Maker4::new(m);
     for (o4, p4) in out[..n].chunks_exact_mut(4).zip(pts[..n].chunks_exact(4)) {
@@ -125,7 +125,7 @@ pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usiz
 /// Four rays whole (as [`Made4::rays`] gives them) into `o4`, one store each.
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(in crate::integrate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
+pub(crate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
     assert_eq!(o4.len(), 4);
     let p = o4.as_mut_ptr().cast::<f64>();
     for (j, r) in rays.into_iter().enumerate() {
@@ -141,7 +141,7 @@ impl Made4 {
     /// hit).
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn rays(&self) -> [__m256d; 4] {
+    pub(crate) fn rays(&self) -> [__m256d; 4] {
         transpose4(self.lanes())
     }
 
@@ -149,7 +149,7 @@ impl Made4 {
     /// low 32 bits, hit flag in the next byte, padding 0).
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn lanes(&self) -> [__m256d; 4] {
+    pub(crate) fn lanes(&self) -> [__m256d; 4] {
         const _: () = assert!(std::mem::size_of::<Ray>() == 32 && SKIPPED == u32::MAX);
         let ok = _mm256_castsi256_pd(lanes(self.finite));
         let word = |j: u32| {
@@ -168,7 +168,7 @@ impl Made4 {
     /// `j % 2`, as [`extent_of`] adds rays in scan order to its two sums.
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn sum_into(&self, sums: &mut [Acc; 2], rays: &[__m256d; 4]) {
+    pub(crate) fn sum_into(&self, sums: &mut [Acc; 2], rays: &[__m256d; 4]) {
         for (j, &r) in rays.iter().enumerate() {
             let sum = &mut sums[j % 2];
             if self.finite >> j & 1 == 0 {
@@ -182,14 +182,14 @@ impl Made4 {
 
 /// The plane of a [`Sides`] in vectors, to tell for four ends at a time which lie behind
 /// it.
-pub(in crate::integrate) struct Side4 {
+pub(crate) struct Side4 {
     o: [__m256d; 3],
     axis: [__m256d; 3],
 }
 
 impl Side4 {
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn new(halves: &Sides) -> Self {
+    pub(crate) fn new(halves: &Sides) -> Self {
         Side4 {
             o: halves.origin.map(|c| _mm256_set1_pd(c)),
             axis: halves.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c)),
@@ -200,7 +200,7 @@ impl Side4 {
     /// (d0 * x0 + d1 * x1) + d2 * x2 < 0, as `Sides::behind` computes it.
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn behind(&self, e: [__m256d; 3]) -> __m256d {
+    pub(crate) fn behind(&self, e: [__m256d; 3]) -> __m256d {
         let d = [0, 1, 2].map(|a| _mm256_sub_pd(e[a], self.o[a]));
         let dot = _mm256_add_pd(
             _mm256_add_pd(
@@ -217,7 +217,7 @@ impl Side4 {
 /// flag (bit 32).
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(in crate::integrate) fn load_ray(r: &Ray) -> __m256d {
+pub(crate) fn load_ray(r: &Ray) -> __m256d {
     const _: () = assert!(std::mem::size_of::<Ray>() == 32);
     // SAFETY: a `repr(C)` ray is 32 bytes, every byte initialised (explicit padding), the
     // end first.
@@ -228,7 +228,7 @@ pub(in crate::integrate) fn load_ray(r: &Ray) -> __m256d {
 /// `j`. Four rays loaded whole become their x, y, z and words, and back.
 #[inline]
 #[target_feature(enable = "avx2")]
-pub(in crate::integrate) fn transpose4(rows: [__m256d; 4]) -> [__m256d; 4] {
+pub(crate) fn transpose4(rows: [__m256d; 4]) -> [__m256d; 4] {
     let [a, b, c, d] = rows;
     let (t0, t1) = (_mm256_unpacklo_pd(a, b), _mm256_unpackhi_pd(a, b)); // a0 b0 a2 b2, a1 b1 a3 b3
     let (t2, t3) = (_mm256_unpacklo_pd(c, d), _mm256_unpackhi_pd(c, d)); // c0 d0 c2 d2, c1 d1 c3 d3
@@ -242,11 +242,11 @@ pub(in crate::integrate) fn transpose4(rows: [__m256d; 4]) -> [__m256d; 4] {
 
 /// [`Sides::make`] without notes, in one pass, bit for bit: four rays made at a time,
 /// each written straight to its place in `out` by the side [`Sides::behind`] computes
-/// (its operations in its order), and their extent summed as [`ExtentSum::of`] sums the
+/// (its operations in its order), and their extent summed as [`ExtentSum::of_scalar`] sums the
 /// rays in scan order. `None`, with nothing written, unless `pts` is a whole number of
 /// fours as long as `out`.
 #[target_feature(enable = "avx2")]
-pub(super) fn make_laid_out(
+pub(crate) fn make_laid_out(
     m: &RayMaker,
     halves: &Sides,
     pts: &[[f32; 3]],
@@ -315,10 +315,10 @@ fn deinterleave(p4: &[[f32; 3]]) -> [__m128; 3] {
     ]
 }
 
-/// [`ExtentSum::of`] on AVX2, bit for bit: the same two sums over alternate rays
+/// [`ExtentSum::of_scalar`] on AVX2, bit for bit: the same two sums over alternate rays
 /// ([`Acc`]).
 #[target_feature(enable = "avx2")]
-pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
+pub(crate) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
     let (mut even, mut odd) = (Acc::new(origin), Acc::new(origin));
     let add = |s: &mut Acc, r: &Ray| {
         if r.key == SKIPPED {
@@ -338,7 +338,7 @@ pub(super) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
 
 /// An [`ExtentSum`] being summed with a ray's three axes in the lanes of one vector (the
 /// fourth lane, the key and hit flag read as a float, is ignored).
-pub(in crate::integrate) struct Acc {
+pub(crate) struct Acc {
     origin: [f64; 3],
     o: __m256d,
     lo: __m256d,
@@ -350,7 +350,7 @@ pub(in crate::integrate) struct Acc {
 
 impl Acc {
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn new(origin: [f64; 3]) -> Self {
+    pub(crate) fn new(origin: [f64; 3]) -> Self {
         let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
         Acc {
             origin,
@@ -366,7 +366,7 @@ impl Acc {
     /// A ray (not a skipped point's) whose first 32 bytes are `v`.
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn add(&mut self, v: __m256d, hit: bool) {
+    pub(crate) fn add(&mut self, v: __m256d, hit: bool) {
         let sign = _mm256_set1_pd(-0.0);
         self.lo = _mm256_min_pd(self.lo, v);
         self.hi = _mm256_max_pd(self.hi, v);
@@ -375,7 +375,7 @@ impl Acc {
     }
 
     #[target_feature(enable = "avx2")]
-    pub(in crate::integrate) fn sum(self) -> ExtentSum {
+    pub(crate) fn sum(self) -> ExtentSum {
         let lanes = |v: __m256d| {
             let mut a = [0.0f64; 4];
             // SAFETY: `a` is 32 writable bytes; the store has no alignment requirement.

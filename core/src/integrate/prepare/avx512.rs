@@ -8,7 +8,7 @@ use std::arch::x86_64::*;
 /// The rest is left to the caller. Making a ray is about 50 cycles of scalar code, three
 /// divisions among them, and was most of the prepare phase.
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
+pub(crate) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
     let n = out.len().min(pts.len()) / 8 * 8;
     let zero = _mm512_setzero_pd();
     let res = _mm512_set1_pd(m.tf.resolution());

@@ -8,13 +8,13 @@
 use super::thin::{cell_factor, make_firsts, thin_out, Buffers, CellBox, CellKeys, Chooser, Kept};
 use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
-use crate::kernel::Kernel;
+use crate::kernel::Kernels;
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-pub(in crate::integrate) mod avx2;
+pub(crate) mod avx2;
 #[cfg(target_arch = "x86_64")]
-mod avx512;
+pub(crate) mod avx512;
 
 /// Rays per parallel task of the walk, and per chunk of the layout by sides.
 pub(super) const RAY_CHUNK: usize = 512;
@@ -26,17 +26,17 @@ pub(super) const RAY_CHUNK: usize = 512;
 /// 32-byte accesses are split in two by the compiler's generic x86-64 tuning).
 #[derive(Clone, Copy, Debug, bytemuck::Zeroable)]
 #[repr(C, align(32))]
-pub(in crate::integrate) struct Ray {
-    pub(in crate::integrate) end: [f64; 3],
-    pub(in crate::integrate) key: u32,
-    pub(in crate::integrate) hit: bool,
-    pub(in crate::integrate) pad: [u8; 3],
+pub(crate) struct Ray {
+    pub(crate) end: [f64; 3],
+    pub(crate) key: u32,
+    pub(crate) hit: bool,
+    pub(crate) pad: [u8; 3],
 }
 
 const _: () = assert!(std::mem::size_of::<Ray>() == 32);
 
 impl Ray {
-    pub(in crate::integrate) fn new(end: [f64; 3], key: u32, hit: bool) -> Self {
+    pub(crate) fn new(end: [f64; 3], key: u32, hit: bool) -> Self {
         Ray {
             end,
             key,
@@ -74,7 +74,7 @@ pub(super) fn set_direction_keys(rays: &mut [Ray], origin: [f64; 3]) {
 pub(super) const SKIPPED: u32 = u32::MAX;
 
 #[inline]
-pub(in crate::integrate) fn spread16(x: u32) -> u32 {
+pub(crate) fn spread16(x: u32) -> u32 {
     let mut x = x & 0xffff;
     x = (x | x << 8) & 0x00ff_00ff;
     x = (x | x << 4) & 0x0f0f_0f0f;
@@ -113,10 +113,10 @@ pub(super) fn prepare_rays(
     origin: [f64; 3],
     range_units: f64,
     mode: RayMode,
-    kernel: Kernel,
+    kernels: &'static Kernels,
     thin: &mut Buffers,
 ) -> (u64, Extent, std::time::Duration) {
-    let maker = RayMaker::new(frame, tf, origin, range_units, kernel);
+    let maker = RayMaker::new(frame, tf, origin, range_units, kernels);
     // One pass writes the rays, lays them out and sums up their extent: a frame's rays
     // (16 MB for 500k points) outgrow the cache, and passes of their own to count the
     // skipped points and take the bounds cost a third of the prepare phase (structured
@@ -258,7 +258,7 @@ fn first_bits(n: usize, w: usize) -> u64 {
 }
 
 /// The places of a word's set bits, lowest first.
-pub(in crate::integrate) struct Ones(pub(in crate::integrate) u64);
+pub(crate) struct Ones(pub(crate) u64);
 
 impl Iterator for Ones {
     type Item = usize;
@@ -274,11 +274,11 @@ impl Iterator for Ones {
 /// Which rays of a chunk, by their place in the scan, a layout by [`Sides`] put in front
 /// and which behind (bit `j` of word `j / 64`); the rays of skipped points in neither.
 #[derive(Clone, Copy, Debug, Default)]
-pub(in crate::integrate) struct ChunkOrder {
-    pub(in crate::integrate) front: [u64; RAY_CHUNK / 64],
-    pub(in crate::integrate) back: [u64; RAY_CHUNK / 64],
+pub(crate) struct ChunkOrder {
+    pub(crate) front: [u64; RAY_CHUNK / 64],
+    pub(crate) back: [u64; RAY_CHUNK / 64],
     /// The rays cut at max range (noted for the trade-off modes only).
-    pub(in crate::integrate) cut: [u64; RAY_CHUNK / 64],
+    pub(crate) cut: [u64; RAY_CHUNK / 64],
 }
 
 impl ChunkOrder {
@@ -292,7 +292,7 @@ impl ChunkOrder {
 
     /// Where the layout put each ray of the chunk's scan (as long as the chunk): the
     /// place within the chunk of each but the skipped points' rays.
-    pub(in crate::integrate) fn places(&self, out: &mut [u16]) {
+    pub(crate) fn places(&self, out: &mut [u16]) {
         let len = out.len();
         let mut k = 0;
         for (w, &m) in self.front.iter().enumerate() {
@@ -324,23 +324,23 @@ impl ChunkOrder {
 /// longer at 2 threads than at 1 (random 500k 6 m). Laying out costs no pass over memory
 /// of its own: the rays of a chunk are laid out as they are made.
 #[derive(Clone, Copy, Debug)]
-pub(in crate::integrate) struct Sides {
-    pub(in crate::integrate) origin: [f64; 3],
+pub(crate) struct Sides {
+    pub(crate) origin: [f64; 3],
     /// The plane's normal in the world frame, a sensor axis; none for a one-thread pool,
     /// where all rays count as in front. One thread has no second grid to share first marks
     /// with, and in halves its lanes walk rays nearer in direction: laid out, its frames
     /// took 3-9% longer (500k 6 m workloads, three alternated rounds).
-    pub(in crate::integrate) axis: Option<[f64; 3]>,
+    pub(crate) axis: Option<[f64; 3]>,
 }
 
 impl Sides {
     /// Points sampled to choose the axis.
-    pub(in crate::integrate) const SAMPLES: usize = 1024;
+    pub(crate) const SAMPLES: usize = 1024;
 
     /// The sides for `frame` on a pool of `threads`: across the sensor axis whose plane
     /// halves the rays' lengths best, in a sample of the points (a sensor looking along one
     /// of its axes, as a camera along z or a forward lidar along x, has no ray behind it).
-    pub(in crate::integrate) fn new(frame: &Frame<'_>, origin: [f64; 3], threads: usize) -> Self {
+    pub(crate) fn new(frame: &Frame<'_>, origin: [f64; 3], threads: usize) -> Self {
         if threads < 2 {
             return Sides { origin, axis: None };
         }
@@ -368,7 +368,7 @@ impl Sides {
     /// and behind, where the layout put each, and their extent. With `note`, each ray's
     /// cell key goes into its slice (as long as `pts`) and the cut rays into the order's
     /// `cut`. `made` is scratch.
-    pub(in crate::integrate) fn make(
+    pub(crate) fn make(
         &self,
         maker: &RayMaker,
         pts: &[[f32; 3]],
@@ -380,7 +380,7 @@ impl Sides {
         let notes = |rays: &[Ray], note: Option<(&CellKeys, &mut [u64])>| {
             let mut cut = [0u64; RAY_CHUNK / 64];
             if let Some((cells, keys)) = note {
-                cells.keys(maker.kernel, rays, keys);
+                cells.keys(maker.kernels, rays, keys);
                 for (j, r) in rays.iter().enumerate() {
                     cut[j / 64] |= u64::from(r.key != SKIPPED && !r.hit) << (j % 64);
                 }
@@ -388,11 +388,8 @@ impl Sides {
             cut
         };
         if self.axis.is_some() {
-            #[cfg(target_arch = "x86_64")]
-            if note.is_none() && maker.kernel == Kernel::Avx2 {
-                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-                // (`Kernel::supported`), which is all `make_laid_out` needs.
-                if let Some(laid) = unsafe { avx2::make_laid_out(maker, self, pts, out) } {
+            if note.is_none() {
+                if let Some(laid) = (maker.kernels.make_laid_out)(maker, self, pts, out) {
                     return laid;
                 }
             }
@@ -400,13 +397,13 @@ impl Sides {
             maker.make_all(made, pts);
             let cut = notes(made, note);
             let (counts, order) = self.lay_out(made, out);
-            let sum = ExtentSum::of(self.origin, made, maker.kernel);
+            let sum = (maker.kernels.extent_of)(self.origin, made);
             return (counts, ChunkOrder { cut, ..order }, sum);
         }
         // All in front: in place, unless points were skipped.
         maker.make_all(out, pts);
         let cut = notes(out, note);
-        let sum = ExtentSum::of(self.origin, out, maker.kernel);
+        let sum = (maker.kernels.extent_of)(self.origin, out);
         if sum.skipped == 0 {
             let order = ChunkOrder::all_front(out.len());
             return ([out.len() as u32, 0], ChunkOrder { cut, ..order }, sum);
@@ -417,11 +414,7 @@ impl Sides {
 
     /// Lay the rays `made` out into `out`, as long; returns how many lie in front and
     /// behind, and where each went. The rays of skipped points leave gaps.
-    pub(in crate::integrate) fn lay_out(
-        &self,
-        made: &[Ray],
-        out: &mut [Ray],
-    ) -> ([u32; 2], ChunkOrder) {
+    pub(crate) fn lay_out(&self, made: &[Ray], out: &mut [Ray]) -> ([u32; 2], ChunkOrder) {
         let (mut front, mut back) = (0, out.len());
         let mut order = ChunkOrder::default();
         for (w, block) in made.chunks(64).enumerate() {
@@ -447,14 +440,14 @@ impl Sides {
 
     /// Whether a ray to `end` lies behind the plane (never, across no axis).
     #[inline]
-    pub(in crate::integrate) fn behind(&self, end: [f64; 3]) -> bool {
+    pub(crate) fn behind(&self, end: [f64; 3]) -> bool {
         let (o, x) = (self.origin, self.axis.unwrap_or([0.0; 3]));
         let d = [0, 1, 2].map(|a| end[a] - o[a]);
         d[0] * x[0] + d[1] * x[1] + d[2] * x[2] < 0.0
     }
 
     /// [`Sides::lay_out`] of `chunk` into itself, through `scratch`.
-    pub(in crate::integrate) fn lay_out_in_place(
+    pub(crate) fn lay_out_in_place(
         &self,
         chunk: &mut [Ray],
         scratch: &mut Vec<Ray>,
@@ -466,34 +459,34 @@ impl Sides {
 }
 
 /// Rays in chunks laid out with counts `sides` (not their length: gaps are not rays).
-pub(in crate::integrate) fn ray_count(sides: &[[u32; 2]]) -> u64 {
+pub(crate) fn ray_count(sides: &[[u32; 2]]) -> u64 {
     sides.iter().map(|&[f, b]| u64::from(f + b)).sum()
 }
 
 /// Makes a frame's rays from its points: sensor frame to world by the pose, to voxel units
 /// (snapped onto faces, see `GridTransform::to_units`), cut at max range.
 #[derive(Clone, Copy, Debug)]
-pub(in crate::integrate) struct RayMaker {
+pub(crate) struct RayMaker {
     /// Rotation rows and translation of the pose.
-    pub(in crate::integrate) rot: [[f64; 3]; 3],
-    pub(in crate::integrate) t: [f64; 3],
-    pub(in crate::integrate) tf: crate::coord::GridTransform,
-    pub(in crate::integrate) origin: [f64; 3],
-    pub(in crate::integrate) range_units: f64,
+    pub(crate) rot: [[f64; 3]; 3],
+    pub(crate) t: [f64; 3],
+    pub(crate) tf: crate::coord::GridTransform,
+    pub(crate) origin: [f64; 3],
+    pub(crate) range_units: f64,
     /// Below this squared length a ray surely ends within range; above it, the same
     /// comparison as the reference, `sqrt(len2) <= range_units`, decides.
-    pub(in crate::integrate) surely_in: f64,
-    /// Which kernel `make_all` runs.
-    pub(in crate::integrate) kernel: Kernel,
+    pub(crate) surely_in: f64,
+    /// The kernel whose entries make and note the rays.
+    pub(crate) kernels: &'static Kernels,
 }
 
 impl RayMaker {
-    pub(in crate::integrate) fn new(
+    pub(crate) fn new(
         frame: &Frame<'_>,
         tf: &crate::coord::GridTransform,
         origin: [f64; 3],
         range_units: f64,
-        kernel: Kernel,
+        kernels: &'static Kernels,
     ) -> Self {
         let r = frame.pose.rotation.to_rotation_matrix().into_inner();
         RayMaker {
@@ -503,7 +496,7 @@ impl RayMaker {
             origin,
             range_units,
             surely_in: range_units * range_units * (1.0 - 1e-9),
-            kernel,
+            kernels,
         }
     }
 
@@ -511,7 +504,7 @@ impl RayMaker {
     /// spelled out (no library product) so that `avx512::make_rays` can repeat it
     /// operation for operation.
     #[inline]
-    pub(in crate::integrate) fn make(&self, p: &[f32; 3]) -> Ray {
+    pub(crate) fn make(&self, p: &[f32; 3]) -> Ray {
         if !p.iter().all(|c| c.is_finite()) {
             return Ray::new([0.0; 3], SKIPPED, false);
         }
@@ -532,17 +525,8 @@ impl RayMaker {
     }
 
     /// `out[i] = self.make(&pts[i])`, eight at a time with the AVX-512 kernel, four with AVX2.
-    pub(in crate::integrate) fn make_all(&self, out: &mut [Ray], pts: &[[f32; 3]]) {
-        let done = match self.kernel {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
-            // (`Kernel::supported`); `make_rays` needs F and DQ.
-            Kernel::Avx512 => unsafe { avx512::make_rays(self, out, pts) },
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
-            Kernel::Avx2 => unsafe { avx2::make_rays(self, out, pts) },
-            _ => 0,
-        };
+    pub(crate) fn make_all(&self, out: &mut [Ray], pts: &[[f32; 3]]) {
+        let done = (self.kernels.make_rays)(self, out, pts);
         for (r, p) in out.iter_mut().zip(pts).skip(done) {
             *r = self.make(p);
         }
@@ -551,7 +535,7 @@ impl RayMaker {
 
 /// [`Extent`] of `rays`, in one pass (the layout of thinned rays sums it on the way).
 #[cfg(test)]
-pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
+pub(crate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
     rays.par_chunks(RAY_CHUNK)
         .map(|c| ExtentSum::of_scalar(origin, c))
         .reduce(|| ExtentSum::new(origin), ExtentSum::join)
@@ -562,19 +546,19 @@ pub(in crate::integrate) fn bounds(rays: &[Ray], origin: [f64; 3]) -> Extent {
 /// apart. Bounds are taken on the ends in voxel units and floored once: floor is monotone,
 /// so that is the bounds of the ends' voxels.
 #[derive(Clone, Copy)]
-pub(in crate::integrate) struct ExtentSum {
-    pub(in crate::integrate) origin: [f64; 3],
-    pub(in crate::integrate) lo: [f64; 3],
-    pub(in crate::integrate) hi: [f64; 3],
-    pub(in crate::integrate) cut: u64,
+pub(crate) struct ExtentSum {
+    pub(crate) origin: [f64; 3],
+    pub(crate) lo: [f64; 3],
+    pub(crate) hi: [f64; 3],
+    pub(crate) cut: u64,
     /// The rays' lengths along each axis (a sum per axis: one sum was a chain of adds
     /// that took most of the pass).
-    pub(in crate::integrate) length: [f64; 3],
-    pub(in crate::integrate) skipped: u64,
+    pub(crate) length: [f64; 3],
+    pub(crate) skipped: u64,
 }
 
 impl ExtentSum {
-    pub(in crate::integrate) fn new(origin: [f64; 3]) -> Self {
+    pub(crate) fn new(origin: [f64; 3]) -> Self {
         ExtentSum {
             origin,
             lo: origin,
@@ -585,19 +569,8 @@ impl ExtentSum {
         }
     }
 
-    /// The sum over `rays`, with `kernel`'s vectors where it has them.
-    pub(in crate::integrate) fn of(origin: [f64; 3], rays: &[Ray], kernel: Kernel) -> Self {
-        match kernel {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: a `Kernel::Avx2` or `Kernel::Avx512` exists only where the CPU has
-            // AVX2 (`Kernel::supported`), which is all `extent_of` needs.
-            Kernel::Avx2 | Kernel::Avx512 => unsafe { avx2::extent_of(origin, rays) },
-            _ => Self::of_scalar(origin, rays),
-        }
-    }
-
-    /// [`Self::of`] without vectors.
-    pub(in crate::integrate) fn of_scalar(origin: [f64; 3], rays: &[Ray]) -> Self {
+    /// The sum over `rays`, portably (each kernel's `extent_of` in [`Kernels`]).
+    pub(crate) fn of_scalar(origin: [f64; 3], rays: &[Ray]) -> Self {
         // Two sums over alternate rays, so that two chains of dependent operations overlap.
         let mut s = [ExtentSum::new(origin); 2];
         let mut pairs = rays.chunks_exact(2);
@@ -610,7 +583,7 @@ impl ExtentSum {
     }
 
     #[inline]
-    pub(in crate::integrate) fn add(&mut self, r: &Ray) {
+    pub(crate) fn add(&mut self, r: &Ray) {
         if r.key == SKIPPED {
             self.skipped += 1;
             return;
@@ -623,7 +596,7 @@ impl ExtentSum {
         self.cut += u64::from(!r.hit);
     }
 
-    pub(in crate::integrate) fn join(a: Self, b: Self) -> Self {
+    pub(crate) fn join(a: Self, b: Self) -> Self {
         ExtentSum {
             origin: a.origin,
             lo: [0, 1, 2].map(|i| a.lo[i].min(b.lo[i])),
@@ -634,7 +607,7 @@ impl ExtentSum {
         }
     }
 
-    pub(in crate::integrate) fn extent(&self) -> Extent {
+    pub(crate) fn extent(&self) -> Extent {
         let voxel =
             |u| units_to_voxel(u).expect("ray ends lie within max range of a checked origin");
         Extent {
@@ -647,11 +620,11 @@ impl ExtentSum {
 }
 
 /// What [`ExtentSum`] finds out about a frame's rays.
-pub(in crate::integrate) struct Extent {
+pub(crate) struct Extent {
     /// Voxel bounds (inclusive) of the origin and all ray ends.
-    pub(in crate::integrate) lo: VoxelCoord,
-    pub(in crate::integrate) hi: VoxelCoord,
-    pub(in crate::integrate) cut_rays: u64,
+    pub(crate) lo: VoxelCoord,
+    pub(crate) hi: VoxelCoord,
+    pub(crate) cut_rays: u64,
     /// About the voxel steps of the walk: the rays' lengths in voxels along each axis.
-    pub(in crate::integrate) steps: f64,
+    pub(crate) steps: f64,
 }

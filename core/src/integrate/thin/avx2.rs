@@ -18,7 +18,7 @@ fn load4(rays: &[Ray]) -> [__m256d; 4] {
 /// `out[i] = c.key(&rays[i])` for four rays at a time; returns how many it keyed, a
 /// multiple of four. The rest is left to the caller.
 #[target_feature(enable = "avx2")]
-pub(super) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
+pub(crate) fn keys(c: &CellKeys, rays: &[Ray], out: &mut [u64]) -> usize {
     let n = rays.len().min(out.len()) / 4 * 4;
     let f = _mm256_set1_pd(c.f);
     let base = c.base.map(|b| _mm256_set1_pd(b));
@@ -107,7 +107,7 @@ impl Noter {
 /// `out[i] = b.note_of(c, halves, &rays[i])` for four rays at a time; returns how many it
 /// did, a multiple of four.
 #[target_feature(enable = "avx2")]
-pub(super) fn notes(
+pub(crate) fn notes(
     b: &CellBox,
     c: &CellKeys,
     halves: &Sides,
@@ -124,13 +124,13 @@ pub(super) fn notes(
     n
 }
 
-/// `RayMaker::make_all`, `ExtentSum::of` and [`notes`] in one pass, bit for bit: four
+/// `RayMaker::make_all`, `ExtentSum::of_scalar` and [`notes`] in one pass, bit for bit: four
 /// rays made at a time, stored to `made`, summed and noted from the vectors they were
 /// made in; and the word of `set` holding each note's bit asked for, which the marking
 /// of the chunk reads next. `None`, with nothing written, unless `pts` is a whole number
 /// of fours as long as `made` and `notes`.
 #[target_feature(enable = "avx2")]
-pub(super) fn make_noted(
+pub(crate) fn make_noted(
     how: Chooser<'_>,
     pts: &[[f32; 3]],
     made: &mut [Ray],

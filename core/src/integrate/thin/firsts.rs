@@ -12,8 +12,6 @@
 
 use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
 use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
-#[cfg(target_arch = "x86_64")]
-use crate::kernel::Kernel;
 use crate::prefetch::own_lines;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
@@ -21,7 +19,7 @@ use std::time::{Duration, Instant};
 /// What [`make_firsts`] keeps from frame to frame: in fresh memory a frame's sets and
 /// notes would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
-pub(in crate::integrate) struct Firsts {
+pub(crate) struct Firsts {
     /// Per run, its bit set over the box.
     runs: Vec<RunSet>,
     /// Each laid-out ray's cell bit, in the ray's place.
@@ -55,13 +53,13 @@ impl RunSet {
 
 /// What a run needs to make and choose its rays.
 #[derive(Clone, Copy)]
-pub(in crate::integrate) struct Chooser<'a> {
-    pub(in crate::integrate) maker: &'a RayMaker,
-    pub(in crate::integrate) halves: &'a Sides,
-    pub(in crate::integrate) cells: &'a CellKeys,
-    pub(in crate::integrate) cells_box: &'a CellBox,
+pub(crate) struct Chooser<'a> {
+    pub(crate) maker: &'a RayMaker,
+    pub(crate) halves: &'a Sides,
+    pub(crate) cells: &'a CellKeys,
+    pub(crate) cells_box: &'a CellBox,
     /// Unique-end: each ray kept goes to the centre of its end voxel.
-    pub(in crate::integrate) centre: bool,
+    pub(crate) centre: bool,
 }
 
 /// Make the rays to `points` into `rays` (as long), laid out by sides in chunks with the
@@ -69,7 +67,7 @@ pub(in crate::integrate) struct Chooser<'a> {
 /// order. Returns the sum over all rays made, how many rays kept are cut at max range,
 /// and the time spent choosing (keying, marking and laying out, then dropping what an
 /// earlier run saw).
-pub(in crate::integrate) fn make_firsts(
+pub(crate) fn make_firsts(
     rays: &mut [Ray],
     sides: &mut [[u32; 2]],
     points: &[[f32; 3]],
@@ -151,14 +149,7 @@ fn make_run(
         own_lines(&mut marked[*count..*count + pts.len()]);
         // On AVX2 made, summed and noted in one pass (bit for bit the three below), which
         // also asks for the words of `set` that `mark` will read.
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2
-        // (`Kernel::supported`), which is all `make_noted` needs.
-        let fused = (maker.kernel == Kernel::Avx2)
-            .then(|| unsafe { super::avx2::make_noted(how, pts, made, notes, set) })
-            .flatten();
-        #[cfg(not(target_arch = "x86_64"))]
-        let fused = None;
+        let fused = (maker.kernels.make_noted)(how, pts, made, notes, set);
         let (chunk_sum, t) = match fused {
             // Noted as made: the choosing's time starts with the marking.
             Some(s) => (s, Instant::now()),
@@ -168,10 +159,10 @@ fn make_run(
                 maker.make_all(made, pts);
                 let t = Instant::now();
                 how.cells_box
-                    .notes_of(how.cells, how.halves, maker.kernel, made, notes);
+                    .notes_of(how.cells, how.halves, maker.kernels, made, notes);
                 ask_for_words(prefetched(set), notes);
                 // (The choosing's time takes in the sum: a pass over the chunk in cache.)
-                let s = ExtentSum::of(origin, made, maker.kernel);
+                let s = (maker.kernels.extent_of)(origin, made);
                 (s, t)
             }
         };

@@ -1,15 +1,20 @@
 //! The update on AVX2: a leaf word's 64 voxels observed 32 at a time.
 
-use super::{apply_with, Observe};
+use super::{observe_leaf as observe_leaf_with, Observe};
 use crate::grid::Leaf;
 use crate::integrate::marks::Slot;
 use crate::model::QuantizedModel;
 use std::arch::x86_64::*;
 
-/// [`super::apply`] with [`Avx2`] observations.
+/// [`super::observe_leaf`] with [`Avx2`] observations.
 #[target_feature(enable = "avx2")]
-pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u64 {
-    apply_with::<Avx2>(leaf, slot, q, fresh)
+pub(crate) fn observe_leaf(
+    leaf: &mut Leaf<i8>,
+    slot: &Slot,
+    q: &QuantizedModel,
+    fresh: bool,
+) -> u64 {
+    observe_leaf_with::<Avx2>(leaf, slot, q, fresh)
 }
 
 /// [`Observe`] with byte vectors: AVX2 has no byte-masked store, so each half of the word
@@ -17,7 +22,7 @@ pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh:
 /// they are) and stored whole, both halves whatever their bits: which half of a plane a
 /// ray crosses is a coin toss to the branch predictor. The same values and marks as one
 /// at a time: an i8 add saturates only beyond the clamps, which are within i8.
-pub(in crate::integrate) struct Avx2;
+pub(crate) struct Avx2;
 
 impl Observe for Avx2 {
     #[inline(always)]
@@ -27,9 +32,9 @@ impl Observe for Avx2 {
         hit: u64,
         q: &QuantizedModel,
     ) -> u64 {
-        // SAFETY: `Avx2` observations are only made inside `apply` above (which enables
-        // AVX2, and is only called with a checked `Kernel::Avx2`) and by the tests, after
-        // checking `Kernel::Avx2.supported()`.
+        // SAFETY: these observations are only made inside `observe_leaf` above (which
+        // enables AVX2, and is only called from the AVX2 table, given only where the CPU has
+        // them: `Kernel::table`) and by the tests, after checking `Kernel::supported`.
         unsafe { observe::<FRESH>(values, any, hit, q) }
     }
 }
@@ -52,7 +57,7 @@ fn bytes_of(bits: u32) -> __m256i {
 /// # Safety
 /// The CPU must have AVX2.
 #[target_feature(enable = "avx2")]
-pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
+pub(crate) unsafe fn observe<const FRESH: bool>(
     values: &mut [i8; 64],
     any: u64,
     hit: u64,

@@ -1,22 +1,27 @@
 //! The update on AVX-512BW: a leaf word's 64 voxels observed at once.
 
-use super::{apply_with, Observe};
+use super::{observe_leaf as observe_leaf_with, Observe};
 use crate::grid::Leaf;
 use crate::integrate::marks::Slot;
 use crate::model::QuantizedModel;
 use std::arch::x86_64::*;
 
-/// [`super::apply`] with [`Avx512`] observations.
+/// [`super::observe_leaf`] with [`Avx512`] observations.
 #[target_feature(enable = "avx512f,avx512dq,avx512bw")]
-pub(super) fn apply(leaf: &mut Leaf<i8>, slot: &Slot, q: &QuantizedModel, fresh: bool) -> u64 {
-    apply_with::<Avx512>(leaf, slot, q, fresh)
+pub(crate) fn observe_leaf(
+    leaf: &mut Leaf<i8>,
+    slot: &Slot,
+    q: &QuantizedModel,
+    fresh: bool,
+) -> u64 {
+    observe_leaf_with::<Avx512>(leaf, slot, q, fresh)
 }
 
 /// [`Observe`] in one masked saturating add, clamp, store and compare: the 64 values of a
 /// leaf word take their observation at once instead of one set bit at a time. The same
 /// values and marks: an i8 add saturates only beyond the clamps, which are within i8.
 /// Random 500k 60 m, 2 threads, update phase: see `docs/design.md` ("One byte per voxel").
-pub(in crate::integrate) struct Avx512;
+pub(crate) struct Avx512;
 
 impl Observe for Avx512 {
     #[inline(always)]
@@ -26,9 +31,10 @@ impl Observe for Avx512 {
         hit: u64,
         q: &QuantizedModel,
     ) -> u64 {
-        // SAFETY: `Avx512` observations are only made inside `apply` above (which enables
-        // AVX-512F and BW, and is only called with a checked `Kernel::Avx512`) and by the
-        // tests, after checking `Kernel::Avx512.supported()`.
+        // SAFETY: these observations are only made inside `observe_leaf` above (which
+        // enables AVX-512F and BW, and is only called from the AVX-512 table, given only
+        // where the CPU has them: `Kernel::table`) and by the tests, after checking
+        // `Kernel::supported`.
         unsafe { observe::<FRESH>(values, any, hit, q) }
     }
 }
@@ -36,7 +42,7 @@ impl Observe for Avx512 {
 /// # Safety
 /// The CPU must have AVX-512F and BW.
 #[target_feature(enable = "avx512f,avx512bw")]
-pub(in crate::integrate) unsafe fn observe<const FRESH: bool>(
+pub(crate) unsafe fn observe<const FRESH: bool>(
     values: &mut [i8; 64],
     any: u64,
     hit: u64,

@@ -1,48 +1,21 @@
 //! Phase 4, update: one log-odds observation per touched voxel from its final marks, hit
-//! beating free, leaf by leaf in parallel ([`apply`]); 64 voxels at once with AVX-512BW, 32
+//! beating free, leaf by leaf in parallel ([`observe_leaf`]); 64 voxels at once with AVX-512BW, 32
 //! with AVX2.
 
 use super::marks::Slot;
 use crate::grid::Leaf;
-use crate::kernel::Kernel;
 use crate::mask::BitIter;
 use crate::model::QuantizedModel;
 
 #[cfg(target_arch = "x86_64")]
-pub(super) mod avx2;
+pub(crate) mod avx2;
 #[cfg(target_arch = "x86_64")]
-pub(super) mod avx512;
-
-/// Apply one brick's marks to its leaf, leaving the slot zero ([`Slot::take`]); returns
-/// the voxels updated. `fresh`: the leaf was created by this frame's merge, so it is all
-/// zero and may sit on a page never touched.
-/// Such a leaf is only written, never read: a page first touched by a read is mapped to
-/// the shared zero page, and the first write then copies it with a TLB flush that
-/// interrupts every other core running the process (a fifth of a 60 m frame's time with
-/// 2 threads). Written first, it gets a private page at once.
-pub(super) fn apply(
-    kernel: Kernel,
-    leaf: &mut Leaf<i8>,
-    slot: &Slot,
-    q: &QuantizedModel,
-    fresh: bool,
-) -> u64 {
-    match kernel {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ and BW
-        // (`Kernel::supported`), the features `avx512::apply` enables.
-        Kernel::Avx512 => unsafe { avx512::apply(leaf, slot, q, fresh) },
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2 (`Kernel::supported`).
-        Kernel::Avx2 => unsafe { avx2::apply(leaf, slot, q, fresh) },
-        _ => apply_with::<Scalar>(leaf, slot, q, fresh),
-    }
-}
+pub(crate) mod avx512;
 
 /// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
 /// where set in `hit` too; returns those of them now at or above the occupancy threshold.
-/// `FRESH`: the values are all zero, and are not read (see [`apply`]).
-pub(super) trait Observe {
+/// `FRESH`: the values are all zero, and are not read (see [`observe_leaf`]).
+pub(crate) trait Observe {
     fn observe<const FRESH: bool>(
         values: &mut [i8; 64],
         any: u64,
@@ -52,7 +25,7 @@ pub(super) trait Observe {
 }
 
 /// [`Observe`] one set bit at a time.
-pub(super) struct Scalar;
+pub(crate) struct Scalar;
 
 impl Observe for Scalar {
     #[inline(always)]
@@ -66,10 +39,18 @@ impl Observe for Scalar {
     }
 }
 
-/// [`apply`] with observations by `O`; inlined into each kernel's entry point, so that the
-/// kernel's observation inlines into the loop.
+/// Observe one brick's marks into its leaf, leaving the slot zero ([`Slot::take`]), with
+/// observations by `O`; returns the voxels updated. Each kernel's entry in the
+/// [`crate::kernel::Kernels`] table is this function compiled for its features, so that
+/// the kernel's observation inlines into the loop.
+///
+/// `fresh`: the leaf was created by this frame's merge, so it is all zero and may sit on a
+/// page never touched. Such a leaf is only written, never read: a page first touched by a
+/// read is mapped to the shared zero page, and the first write then copies it with a TLB
+/// flush that interrupts every other core running the process (a fifth of a 60 m frame's
+/// time with 2 threads). Written first, it gets a private page at once.
 #[inline(always)]
-pub(super) fn apply_with<O: Observe>(
+pub(crate) fn observe_leaf<O: Observe>(
     leaf: &mut Leaf<i8>,
     slot: &Slot,
     q: &QuantizedModel,
@@ -102,7 +83,7 @@ pub(super) fn apply_with<O: Observe>(
 
 /// One observation for each of the 64 voxels of `values` whose bit is set in `any`, a hit
 /// where set in `hit` too; returns those of them now at or above the occupancy threshold.
-/// `FRESH`: the values are all zero, and are not read (see [`apply`]). `avx512::observe`
+/// `FRESH`: the values are all zero, and are not read (see [`observe_leaf`]). `avx512::observe`
 /// does the same in one masked add.
 #[inline]
 pub(super) fn observe_scalar<const FRESH: bool>(

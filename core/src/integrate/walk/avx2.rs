@@ -457,7 +457,8 @@ struct Start<'a> {
 /// groups ([`walk_groups`]) rather than refilling each lane as its ray ends ([`walk`]):
 /// a group walks as long as its longest ray, so the steps its shorter rays idle grow
 /// with the rays' length, while the refills cost the same per ray. Short rays, as a
-/// small frame's are outside its covered box, walk grouped (docs/performance.md).
+/// small frame's are outside its covered box, walk grouped (docs/design.md, "The AVX2
+/// kernel").
 pub(super) fn walks_grouped(walked: f64) -> bool {
     walked <= 48.0
 }
@@ -470,7 +471,7 @@ pub(super) fn walks_grouped(walked: f64) -> bool {
 /// branches cost more than the writes (random 500k 6 m 28.3 -> 23.5-24.5 ms, structured
 /// 21.9 -> 20.1, on AMD Zen 5).
 #[target_feature(enable = "avx2,bmi1,bmi2")]
-pub(super) fn walk_dense(
+pub(crate) fn walk_dense(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
@@ -518,7 +519,7 @@ pub(super) fn walk_dense(
 /// next ones in turn, so they walk side by side and find the bricks they flush in `cache`
 /// and in the CPU's caches. See [`SparseMarks`] for how marks are kept.
 #[target_feature(enable = "avx2,bmi1,bmi2")]
-pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
+pub(crate) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let v = crate::coord::units_to_voxel(origin).expect("origin checked");
     let packed = Packed::around(v);
     // No box: a ray's fields stay inside `Packed`'s (`Packed::around`), so every end is
@@ -845,7 +846,7 @@ fn walk<M: Marks>(marks: &mut M, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, 
 /// and, of those, the ones skipped in `from.covered`. Refilling a lane as soon as its ray
 /// ends (as [`walk`] does) leaves the loop every few steps on rays as short as a frame's
 /// outside its covered box, and that bookkeeping cost more than the steps the shorter
-/// rays of a group walk idle (see docs/performance.md). Hits are marked from the end
+/// rays of a group walk idle (see docs/design.md, "The AVX2 kernel"). Hits are marked from the end
 /// voxels the set-up computed.
 #[target_feature(enable = "avx2,bmi1,bmi2")]
 fn walk_groups(marks: &mut DenseMarks<'_>, from: &Start<'_>, mut feed: Feed<'_>) -> (u64, u64) {

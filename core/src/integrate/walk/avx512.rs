@@ -55,7 +55,7 @@ pub(super) fn test_first(steps_per_voxel: f64) -> bool {
 /// neighbouring rays, the walk ran 2.3x slower (random 500k 6 m, one thread).
 #[target_feature(enable = "avx512f,avx512dq")]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn walk_dense(
+pub(crate) fn walk_dense(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
@@ -91,7 +91,7 @@ pub(super) fn walk_dense(
 /// `cache` and in the CPU's caches. Each lane gathers its current brick's marks in its own
 /// words, so lanes never write the same word.
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(super) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
+pub(crate) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let v = crate::coord::units_to_voxel(origin).expect("origin checked");
     let packed = Packed::around(v);
     let mut lanes = SparseLanes {

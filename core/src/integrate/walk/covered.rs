@@ -21,13 +21,13 @@ const SAMPLE: usize = 256;
 
 /// A box of voxels around the sensor's, all marked in the union of the dense grids.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(in crate::integrate) struct Covered {
-    pub(in crate::integrate) lo: VoxelCoord,
-    pub(in crate::integrate) hi: VoxelCoord,
+pub(crate) struct Covered {
+    pub(crate) lo: VoxelCoord,
+    pub(crate) hi: VoxelCoord,
     /// Per axis, the crossings from the sensor's voxel out of the box: down, up.
-    pub(in crate::integrate) leave: [[u64; 2]; 3],
+    pub(crate) leave: [[u64; 2]; 3],
     /// The steps a ray saves in the box, on average over [`Covered::find`]'s sample.
-    pub(in crate::integrate) saves: u64,
+    pub(crate) saves: u64,
 }
 
 impl Covered {
@@ -37,7 +37,7 @@ impl Covered {
     /// to pay for finding where each ray leaves it. Only the voxels a ray can reach need
     /// marks: those nearer than `range` (voxel units, the rays' longest) to the sensor at
     /// `origin`, so the box of a flat scan can grow to its range's corners.
-    pub(in crate::integrate) fn find(
+    pub(crate) fn find(
         grids: &[&DenseBits],
         dbox: &DenseBox,
         origin: [f64; 3],
@@ -155,7 +155,7 @@ impl Covered {
     }
 
     /// The box `lo..=hi` for rays from the voxel `start`, which it holds.
-    pub(in crate::integrate) fn new(start: VoxelCoord, lo: VoxelCoord, hi: VoxelCoord) -> Self {
+    pub(crate) fn new(start: VoxelCoord, lo: VoxelCoord, hi: VoxelCoord) -> Self {
         let (s, l, h) = (start.to_array(), lo.to_array(), hi.to_array());
         debug_assert!((0..3).all(|a| l[a] <= s[a] && s[a] <= h[a]));
         Covered {
@@ -172,7 +172,7 @@ impl Covered {
     /// `d`, the last `last`, its direction `dir`. The crossings made are those before the
     /// one that leaves: every walk passes through that state, whatever its ties.
     #[inline]
-    pub(in crate::integrate) fn skip(
+    pub(crate) fn skip(
         &self,
         t0: [u64; 3],
         d: [u64; 3],

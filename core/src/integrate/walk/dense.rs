@@ -26,15 +26,15 @@ pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 22;
 /// every edge a multiple of 8 from a brick-aligned corner, so a brick's row of 8 voxels is
 /// one byte of one word.
 #[derive(Clone, Copy, Debug)]
-pub(in crate::integrate) struct DenseBox {
-    pub(in crate::integrate) lo: VoxelCoord,
+pub(crate) struct DenseBox {
+    pub(crate) lo: VoxelCoord,
     /// Voxels per axis: x a multiple of 64, y and z of 8.
-    pub(in crate::integrate) n: [u64; 3],
+    pub(crate) n: [u64; 3],
 }
 
 impl DenseBox {
     /// The box over voxels `lo..=hi`, if its grid fits the budget.
-    pub(in crate::integrate) fn new(lo: VoxelCoord, hi: VoxelCoord) -> Option<Self> {
+    pub(crate) fn new(lo: VoxelCoord, hi: VoxelCoord) -> Option<Self> {
         let lo = lo.shr(3).shl(3);
         let len = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1) as u64;
         let n = [
@@ -46,55 +46,55 @@ impl DenseBox {
         (words <= DENSE_BUDGET_WORDS).then_some(Self { lo, n })
     }
 
-    pub(in crate::integrate) fn words(&self) -> usize {
+    pub(crate) fn words(&self) -> usize {
         (self.n[0] / 64 * self.n[1] * self.n[2]) as usize
     }
 
     /// A bit index outside the box whose marks are ignored, for walkers that must mark
     /// something in every lane.
     #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
-    pub(in crate::integrate) fn sink(&self) -> u64 {
+    pub(crate) fn sink(&self) -> u64 {
         self.words() as u64 * 64
     }
 
     /// Bit index of a voxel inside the box.
     #[inline]
-    pub(in crate::integrate) fn index(&self, v: VoxelCoord) -> u64 {
+    pub(crate) fn index(&self, v: VoxelCoord) -> u64 {
         let d = v - self.lo;
         debug_assert!(d.x >= 0 && d.y >= 0 && d.z >= 0);
         d.x as u64 + self.n[0] * (d.y as u64 + self.n[1] * d.z as u64)
     }
 
     /// The voxel at a bit index inside the box.
-    pub(in crate::integrate) fn voxel(&self, index: u64) -> VoxelCoord {
+    pub(crate) fn voxel(&self, index: u64) -> VoxelCoord {
         let (x, yz) = (index % self.n[0], index / self.n[0]);
         self.lo + VoxelCoord::new(x as i32, (yz % self.n[1]) as i32, (yz / self.n[1]) as i32)
     }
 
     /// Bit index change of one voxel step along x, y and z.
     #[inline]
-    pub(in crate::integrate) fn strides(&self) -> [i64; 3] {
+    pub(crate) fn strides(&self) -> [i64; 3] {
         [1, self.n[0] as i64, (self.n[0] * self.n[1]) as i64]
     }
 
     /// Rows of bricks (one per brick y and z), the merge's unit of parallel work.
-    pub(in crate::integrate) fn brick_rows(&self) -> usize {
+    pub(crate) fn brick_rows(&self) -> usize {
         (self.n[1] / 8 * self.n[2] / 8) as usize
     }
 }
 
 /// One thread's marks over a [`DenseBox`], for one frame.
 #[derive(Default)]
-pub(in crate::integrate) struct DenseBits {
-    pub(in crate::integrate) free: Vec<u64>,
-    pub(in crate::integrate) hit: Vec<u64>,
+pub(crate) struct DenseBits {
+    pub(crate) free: Vec<u64>,
+    pub(crate) hit: Vec<u64>,
     /// The frame these marks belong to; marks of an older frame are stale.
-    pub(in crate::integrate) frame: u64,
+    pub(crate) frame: u64,
 }
 
 impl DenseBits {
     /// Start `frame`'s marks over `words` words, unless already started.
-    pub(in crate::integrate) fn begin(&mut self, frame: u64, words: usize) {
+    pub(crate) fn begin(&mut self, frame: u64, words: usize) {
         if self.frame != frame {
             self.frame = frame;
             // Four words more than the box: sinks, one per lane of the AVX2 walk.
@@ -105,19 +105,19 @@ impl DenseBits {
         }
     }
 
-    pub(in crate::integrate) fn frame(&self) -> u64 {
+    pub(crate) fn frame(&self) -> u64 {
         self.frame
     }
 
     /// The free and the hit words, which the walks mark with [`set_bit`].
-    pub(in crate::integrate) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
+    pub(crate) fn words_mut(&mut self) -> (&mut [u64], &mut [u64]) {
         (&mut self.free, &mut self.hit)
     }
 }
 
 /// `f` of the grids of the pool threads that walked frame `frame`: they hold its marks, the
 /// others' are stale.
-pub(in crate::integrate) fn with_live<R>(
+pub(crate) fn with_live<R>(
     dense: &[std::sync::Mutex<DenseBits>],
     frame: u64,
     f: impl FnOnce(&[&DenseBits]) -> R,
@@ -146,7 +146,7 @@ pub(super) fn or_bit(words: &mut [u64], index: u64, on: bool) {
 /// `covered`. The dense walk where the build has no AVX-512: the same voxels as
 /// `avx512::walk_dense`. As in the sparse walk, all steps but the last two skip the check
 /// for an axis past its last crossing (`Dda::step_far_crossing`).
-pub(super) fn walk_rays(
+pub(crate) fn walk_rays(
     bits: &mut DenseBits,
     dbox: &DenseBox,
     origin: [f64; 3],
@@ -201,7 +201,7 @@ pub(super) fn walk_rays(
 
 /// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
 /// mark get a slot. `marks` must be reset for the frame's box.
-pub(in crate::integrate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
+pub(crate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let row_words = (dbox.n[0] / 64) as usize;
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
     // A brick row's marks into `cache`'s table.

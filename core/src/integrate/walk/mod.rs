@@ -11,23 +11,23 @@
 //! | sparse, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_sparse`) / `avx512.rs` (`avx512::walk_sparse`) |
 //!
 //! `integrate::tests::dense_and_sparse_walks_agree` checks every walk of every kernel the CPU
-//! has against the others, map and counts. The kernel is the integrator's
-//! ([`crate::kernel::Kernel`]), chosen once at run time.
+//! has against the others, map and counts. Each walk is an entry of the
+//! [`crate::kernel::Kernels`] table the integrator holds.
 
 use super::marks::FrameMarks;
 use super::prepare::{Ray, RAY_CHUNK};
 use super::{lock, Walk, MAX_RANGE_VOXELS};
 use crate::coord::VoxelCoord;
-use crate::kernel::Kernel;
+use crate::kernel::{DenseWalk, Kernels};
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
-mod avx2;
+pub(crate) mod avx2;
 #[cfg(target_arch = "x86_64")]
-mod avx512;
-mod covered;
-pub(super) mod dense;
-mod sparse;
+pub(crate) mod avx512;
+pub(crate) mod covered;
+pub(crate) mod dense;
+pub(crate) mod sparse;
 
 /// The dense box to walk a frame with `lo..=hi` and about `steps` voxel steps in, or `None`
 /// for the sparse walk.
@@ -62,7 +62,7 @@ pub(super) struct WalkInput<'a> {
     /// The rays' longest length, voxel units.
     pub range: f64,
     pub walk: Walk,
-    pub kernel: Kernel,
+    pub kernels: &'static Kernels,
 }
 
 /// Walk all rays into `marks` (sparse) or the pool threads' dense grids for frame
@@ -106,7 +106,7 @@ fn run_dense(
         bounds,
         range,
         walk,
-        kernel,
+        kernels,
     } = input;
     // Tasks walk the front sides of the chunks first, then the back sides: rayon hands the
     // first half of the tasks to one thread and the second half to another, so each
@@ -137,48 +137,42 @@ fn run_dense(
     let test_first = avx512::test_first(steps / (dbox.words() as f64 * 64.0));
     // The rays' mean steps, as estimated before the walk.
     let per_ray = steps / rays.len().max(1) as f64;
-    let tasks = |stage: std::ops::Range<usize>,
-                 covered: Option<&covered::Covered>,
-                 test_first: bool| {
-        // Steps a ray walks outside the covered box, on average (its sample's savings).
-        let walked = per_ray - covered.map_or(0.0, |c| c.saves as f64);
-        #[cfg(target_arch = "x86_64")]
-        let grouped = match walk {
-            Walk::DenseGrouped => true,
-            Walk::Auto => avx2::walks_grouped(walked),
-            _ => false,
+    let tasks =
+        |stage: std::ops::Range<usize>, covered: Option<&covered::Covered>, test_first: bool| {
+            // Steps a ray walks outside the covered box, on average (its sample's savings).
+            let walked = per_ray - covered.map_or(0.0, |c| c.saves as f64);
+            #[cfg(target_arch = "x86_64")]
+            let grouped = match walk {
+                Walk::DenseGrouped => true,
+                Walk::Auto => avx2::walks_grouped(walked),
+                _ => false,
+            };
+            // Only the AVX2 walk has this choice.
+            #[cfg(not(target_arch = "x86_64"))]
+            let grouped = {
+                let _ = walked;
+                false
+            };
+            (0..2 * per_lane)
+                .into_par_iter()
+                .filter(move |t| stage.contains(&(t % per_lane)))
+                .map(|t| {
+                    // Each pool thread has its own grids, so the lock is never contended.
+                    let mut bits =
+                        lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
+                    bits.begin(frame_no, dbox.words());
+                    let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
+                    let how = DenseWalk {
+                        dbox,
+                        origin,
+                        covered,
+                        test_first,
+                        grouped,
+                    };
+                    (kernels.walk_dense)(&mut bits, rays, ranges, &how)
+                })
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
         };
-        (0..2 * per_lane)
-            .into_par_iter()
-            .filter(move |t| stage.contains(&(t % per_lane)))
-            .map(|t| {
-                // Each pool thread has its own grids, so the lock is never contended.
-                let mut bits =
-                    lock(&dense[rayon::current_thread_index().unwrap_or(0) % dense.len()]);
-                bits.begin(frame_no, dbox.words());
-                let ranges = std::array::from_fn(|l| part(t >= per_lane, l, t % per_lane));
-                #[cfg(not(target_arch = "x86_64"))]
-                let _ = (test_first, walked);
-                match kernel {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
-                    // and BW (`Kernel::supported`); `walk_dense` needs F and DQ.
-                    Kernel::Avx512 => unsafe {
-                        avx512::walk_dense(
-                            &mut bits, dbox, origin, rays, ranges, test_first, covered,
-                        )
-                    },
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2, BMI1 and BMI2
-                    // (`Kernel::supported`), which is all `walk_dense` needs.
-                    Kernel::Avx2 => unsafe {
-                        avx2::walk_dense(&mut bits, dbox, origin, rays, ranges, covered, grouped)
-                    },
-                    _ => dense::walk_rays(&mut bits, dbox, origin, rays, ranges, covered),
-                }
-            })
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
-    };
     let find = || {
         dense::with_live(dense, frame_no, |live| {
             covered::Covered::find(live, dbox, origin, range, bounds, rays)
@@ -213,31 +207,12 @@ fn run_sparse(marks: &FrameMarks, input: &WalkInput<'_>) -> u64 {
     let &WalkInput {
         origin,
         rays,
-        kernel,
+        kernels,
         ..
     } = input;
-    match kernel {
-        #[cfg(target_arch = "x86_64")]
-        Kernel::Avx512 => {
-            rays.par_chunks(RAY_CHUNK)
-                // SAFETY: a `Kernel::Avx512` exists only where the CPU has AVX-512F, DQ
-                // and BW (`Kernel::supported`); `walk_sparse` needs F and DQ.
-                .map(|chunk| marks.with_cache(|c| unsafe { avx512::walk_sparse(c, origin, chunk) }))
-                .sum()
-        }
-        #[cfg(target_arch = "x86_64")]
-        Kernel::Avx2 => {
-            rays.par_chunks(RAY_CHUNK)
-                // SAFETY: a `Kernel::Avx2` exists only where the CPU has AVX2, BMI1 and BMI2
-                // (`Kernel::supported`), which is all `walk_sparse` needs.
-                .map(|chunk| marks.with_cache(|c| unsafe { avx2::walk_sparse(c, origin, chunk) }))
-                .sum()
-        }
-        _ => rays
-            .par_chunks(RAY_CHUNK)
-            .map(|chunk| sparse::walk_rays(marks, origin, chunk))
-            .sum(),
-    }
+    rays.par_chunks(RAY_CHUNK)
+        .map(|chunk| (kernels.walk_sparse)(marks, origin, chunk))
+        .sum()
 }
 
 /// A vector's lanes stored once and loaded back one by one, for the vector walks' marks:

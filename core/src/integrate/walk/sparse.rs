@@ -10,7 +10,7 @@ use crate::raycast::Dda;
 /// visited. Not inlined, and with the DDA set-up inlined into it, so that its code does not depend
 /// on inlining choices made for its callers (which changed its speed by 40%).
 #[inline(never)]
-pub(super) fn walk_rays(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
+pub(crate) fn walk_rays(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let mut steps = 0u64;
     let mut cache = marks.cache();
     for r in rays {
