@@ -4,8 +4,8 @@
 
 use serde_bytes::ByteBuf;
 use voxmap_client::{SnapshotView, VoxelCoord, WorldPoint};
-use voxmap_core::io::octomap::{encode_bt_data, BtError};
-use voxmap_core::tree::voxel_at;
+use voxmap_map::io::octomap::{encode_bt_data, BtError};
+use voxmap_map::tree::voxel_at;
 use voxmap_ros::cloud::datatype;
 use voxmap_ros::msg::{
     Header, MapMetaData, OccupancyGrid, Octomap, PointCloud2, PointField, Pose, Quaternion, Time,
@@ -169,9 +169,9 @@ pub fn grid(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use voxmap_core::io::octomap::encode_bt;
-    use voxmap_core::snapshot::{Meta, Plan, Scope};
-    use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+    use voxmap_map::io::octomap::encode_bt;
+    use voxmap_map::snapshot::{Meta, Plan, Scope};
+    use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
 
     /// A map of one frame: a wall at x = 2 seen from the origin, 0.1 m voxels.
     fn snapshot() -> (OccupancyMap, Vec<u8>) {

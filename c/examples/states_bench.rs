@@ -6,9 +6,9 @@
 //!   cargo run --release -p voxmap-c --example states_bench -- SNAPSHOT POINTS BATCH REPS
 
 use std::time::Instant;
-use voxmap_core::io::mapfile;
-use voxmap_core::snapshot::SnapshotView;
-use voxmap_core::{VoxelState, WorldPoint};
+use voxmap_map::io::mapfile;
+use voxmap_reader::snapshot::SnapshotView;
+use voxmap_reader::{VoxelState, WorldPoint};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();

@@ -6,9 +6,9 @@
 use crate::error::{guard, status, xyz_arg, Failure, VOXMAP_ERR_INVALID};
 use crate::view::{snapshot, voxmap_view};
 use std::ffi::c_int;
-use voxmap_core::field::UnknownPolicy;
-use voxmap_core::snapshot::{FieldView, Nearest};
-use voxmap_core::WorldPoint;
+use voxmap_reader::field::UnknownPolicy;
+use voxmap_reader::snapshot::{FieldView, Nearest};
+use voxmap_reader::WorldPoint;
 
 /// The view's field, or a failure saying it has none.
 ///

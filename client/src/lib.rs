@@ -34,15 +34,15 @@ use std::time::Duration;
 use voxmap_ipc::ports::{open_control, open_event, open_frames, open_snapshots};
 
 pub use nalgebra::Isometry3;
-pub use voxmap_core::field::UnknownPolicy;
-pub use voxmap_core::snapshot::{
-    FieldView, InvalidBox, InvalidSegment, Nearest, SnapshotError, SnapshotView,
-};
-pub use voxmap_core::{VoxelCoord, VoxelState, WorldPoint};
 pub use voxmap_ipc::{
     ControlError, ControlKind, ControlRequest, ControlResponse, FrameHeader, FrameRejected,
     MapScope, OpenError, ServiceNames, SnapshotHeader, StatsWire, FRAME_VERSION, MAX_FRAME_POINTS,
 };
+pub use voxmap_reader::field::UnknownPolicy;
+pub use voxmap_reader::snapshot::{
+    FieldView, InvalidBox, InvalidSegment, Nearest, SnapshotError, SnapshotView,
+};
+pub use voxmap_reader::{VoxelCoord, VoxelState, WorldPoint};
 
 /// Something went wrong talking to the service or reading a snapshot. The cause (iceoryx2's
 /// own error, the snapshot's or the request's) is the [`std::error::Error::source`], not

@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
+use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 use voxmap_ipc::FrameHeader;
 
 fn u64_at(b: &[u8], i: usize) -> u64 {

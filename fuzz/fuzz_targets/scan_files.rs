@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use voxmap_core::io::{pcd, ply, scans};
+use voxmap_map::io::{pcd, ply, scans};
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(c) = pcd::parse(data) {

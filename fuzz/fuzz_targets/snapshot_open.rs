@@ -3,8 +3,8 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use voxmap_core::snapshot::SnapshotView;
-use voxmap_core::{VoxelCoord, WorldPoint};
+use voxmap_map::snapshot::SnapshotView;
+use voxmap_map::{VoxelCoord, WorldPoint};
 
 fuzz_target!(|data: &[u8]| {
     let _ = SnapshotView::open_checked(data);

@@ -21,9 +21,9 @@ pub(crate) fn voxmap_error(e: &dyn std::error::Error) -> PyErr {
 #[pymodule]
 fn _voxmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("VoxmapError", m.py().get_type::<VoxmapError>())?;
-    m.add("UNKNOWN", voxmap_core::VoxelState::Unknown as u8)?;
-    m.add("FREE", voxmap_core::VoxelState::Free as u8)?;
-    m.add("OCCUPIED", voxmap_core::VoxelState::Occupied as u8)?;
+    m.add("UNKNOWN", voxmap_reader::VoxelState::Unknown as u8)?;
+    m.add("FREE", voxmap_reader::VoxelState::Free as u8)?;
+    m.add("OCCUPIED", voxmap_reader::VoxelState::Occupied as u8)?;
     m.add_class::<view::View>()?;
     m.add_function(wrap_pyfunction!(view::open, m)?)?;
     m.add_class::<ipc::Subscriber>()?;

@@ -10,8 +10,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use std::sync::Arc;
 use voxmap_client::HeldSnapshot;
-use voxmap_core::snapshot::{FieldView, Nearest, SnapshotView};
-use voxmap_core::WorldPoint;
+use voxmap_reader::snapshot::{FieldView, Nearest, SnapshotView};
+use voxmap_reader::WorldPoint;
 
 /// What keeps a view's bytes alive (held, never read).
 #[allow(dead_code)]
@@ -316,7 +316,7 @@ impl View {
 /// with its probabilities).
 #[pyfunction]
 pub fn open(path: std::path::PathBuf) -> PyResult<View> {
-    let bytes: Arc<[u8]> = voxmap_core::io::mapfile::read_as_snapshot(&path)
+    let bytes: Arc<[u8]> = voxmap_map::io::mapfile::read_as_snapshot(&path)
         .map_err(|e| voxmap_error(&e))?
         .into();
     // SAFETY: the bytes are on the heap, owned by the `Arc` the view keeps, never written.

@@ -5,9 +5,11 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
-use voxmap_core::field::{DistanceField, FieldConfig, UnknownPolicy};
-use voxmap_core::{Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel};
 use voxmap_ipc::ports::qos::FRAME_SUBSCRIBER_BUFFER;
+use voxmap_map::field::{FieldConfig, UnknownPolicy};
+use voxmap_map::{
+    Integrator, IntegratorConfig, Mapper, MapperConfig, OccupancyMap, RayMode, SensorModel,
+};
 
 /// The embedded defaults: `voxmap serve` with no file and no flags runs on these.
 pub const DEFAULT_TOML: &str = include_str!("../default.toml");
@@ -219,12 +221,12 @@ impl Config {
             bail!("snapshot_interval_ms must be in [0, 3.6e6] (an hour)");
         }
         let voxels = self.max_range / self.resolution;
-        if voxels > voxmap_core::integrate::MAX_RANGE_VOXELS {
+        if voxels > voxmap_map::integrate::MAX_RANGE_VOXELS {
             bail!(
                 "max_range {} m is {voxels:.0} voxels at resolution {} m; at most {} are supported",
                 self.max_range,
                 self.resolution,
-                voxmap_core::integrate::MAX_RANGE_VOXELS
+                voxmap_map::integrate::MAX_RANGE_VOXELS
             );
         }
         // The map, integrator and field check the rest with their own messages.
@@ -247,21 +249,32 @@ impl Config {
         }
     }
 
-    /// A distance field for a map of `resolution`, if `[esdf]` is enabled.
-    pub fn field(&self, resolution: f64) -> Result<Option<DistanceField>> {
-        if !self.esdf.enabled {
-            return Ok(None);
-        }
-        Ok(Some(DistanceField::new(self.field_config(), resolution)?))
-    }
-
-    pub fn integrator(&self) -> Result<Integrator> {
-        Ok(Integrator::new(IntegratorConfig {
+    pub fn integrator_config(&self) -> IntegratorConfig {
+        IntegratorConfig {
             threads: self.threads(),
             max_range: self.max_range,
             mode: self.ray_mode(),
             pin_threads: self.pin_threads,
-        })?)
+        }
+    }
+
+    pub fn integrator(&self) -> Result<Integrator> {
+        Ok(Integrator::new(self.integrator_config())?)
+    }
+
+    /// The map, integrator and distance field these settings describe.
+    pub fn mapper_config(&self) -> MapperConfig {
+        MapperConfig {
+            resolution: self.resolution,
+            model: self.sensor_model,
+            integrator: self.integrator_config(),
+            field: self.esdf.enabled.then(|| self.field_config()),
+        }
+    }
+
+    /// A mapper with an empty map.
+    pub fn mapper(&self) -> Result<Mapper> {
+        Ok(Mapper::new(&self.mapper_config())?)
     }
 }
 

@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use voxmap_client::{MapControl, SnapshotSubscriber};
-use voxmap_core::io::{mapfile, octomap};
+use voxmap_map::io::{mapfile, octomap};
 
 #[derive(Args, Debug)]
 pub struct DemoArgs {

@@ -5,10 +5,10 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::io::{BufRead, Write};
 use std::path::PathBuf;
-use voxmap_core::field::{FieldConfig, UnknownPolicy};
-use voxmap_core::io::mapfile;
-use voxmap_core::snapshot::{Nearest, SnapshotView};
-use voxmap_core::WorldPoint;
+use voxmap_map::field::{FieldConfig, UnknownPolicy};
+use voxmap_map::io::mapfile;
+use voxmap_map::snapshot::{Nearest, SnapshotView};
+use voxmap_map::WorldPoint;
 
 #[derive(Args, Debug)]
 pub struct DistanceArgs {

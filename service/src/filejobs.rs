@@ -9,9 +9,9 @@
 use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::mpsc::{channel, Receiver, Sender};
-use voxmap_core::field::DistanceField;
-use voxmap_core::io::mapfile::{self, EncodedMap};
-use voxmap_core::OccupancyMap;
+use voxmap_map::field::DistanceField;
+use voxmap_map::io::mapfile::{self, EncodedMap};
+use voxmap_map::OccupancyMap;
 
 pub enum Job {
     Save { path: PathBuf, file: EncodedMap },
@@ -109,7 +109,7 @@ impl FileWorker {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use voxmap_core::{SensorModel, VoxelCoord};
+    use voxmap_map::{SensorModel, VoxelCoord};
 
     #[test]
     fn jobs_finish_in_order_and_the_exit_waits_for_saves_only() {

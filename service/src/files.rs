@@ -4,10 +4,10 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use voxmap_core::grid::voxel_at;
-use voxmap_core::io::{mapfile, octomap, ply};
-use voxmap_core::snapshot::{SnapshotView, MAGIC as SNAPSHOT_MAGIC};
-use voxmap_core::LeafOccupancy;
+use voxmap_map::grid::voxel_at;
+use voxmap_map::io::{mapfile, octomap, ply};
+use voxmap_map::snapshot::{SnapshotView, MAGIC as SNAPSHOT_MAGIC};
+use voxmap_map::LeafOccupancy;
 
 /// Most known voxels a `.bt` file may expand to: 2^28, more than a 60 m LiDAR map holds
 /// (2.2e8), and at most 2^19 leaves (about 80 MB decoded).
@@ -207,7 +207,7 @@ pub struct ExportArgs {
     pub esdf_max_distance: Option<f64>,
     /// With --esdf-max-distance: what unknown voxels count as, free or occupied.
     #[arg(long, default_value = "free")]
-    pub esdf_unknown: voxmap_core::field::UnknownPolicy,
+    pub esdf_unknown: voxmap_map::field::UnknownPolicy,
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
@@ -218,7 +218,7 @@ pub fn export(a: ExportArgs) -> Result<()> {
         let bytes = match a.esdf_max_distance {
             None => mapfile::read_as_snapshot(&a.input)?,
             Some(max_distance) => {
-                let cfg = voxmap_core::field::FieldConfig {
+                let cfg = voxmap_map::field::FieldConfig {
                     max_distance,
                     unknown: a.esdf_unknown,
                     window: None,

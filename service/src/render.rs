@@ -6,10 +6,10 @@ use crate::files::Loaded;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use voxmap_core::coord::MAX_VOXEL_INDEX;
-use voxmap_core::grid::voxel_at;
-use voxmap_core::io::ply::height_color;
-use voxmap_core::LeafOccupancy;
+use voxmap_map::coord::MAX_VOXEL_INDEX;
+use voxmap_map::grid::voxel_at;
+use voxmap_map::io::ply::height_color;
+use voxmap_map::LeafOccupancy;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -39,7 +39,7 @@ pub struct RenderArgs {
     pub esdf_max_distance: f64,
     /// With --distance: what unknown voxels count as, free or occupied.
     #[arg(long, default_value = "free")]
-    pub esdf_unknown: voxmap_core::field::UnknownPolicy,
+    pub esdf_unknown: voxmap_map::field::UnknownPolicy,
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
@@ -53,13 +53,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
         (None, r) => View::Top(r.map(|r| (r[0], r[1]))),
     };
     let img = if a.distance {
-        let cfg = voxmap_core::field::FieldConfig {
+        let cfg = voxmap_map::field::FieldConfig {
             max_distance: a.esdf_max_distance,
             unknown: a.esdf_unknown,
             window: None,
         };
-        let bytes = voxmap_core::io::mapfile::read_as_snapshot_with_field(&a.input, &cfg)?;
-        let snap = voxmap_core::snapshot::SnapshotView::open(&bytes)?;
+        let bytes = voxmap_map::io::mapfile::read_as_snapshot_with_field(&a.input, &cfg)?;
+        let snap = voxmap_map::snapshot::SnapshotView::open(&bytes)?;
         let field = snap.distance_field().with_context(|| {
             format!(
                 "{}: no distance field (give a map file, or a snapshot that carries one)",
@@ -178,7 +178,7 @@ pub fn render_with(
     res: f64,
     view: View,
     size: u32,
-    field: Option<&voxmap_core::snapshot::FieldView<'_>>,
+    field: Option<&voxmap_map::snapshot::FieldView<'_>>,
 ) -> Result<Image> {
     let mut lo = [i32::MAX; 3];
     let mut hi = [i32::MIN; 3];
@@ -393,8 +393,8 @@ fn glyph(c: char) -> [u8; 7] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use voxmap_core::mask::Mask512;
-    use voxmap_core::VoxelCoord;
+    use voxmap_map::mask::Mask512;
+    use voxmap_map::VoxelCoord;
 
     /// A 4 m x 2 m floor of free voxels with one occupied wall column at x = 1 m.
     fn room() -> Vec<LeafOccupancy> {
@@ -440,9 +440,9 @@ mod tests {
 
     #[test]
     fn a_distance_slice_colours_free_voxels_by_their_distance() {
-        use voxmap_core::field::{DistanceField, FieldConfig};
-        use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
-        use voxmap_core::{OccupancyMap, SensorModel};
+        use voxmap_map::field::{DistanceField, FieldConfig};
+        use voxmap_map::snapshot::{Meta, Plan, Scope, SnapshotView};
+        use voxmap_map::{OccupancyMap, SensorModel};
         // The same room as a map: the wall at x = 1 m, free floor elsewhere.
         let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
         for l in room() {

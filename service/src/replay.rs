@@ -11,10 +11,10 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use voxmap_client::{FramePublisher, MapControl, SnapshotSubscriber};
-use voxmap_core::io::scans::StampedPose;
-use voxmap_core::io::{mapfile, pcd, ply, scans};
-use voxmap_core::Frame;
 use voxmap_ipc::FrameHeader;
+use voxmap_map::io::scans::StampedPose;
+use voxmap_map::io::{mapfile, pcd, ply, scans};
+use voxmap_map::{Frame, FrameStamp};
 
 #[derive(Args, Debug)]
 pub struct ReplayArgs {
@@ -199,12 +199,10 @@ enum Sink {
 }
 
 struct Offline {
-    map: voxmap_core::OccupancyMap,
-    integ: voxmap_core::Integrator,
+    /// The map, kept as the service keeps it (with its distance field under `--esdf`).
+    mapper: voxmap_map::Mapper,
     out: PathBuf,
-    /// With `--esdf`: the distance field, kept as the service keeps it, and its update
-    /// times (ms).
-    field: Option<voxmap_core::field::DistanceField>,
+    /// The distance field's update times (ms).
     field_ms: Vec<f64>,
 }
 
@@ -268,10 +266,8 @@ pub fn run(a: ReplayArgs) -> Result<()> {
     } else if a.offline {
         let cfg = a.mapping.resolve()?;
         Sink::Offline(Box::new(Offline {
-            map: cfg.new_map()?,
-            integ: cfg.integrator()?,
+            mapper: cfg.mapper()?,
             out: a.out.clone().context("--offline needs --out MAP")?,
-            field: cfg.field(cfg.resolution)?,
             field_ms: Vec::new(),
         }))
     } else {
@@ -378,25 +374,22 @@ pub fn run(a: ReplayArgs) -> Result<()> {
             Sink::DryRun => {}
             Sink::Offline(off) => {
                 let Offline {
-                    map,
-                    integ,
-                    field,
-                    field_ms,
-                    ..
+                    mapper, field_ms, ..
                 } = &mut **off;
-                let t = Instant::now();
-                let r = integ.integrate(
-                    map,
-                    &Frame {
-                        pose: scan.pose,
-                        points: &scan.points,
-                    },
-                );
-                integrate_s += t.elapsed().as_secs_f64();
-                if let (Ok(rep), Some(f)) = (&r, field) {
-                    let sensor = voxmap_core::WorldPoint::from(scan.pose.translation.vector);
-                    let fr = integ.install(|| f.update(map, rep.bounds, Some(sensor)));
-                    field_ms.push(fr.time.as_secs_f64() * 1e3);
+                let frame = Frame {
+                    pose: scan.pose,
+                    points: &scan.points,
+                };
+                let stamp = FrameStamp {
+                    sequence: frames + 1,
+                    stamp_ns: scan.stamp.map_or(0, |s| (s * 1e9) as u64),
+                };
+                let r = mapper.insert(&frame, stamp);
+                if let Ok(rep) = &r {
+                    integrate_s += rep.integrate.times.total().as_secs_f64();
+                    if let Some(f) = &rep.field {
+                        field_ms.push(f.time.as_secs_f64() * 1e3);
+                    }
                 }
                 if let Err(e) = r {
                     if a.on_error == OnError::Abort {
@@ -457,12 +450,11 @@ pub fn run(a: ReplayArgs) -> Result<()> {
         Sink::DryRun => {}
         Sink::Offline(off) => {
             let Offline {
-                map,
+                mapper,
                 out,
-                field,
                 mut field_ms,
-                ..
             } = *off;
+            let (map, field) = mapper.into_parts();
             let c = map.counts();
             println!(
                 "integration {integrate_s:.2} s ({:.2} Mpoints/s); map: {} occupied, {} free voxels, {} leaves, {} bytes",

@@ -10,7 +10,7 @@ use clap::Args;
 use std::process::Child;
 use std::time::{Duration, Instant};
 use voxmap_client::{FramePublisher, SnapshotSubscriber};
-use voxmap_core::{VoxelState, WorldPoint};
+use voxmap_map::{VoxelState, WorldPoint};
 
 #[derive(Args, Debug)]
 pub struct SimArgs {

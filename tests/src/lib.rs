@@ -384,7 +384,7 @@ pub fn run_ok(cmd: &mut Command) -> String {
 }
 
 /// Every known voxel of a map with its stored value, sorted.
-pub fn voxels(map: &voxmap_core::OccupancyMap) -> Vec<([i32; 3], i8)> {
+pub fn voxels(map: &voxmap_map::OccupancyMap) -> Vec<([i32; 3], i8)> {
     let mut v: Vec<_> = map
         .grid()
         .active_voxels()

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use voxmap_core::io::mapfile;
+use voxmap_map::io::mapfile;
 use voxmap_tests::{
     ok, python_with_rosbags, tmpdir, unique_prefix, voxels, voxmap, write_tum_frames, Service,
 };

@@ -12,9 +12,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use voxmap_client::{ClientError, FramePublisher, MapControl, SnapshotSubscriber};
-use voxmap_core::io::mapfile;
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
-use voxmap_core::{VoxelState, WorldPoint};
+use voxmap_map::io::mapfile;
+use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_map::{VoxelState, WorldPoint};
 use voxmap_tests::{
     connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, Service, TestRng,
 };

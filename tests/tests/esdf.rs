@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use voxmap_client::{FramePublisher, MapControl, Nearest, SnapshotSubscriber, WorldPoint};
-use voxmap_core::io::mapfile;
-use voxmap_core::{OccupancyMap, VoxelCoord, VoxelState};
+use voxmap_map::io::mapfile;
+use voxmap_map::{OccupancyMap, VoxelCoord, VoxelState};
 use voxmap_tests::{
     connect_with_retry, ok, room_scan, run_ok, tmpdir, unique_prefix, voxmap_bin, write_tum_frames,
     Service,

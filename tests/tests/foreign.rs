@@ -14,9 +14,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use voxmap_client::SnapshotSubscriber;
-use voxmap_core::io::mapfile;
-use voxmap_core::snapshot::{Nearest, SnapshotView};
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
+use voxmap_map::io::mapfile;
+use voxmap_map::snapshot::{Nearest, SnapshotView};
+use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
 use voxmap_tests::{room_scan, run_ok, tmpdir, unique_prefix, Service};
 
 const REPO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
@@ -332,7 +332,7 @@ fn c_and_cpp_answer_as_the_rust_view_and_survive_mutated_snapshots() {
 /// A snapshot file with the fixture map's distance field, points around and beyond it, and
 /// the Rust field's answers in the layout of `c/tests/programs/field.cpp`.
 fn field_fixture(f: &Fixture) -> (PathBuf, PathBuf, PathBuf) {
-    let cfg = voxmap_core::field::FieldConfig {
+    let cfg = voxmap_map::field::FieldConfig {
         max_distance: 0.3,
         ..Default::default()
     };

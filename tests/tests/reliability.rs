@@ -8,8 +8,8 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::collections::BTreeMap;
 use std::time::Duration;
 use voxmap_client::{FrameHeader, FramePublisher, MapControl, FRAME_VERSION, MAX_FRAME_POINTS};
-use voxmap_core::io::mapfile;
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_map::io::mapfile;
+use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
 use voxmap_tests::{
     connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, voxmap_bin, Service, TestRng,
 };

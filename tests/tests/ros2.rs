@@ -7,7 +7,7 @@ use std::collections::BTreeSet;
 use std::path::Path;
 use std::process::Command;
 use voxmap_client::SnapshotView;
-use voxmap_core::io::mapfile;
+use voxmap_map::io::mapfile;
 use voxmap_tests::{
     number_after, octomap_tool, ok, python_with, run_ok, tmpdir, unique_prefix, voxels, voxmap_bin,
     write_tum_frames,
@@ -106,7 +106,7 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
         .take(3)
         .map(|v| v.parse().unwrap())
         .collect();
-    let origin = voxmap_core::WorldPoint::new(w[0], w[1], w[2]);
+    let origin = voxmap_map::WorldPoint::new(w[0], w[1], w[2]);
     let mut rays = Vec::new();
     for p in off_view.occupied_centers().step_by(997).take(4) {
         rays.push((
@@ -119,7 +119,7 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
         .iter()
         .map(|(o, d)| {
             let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            let to = voxmap_core::WorldPoint::new(
+            let to = voxmap_map::WorldPoint::new(
                 o[0] + d[0] / n * 8.0,
                 o[1] + d[1] / n * 8.0,
                 o[2] + d[2] / n * 8.0,
@@ -250,7 +250,7 @@ fn a_cyclone_dds_peer_maps_through_the_bridge_and_reads_the_map_back() {
             live_ot.to_str().unwrap(),
         ])
         .unwrap();
-        let nodes = voxmap_core::io::octomap::read_bt(&bt).unwrap().nodes;
+        let nodes = voxmap_map::io::octomap::read_bt(&bt).unwrap().nodes;
         assert_eq!(number_after(&cmp, "Done ("), nodes, "{cmp}");
     }
 

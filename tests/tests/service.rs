@@ -164,7 +164,7 @@ fn sigterm_saves_a_loadable_map() {
         start_and_scan(&prefix, &["--save-on-exit", path.to_str().unwrap()]);
     let (st, err) = svc.signal_and_wait("TERM");
     assert!(st.success(), "{err}");
-    let map = voxmap_core::io::mapfile::load_map(&path).unwrap();
+    let map = voxmap_map::io::mapfile::load_map(&path).unwrap();
     let c = map.counts();
     assert_eq!(c.occupied + c.free, known);
     std::fs::remove_file(&path).unwrap();
@@ -359,7 +359,7 @@ fn control_requests_stats_save_clear_load_scope_and_bad_requests() {
 
     let st = ctl.stats().unwrap();
     // The stats name the kernel the service runs: this CPU's best.
-    assert_eq!(st.kernel(), voxmap_core::Kernel::detect().name());
+    assert_eq!(st.kernel(), voxmap_map::Kernel::detect().name());
     assert_eq!(
         (
             st.frames_received,

@@ -5,7 +5,7 @@
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::path::Path;
 use std::process::Command;
-use voxmap_core::io::{mapfile, octomap, pcd, ply};
+use voxmap_map::io::{mapfile, octomap, pcd, ply};
 use voxmap_tests::{
     number_after, octomap_tool, ok, room_scan, tmpdir, unique_prefix, voxels, voxmap, voxmap_bin,
     Service,
@@ -242,8 +242,8 @@ fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
     assert_eq!(pts.len() as u64, c.occupied);
     // Every PLY point is the centre of an occupied voxel of the map.
     for p in pts.iter().step_by(97) {
-        let w = voxmap_core::WorldPoint::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        assert_eq!(map.state_at(&w), voxmap_core::VoxelState::Occupied);
+        let w = voxmap_map::WorldPoint::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        assert_eq!(map.state_at(&w), voxmap_map::VoxelState::Occupied);
     }
 
     // OctoMap's own programs: convert_octree reads the .bt, compare_octrees counts its
@@ -271,9 +271,9 @@ fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
     }
 
     // A snapshot file exports the same occupancy.
-    let snap = voxmap_core::snapshot::Plan::new(
+    let snap = voxmap_map::snapshot::Plan::new(
         &map,
-        voxmap_core::snapshot::Scope::Whole,
+        voxmap_map::snapshot::Scope::Whole,
         Default::default(),
     )
     .to_vec();
@@ -297,7 +297,7 @@ fn export_bt_is_read_by_octomaps_tools_and_ply_holds_the_occupied_voxels() {
         exported.to_str().unwrap(),
     ]);
     let bytes = mapfile::read_snapshot(&exported).unwrap();
-    let view = voxmap_core::snapshot::SnapshotView::open(&bytes).unwrap();
+    let view = voxmap_map::snapshot::SnapshotView::open(&bytes).unwrap();
     assert_eq!(view.counts(), (c.occupied + c.free, c.occupied));
     for (v, _) in map.grid().active_voxels().step_by(13) {
         assert_eq!(view.state(v), map.state(v));
@@ -562,9 +562,9 @@ fn demo_runs_end_to_end_and_leaves_its_outputs() {
     let map = mapfile::load_map(&dir.join("map.vxm")).unwrap();
     // The scene's walls: the outer wall's inner face at x = 0.1 m and the wall at x = 6 m
     // are occupied at sensor height, the room between them free.
-    let st = |x: f64, y: f64| map.state_at(&voxmap_core::WorldPoint::new(x, y, 0.85));
-    assert_eq!(st(5.95, 2.0), voxmap_core::VoxelState::Occupied);
-    assert_eq!(st(3.0, 3.0), voxmap_core::VoxelState::Free);
+    let st = |x: f64, y: f64| map.state_at(&voxmap_map::WorldPoint::new(x, y, 0.85));
+    assert_eq!(st(5.95, 2.0), voxmap_map::VoxelState::Occupied);
+    assert_eq!(st(3.0, 3.0), voxmap_map::VoxelState::Free);
     for f in ["map.png", "slice_1m.png", "service.log"] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
@@ -589,7 +589,7 @@ fn real_tum_depth_frames_line_up_through_replay() {
         .map(|f| format!("{} {}\n", f.stamp, f.pose))
         .collect();
     std::fs::write(dir.join("tum.txt"), &tum).unwrap();
-    let poses = voxmap_core::io::scans::parse_poses(&tum).unwrap();
+    let poses = voxmap_map::io::scans::parse_poses(&tum).unwrap();
     let mut last_points = Vec::new();
     for (i, f) in frames.iter().enumerate() {
         let colored: Vec<_> = f.points.iter().map(|p| (*p, [0u8; 3])).collect();
@@ -637,13 +637,13 @@ fn real_tum_depth_frames_line_up_through_replay() {
             .filter(|p| {
                 let v = map
                     .transform()
-                    .voxel_of(&voxmap_core::WorldPoint::new(p.x, p.y, p.z))
+                    .voxel_of(&voxmap_map::WorldPoint::new(p.x, p.y, p.z))
                     .unwrap();
                 (-1..=1).any(|dx| {
                     (-1..=1).any(|dy| {
                         (-1..=1).any(|dz| {
-                            map.state(v + voxmap_core::VoxelCoord::new(dx, dy, dz))
-                                == voxmap_core::VoxelState::Occupied
+                            map.state(v + voxmap_map::VoxelCoord::new(dx, dy, dz))
+                                == voxmap_map::VoxelState::Occupied
                         })
                     })
                 })

@@ -8,10 +8,13 @@ use super::{median, ms, range_of, shared_dir, BenchArgs};
 use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use voxmap_core::field::{DistanceField, FieldConfig};
-use voxmap_core::io::pcd;
-use voxmap_core::snapshot::{FieldView, Meta, Plan, Scope, SnapshotView};
-use voxmap_core::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
+use voxmap_map::field::{DistanceField, FieldConfig};
+use voxmap_map::io::pcd;
+use voxmap_map::snapshot::{FieldView, Meta, Plan, Scope, SnapshotView};
+use voxmap_map::{
+    Frame, FrameStamp, Integrator, IntegratorConfig, Mapper, MapperConfig, OccupancyMap,
+    SensorModel, WorldPoint,
+};
 
 pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
     let threads = *a.threads.last().context("--threads is empty")?;
@@ -45,12 +48,11 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
     let mut maps: Vec<(String, OccupancyMap, WorldPoint)> = Vec::new();
     for (name, f) in super::selected(files, a.filter.as_deref()) {
         let cloud = pcd::read(f)?;
-        let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
         let frame = Frame {
             pose: cloud.pose,
             points: &cloud.points,
         };
-        integ(range_of(&name).unwrap_or(30.0))?.integrate(&mut map, &frame)?;
+        let map = mapped(a, threads, range_of(&name).unwrap_or(30.0), &frame)?;
         let sensor = WorldPoint::from(cloud.pose.translation.vector);
         maps.push((name, map, sensor));
     }
@@ -64,12 +66,11 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
                 };
                 pcd::write(&out.join("scan_dat.pcd"), &cloud)?;
             }
-            let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
             let frame = Frame {
                 pose: nalgebra::Isometry3::identity(),
                 points: &points,
             };
-            integ(30.0)?.integrate(&mut map, &frame)?;
+            let map = mapped(a, threads, 30.0, &frame)?;
             maps.push(("octomap scan.dat".into(), map, WorldPoint::origin()));
         }
         Ok(None) => {}
@@ -84,6 +85,28 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
          (half within 1 m of an occupied voxel): state_at, distance_at (trilinear), distance_and_gradient_at, nearest_obstacle; ratio = dist / state"
     );
     sequence(a, threads, cfg)
+}
+
+/// The map of one frame.
+fn mapped(
+    a: &BenchArgs,
+    threads: usize,
+    max_range: f64,
+    frame: &Frame<'_>,
+) -> Result<OccupancyMap> {
+    let mut mapper = Mapper::new(&MapperConfig {
+        resolution: a.resolution,
+        model: SensorModel::default(),
+        integrator: IntegratorConfig {
+            threads,
+            max_range,
+            pin_threads: a.pin_threads,
+            ..Default::default()
+        },
+        field: None,
+    })?;
+    mapper.insert(frame, FrameStamp::default())?;
+    Ok(mapper.into_parts().0)
 }
 
 /// One bulk-build row.
@@ -188,7 +211,7 @@ fn query_ns(view: &SnapshotView<'_>, f: &FieldView<'_>, points: &[WorldPoint]) -
                     1 => f.distance_at(p).unwrap_or(0.0),
                     2 => f.distance_and_gradient_at(p).map_or(0.0, |(d, g)| d + g.x),
                     _ => match f.nearest_obstacle(p) {
-                        voxmap_core::snapshot::Nearest::At { distance, .. } => distance,
+                        voxmap_map::snapshot::Nearest::At { distance, .. } => distance,
                         _ => 0.0,
                     },
                 };
@@ -252,28 +275,33 @@ fn sequence(a: &BenchArgs, threads: usize, cfg: FieldConfig) -> Result<()> {
     let max_range = 8.0;
     let mut rows: Vec<(f64, f64)> = Vec::new();
     for run in 0..a.runs.max(1) {
-        let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
-        let mut integ = Integrator::new(IntegratorConfig {
-            threads,
-            max_range,
-            pin_threads: a.pin_threads,
-            ..Default::default()
+        let mut mapper = Mapper::new(&MapperConfig {
+            resolution: a.resolution,
+            model: SensorModel::default(),
+            integrator: IntegratorConfig {
+                threads,
+                max_range,
+                pin_threads: a.pin_threads,
+                ..Default::default()
+            },
+            field: Some(cfg),
         })?;
-        let mut field = DistanceField::new(cfg, map.resolution())?;
         for (i, f) in frames.iter().enumerate() {
-            let r = integ.integrate(
-                &mut map,
-                &Frame {
-                    pose: f.pose,
-                    points: &f.points,
-                },
-            )?;
-            let sensor = WorldPoint::from(f.pose.translation.vector);
-            let fr = integ.install(|| field.update(&map, r.bounds, Some(sensor)));
+            let frame = Frame {
+                pose: f.pose,
+                points: &f.points,
+            };
+            let stamp = FrameStamp {
+                sequence: i as u64 + 1,
+                stamp_ns: 0,
+            };
+            let rep = mapper.insert(&frame, stamp)?;
+            let (r, fr) = (rep.integrate, rep.field.expect("the mapper keeps a field"));
             if run == 0 {
+                let band = mapper.field().map_or(0, |f| f.band_voxels());
                 println!(
                     "tum frame {:>2} {}: {:>7} points, integrate {:>7.2} ms, field {:>7.2} ms ({} leaves changed, {} new, {} tiles; {} voxels in the band)",
-                    i + 1, f.stamp, f.points.len(), ms(r.times.total()), ms(fr.time), fr.changed_leaves, fr.new_leaves, fr.tiles, field.band_voxels()
+                    i + 1, f.stamp, f.points.len(), ms(r.times.total()), ms(fr.time), fr.changed_leaves, fr.new_leaves, fr.tiles, band
                 );
                 rows.push((ms(r.times.total()), ms(fr.time)));
             } else {

@@ -8,10 +8,11 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use voxmap_core::integrate::PhaseTimes;
-use voxmap_core::io::pcd;
-use voxmap_core::{
-    Frame, Integrator, IntegratorConfig, OccupancyMap, RayMode, SensorModel, VoxelState,
+use voxmap_map::integrate::PhaseTimes;
+use voxmap_map::io::pcd;
+use voxmap_map::{
+    Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig, OccupancyMap, RayMode, SensorModel,
+    VoxelState,
 };
 
 #[derive(Args, Debug)]
@@ -75,7 +76,7 @@ pub struct BenchArgs {
     esdf_max_distance: f64,
     /// With --esdf: what unknown voxels count as, free or occupied.
     #[arg(long, default_value = "free")]
-    esdf_unknown: voxmap_core::field::UnknownPolicy,
+    esdf_unknown: voxmap_map::field::UnknownPolicy,
     /// With --esdf: the TUM RGB-D folder (depth/*.png, my_association.txt); default
     /// shared/data/real/tum_fr2_pioneer_slam2.
     #[arg(long, value_name = "DIR")]
@@ -263,7 +264,12 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     mode,
                     pin_threads: a.pin_threads,
                 };
-                let mut integ = Integrator::new(cfg)?;
+                let mut mapper = Mapper::new(&MapperConfig {
+                    resolution: a.resolution,
+                    model: SensorModel::default(),
+                    integrator: cfg,
+                    field: None,
+                })?;
                 let frame = Frame {
                     pose: cloud.pose,
                     points: &cloud.points,
@@ -272,29 +278,29 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let mut phases = Vec::new();
                 let mut last = None;
                 for run in 0..=a.runs {
-                    let mut map = OccupancyMap::new(a.resolution, SensorModel::default())?;
+                    // A fresh map each run; the last run's is dropped before the timing.
+                    let fresh = OccupancyMap::new(a.resolution, SensorModel::default())?;
+                    drop(mapper.replace_map(fresh, None)?);
                     let t = Instant::now();
-                    let r = integ.integrate(&mut map, &frame)?;
+                    let r = mapper.insert(&frame, FrameStamp::default())?.integrate;
                     let el = t.elapsed();
                     if run > 0 {
                         times.push(ms(el));
                         phases.push(r.times);
                     }
-                    if run == a.runs {
-                        last = Some((r, map));
-                    } else {
-                        drop(map);
-                    }
+                    last = Some(r);
                 }
-                let (r, map) = last.expect("runs >= 1");
-                let counts = map.counts();
-                let mem = map.memory_bytes();
+                let r = last.expect("runs >= 1");
+                let counts = mapper.map().counts();
+                let mem = mapper.map().memory_bytes();
                 let med = median(&mut times);
                 if mode == RayMode::Exact && Some(&threads) == a.threads.last() && !a.no_snapshot {
                     let t = cloud.pose.translation.vector;
                     let sensor = [t.x, t.y, t.z];
-                    snapshots.push((name.clone(), snapshot_bench(&integ, &map, med, sensor)));
+                    snapshots.push((name.clone(), snapshot_bench(&mapper, med, sensor)));
                 }
+                let kernel = mapper.integrator().kernel().name();
+                let (map, _) = mapper.into_parts();
                 if mode == RayMode::Exact {
                     exact_map = Some(map);
                 } else if let (Some(e), None) = (&exact_map, &agreement) {
@@ -316,7 +322,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 let walk = if r.dense { "dense" } else { "sparse" };
                 if a.json {
                     let mut o = serde_json::json!({
-                        "workload": name, "threads": threads, "mode": mode.name(), "kernel": integ.kernel().name(), "walk": walk, "runs": a.runs,
+                        "workload": name, "threads": threads, "mode": mode.name(), "kernel": kernel, "walk": walk, "runs": a.runs,
                         "median_ms": med, "min_ms": min, "max_ms": max, "points": r.points, "rays": r.rays,
                         "voxel_steps": r.voxel_steps, "covered_steps": r.covered_steps, "occupied": counts.occupied, "free": counts.free,
                         "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
@@ -337,7 +343,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 } else {
                     println!(
                         "{:<22} {:>2} {:<10} {:<6} {:<6} {:>7} {:>10} {:>5.1} {:>9.2} {:>8.2} {:>8.2} {:>7.2} {:>6.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} | {:>10} {:>10} {:>6.2} | {:>8}",
-                        name, threads, mode.name(), integ.kernel().name(), walk, r.rays, r.voxel_steps, covered_pct, med, min, max, mpts, ns_step,
+                        name, threads, mode.name(), kernel, walk, r.rays, r.voxel_steps, covered_pct, med, min, max, mpts, ns_step,
                         ms(p.prepare), ms(p.raycast), ms(p.merge), ms(p.update),
                         counts.occupied, counts.free, bpv, paper.map_or("-".into(), |v| format!("{v:.0}")),
                     );
@@ -538,16 +544,12 @@ fn median(v: &mut [f64]) -> f64 {
 
 /// Encode on the integrator's pool, as the service does, so encode and integrate use the
 /// same threads.
-fn snapshot_bench(
-    integ: &Integrator,
-    map: &OccupancyMap,
-    integrate_ms: f64,
-    sensor: [f64; 3],
-) -> SnapshotBench {
-    use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
-    use voxmap_core::{VoxelCoord, WorldPoint};
+fn snapshot_bench(mapper: &Mapper, integrate_ms: f64, sensor: [f64; 3]) -> SnapshotBench {
+    use voxmap_map::snapshot::{Meta, Scope, SnapshotView};
+    use voxmap_map::{VoxelCoord, WorldPoint};
+    let map = mapper.map();
     let meta = Meta::default();
-    let mut buf = vec![0u8; Plan::new(map, Scope::Whole, meta).encoded_len()];
+    let mut buf = vec![0u8; mapper.snapshot(Scope::Whole, meta).encoded_len()];
     // Touch the pages outside the timing.
     buf.iter_mut().step_by(4096).for_each(|b| *b = 1);
     // Five encodes, as the service encodes every frame: the first pays for memory the
@@ -555,10 +557,8 @@ fn snapshot_bench(
     let mut enc = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();
-        integ.install(|| {
-            let plan = Plan::new(map, Scope::Whole, meta);
-            plan.write(&mut buf).expect("sized");
-        });
+        let plan = mapper.snapshot(Scope::Whole, meta);
+        mapper.write_snapshot(&plan, &mut buf).expect("sized");
         enc.push(ms(t.elapsed()));
     }
     let around = Scope::Box {
@@ -569,7 +569,7 @@ fn snapshot_bench(
     let mut box_bytes = 0;
     for _ in 0..3 {
         let t = Instant::now();
-        box_bytes = integ.install(|| Plan::new(map, around, meta).to_vec().len());
+        box_bytes = mapper.install(|| mapper.snapshot(around, meta).to_vec().len());
         box_enc.push(ms(t.elapsed()));
     }
     let t = Instant::now();
@@ -602,7 +602,7 @@ fn snapshot_bench(
             .collect();
         median(&mut batches)
     };
-    let occupied = voxmap_core::VoxelState::Occupied;
+    let occupied = voxmap_map::VoxelState::Occupied;
     let query_ns =
         per_query_ns(&mut |batch| batch.iter().filter(|&&v| view.state(v) == occupied).count());
     let mut states = Vec::with_capacity(QUERY_BATCH);
@@ -634,11 +634,11 @@ fn snapshot_bench(
     // The map file, encoded and decoded on the integrator's pool (the service encodes a
     // save there; it decodes a load on the file worker, with rayon's global pool).
     let t = Instant::now();
-    let file = integ.install(|| voxmap_core::io::mapfile::encode_map_parts(map));
+    let file = mapper.install(|| voxmap_map::io::mapfile::encode_map_parts(map));
     let file_encode_ms = ms(t.elapsed());
     let file = file.into_bytes();
     let t = Instant::now();
-    let back = integ.install(|| voxmap_core::io::mapfile::decode_map(&file));
+    let back = mapper.install(|| voxmap_map::io::mapfile::decode_map(&file));
     let file_decode_ms = ms(t.elapsed());
     assert!(
         back.is_ok_and(|m| m.grid().leaf_count() == map.grid().leaf_count()),

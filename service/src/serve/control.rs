@@ -13,7 +13,6 @@ use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::server::Server;
 use iceoryx2::prelude::*;
 use std::collections::VecDeque;
-use voxmap_core::io::mapfile;
 use voxmap_ipc::{ControlKind, ControlRequest, ControlResponse};
 
 type Request = ActiveRequest<ipc::Service, ControlRequest, (), ControlResponse, ()>;
@@ -119,7 +118,7 @@ impl Control {
             if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
-                s.stats.wire(&s.map),
+                s.stats.wire(s.mapper.map()),
             )) {
                 // The client may have gone; anything else is worth a line.
                 eprintln!("voxmap serve: control response not sent: {e:?}");
@@ -141,9 +140,7 @@ impl Control {
                 };
                 let path = p.into();
                 let job = if kind == ControlKind::Save {
-                    let (integ, map, field) = (&s.integ, &s.map, &s.field);
-                    let file =
-                        integ.install(|| mapfile::encode_map_parts_with(map, field.as_ref()));
+                    let file = s.mapper.encode_file();
                     Job::Save { path, file }
                 } else {
                     Job::Load { path }
@@ -154,10 +151,7 @@ impl Control {
                 }
             }
             ControlKind::Clear => {
-                s.map.clear();
-                if let Some(f) = &mut s.field {
-                    f.clear();
-                }
+                s.mapper.clear();
                 Answer::ok("cleared".into(), true)
             }
             ControlKind::SetScope => match r.scope() {
@@ -184,7 +178,7 @@ impl Control {
             if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
-                s.stats.wire(&s.map),
+                s.stats.wire(s.mapper.map()),
             )) {
                 // The client may have gone; anything else is worth a line.
                 eprintln!("voxmap serve: control response not sent: {e:?}");
@@ -200,30 +194,10 @@ fn finish_file_job(done: Done, s: &mut MapState) -> Answer {
         Done::Saved(p, Ok(())) => Answer::ok(format!("saved to {}", p.display()), false),
         Done::Loaded(p, Ok(loaded)) => {
             let (m, carried) = *loaded;
-            if !s.integ.fits_resolution(m.resolution()) {
-                return Answer::err(format!(
-                    "{} not loaded: at its resolution of {} m, max range {} m spans more than {} voxels",
-                    p.display(),
-                    m.resolution(),
-                    s.integ.config().max_range,
-                    voxmap_core::integrate::MAX_RANGE_VOXELS
-                ));
+            match s.load(m, carried) {
+                Ok(()) => Answer::ok(format!("loaded {}", p.display()), true),
+                Err(e) => Answer::err(format!("{} not loaded: {e}", p.display())),
             }
-            if let Some(f) = &s.field {
-                match voxmap_core::field::DistanceField::new(*f.config(), m.resolution()) {
-                    Ok(f) => s.field = Some(f),
-                    Err(e) => {
-                        return Answer::err(format!(
-                            "{} not loaded: the distance field cannot work at its resolution of {} m: {e}",
-                            p.display(),
-                            m.resolution()
-                        ))
-                    }
-                }
-            }
-            s.map = m;
-            s.take_field(carried);
-            Answer::ok(format!("loaded {}", p.display()), true)
         }
         Done::Saved(_, Err(e)) | Done::Loaded(_, Err(e)) => Answer::err(e),
     }

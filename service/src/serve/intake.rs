@@ -11,9 +11,8 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use std::collections::HashMap;
-use voxmap_core::Frame;
-use voxmap_core::WorldPoint;
 use voxmap_ipc::FrameHeader;
+use voxmap_map::{Frame, FrameStamp};
 
 type FrameSample = Sample<ipc::Service, [[f32; 3]], FrameHeader>;
 
@@ -105,9 +104,16 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
                 pose,
                 points: sample.payload(),
             };
-            s.integ
-                .integrate(&mut s.map, &frame)
-                .map(|rep| (pose, rep))
+            let stamp = FrameStamp {
+                sequence: h.sequence,
+                stamp_ns: if h.timestamp_ns != 0 {
+                    h.timestamp_ns
+                } else {
+                    now_ns()
+                },
+            };
+            s.mapper
+                .insert(&frame, stamp)
                 .map_err(|e| (e.kind(), e.to_string()))
         });
     drop(sample);
@@ -126,24 +132,15 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
             }
             false
         }
-        Ok((pose, rep)) => {
+        Ok(rep) => {
+            let (rep, field) = (rep.integrate, rep.field);
             stats.integrated += 1;
             stats.points += rep.points;
             stats.skipped_points += rep.skipped_nonfinite;
             let ms = rep.times.total().as_secs_f64() * 1e3;
             Stats::record(&mut stats.integrate_ms, ms);
-            s.sequence = h.sequence;
-            s.stamp_ns = if h.timestamp_ns != 0 {
-                h.timestamp_ns
-            } else {
-                now_ns()
-            };
-            s.sensor = pose.translation.vector.into();
-            if let Some(f) = &mut s.field {
-                let (integ, map) = (&s.integ, &s.map);
-                let sensor = WorldPoint::from(pose.translation.vector);
-                let r = integ.install(|| f.update(map, rep.bounds, Some(sensor)));
-                Stats::record(&mut s.stats.esdf_ms, r.time.as_secs_f64() * 1e3);
+            if let Some(r) = field {
+                Stats::record(&mut stats.esdf_ms, r.time.as_secs_f64() * 1e3);
             }
             true
         }

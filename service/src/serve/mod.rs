@@ -16,12 +16,13 @@ use iceoryx2::prelude::*;
 use iceoryx2::waitset::WaitSetRunResult;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use voxmap_core::field::DistanceField;
-use voxmap_core::io::mapfile;
-use voxmap_core::snapshot::Scope;
-use voxmap_core::{Integrator, OccupancyMap, WorldPoint};
 use voxmap_ipc::ports::{self, open_control, open_event, open_frames, open_snapshots, qos};
 use voxmap_ipc::{MapScope, ServiceNames};
+use voxmap_map::field::DistanceField;
+use voxmap_map::io::mapfile;
+use voxmap_map::mapper::{FieldAfterLoad, ReplaceError};
+use voxmap_map::snapshot::Scope;
+use voxmap_map::{Mapper, OccupancyMap};
 
 #[derive(Args, Debug, Clone)]
 pub struct ServeArgs {
@@ -105,56 +106,58 @@ impl ServeArgs {
 
 /// The map and what the loop knows about it.
 pub(crate) struct MapState {
-    map: OccupancyMap,
-    integ: Integrator,
-    /// Sequence number of the last integrated frame (0 before any).
-    sequence: u64,
-    /// Time stamp of the data in the map: the last integrated frame's (or now, before any).
-    stamp_ns: u64,
-    /// The last integrated frame's sensor position, for `MapScope::AroundSensor`.
-    sensor: [f64; 3],
+    mapper: Mapper,
+    /// When the service started: the time stamp of its snapshots before any frame.
+    started_ns: u64,
     scope: MapScope,
     stats: stats::Stats,
-    /// The distance field kept beside the map, with `[esdf] enabled`.
-    field: Option<DistanceField>,
 }
 
 impl MapState {
-    /// After a load: the field the file carried when it has this service's settings (no
-    /// rebuild), else one built anew.
-    fn take_field(&mut self, carried: Option<DistanceField>) {
-        match (&self.field, carried) {
-            (Some(ours), Some(f))
-                if f.config() == ours.config() && f.resolution() == self.map.resolution() =>
-            {
-                eprintln!(
-                    "voxmap serve: distance field read with the map ({} voxels in the band)",
-                    f.band_voxels()
-                );
-                self.field = Some(f);
-            }
-            _ => self.rebuild_field(),
+    /// Sequence number of the last integrated frame (0 before any).
+    fn sequence(&self) -> u64 {
+        self.mapper.last_frame().sequence
+    }
+
+    /// Time stamp of the data in the map: the last integrated frame's (or the service's
+    /// start, before any).
+    fn stamp_ns(&self) -> u64 {
+        match self.mapper.sensor() {
+            Some(_) => self.mapper.last_frame().stamp_ns,
+            None => self.started_ns,
         }
     }
 
-    /// Build the distance field anew for the map as it is (after a load or a clear).
-    fn rebuild_field(&mut self) {
-        if let Some(f) = &mut self.field {
-            let sensor = Some(WorldPoint::from(self.sensor));
-            let (integ, map) = (&self.integ, &self.map);
-            let r = integ.install(|| f.rebuild(map, sensor));
-            eprintln!(
+    /// The last integrated frame's sensor position, for `MapScope::AroundSensor`.
+    fn sensor(&self) -> [f64; 3] {
+        self.mapper.sensor().map_or([0.0; 3], |p| p.coords.into())
+    }
+
+    /// Put a loaded map in, with the field its file carried; logs what became of the
+    /// distance field.
+    fn load(
+        &mut self,
+        map: OccupancyMap,
+        carried: Option<DistanceField>,
+    ) -> Result<(), ReplaceError> {
+        match self.mapper.replace_map(map, carried)?.1 {
+            FieldAfterLoad::None => {}
+            FieldAfterLoad::Carried { band_voxels } => eprintln!(
+                "voxmap serve: distance field read with the map ({band_voxels} voxels in the band)"
+            ),
+            FieldAfterLoad::Rebuilt(r) => eprintln!(
                 "voxmap serve: distance field built in {:.1} ms ({} tiles, {} voxels in the band)",
                 r.time.as_secs_f64() * 1e3,
                 r.tiles,
-                f.band_voxels()
-            );
+                self.mapper.field().map_or(0, |f| f.band_voxels())
+            ),
         }
+        Ok(())
     }
 
     /// What the next snapshot covers.
     fn snapshot_scope(&self) -> Scope {
-        match self.scope.bounds(self.sensor) {
+        match self.scope.bounds(self.sensor()) {
             None => Scope::Whole,
             Some((min, max)) => Scope::Box { min, max },
         }
@@ -207,23 +210,17 @@ pub fn run(a: ServeArgs) -> Result<()> {
             .create()
             .map_err(|e| anyhow!(e).context("creating the control server"))?,
     )?;
-    let (map, carried) = match &a.load {
-        Some(p) => mapfile::load_map_with_field(p)?,
-        None => (cfg.new_map()?, None),
-    };
     let mut s = MapState {
-        field: cfg.field(map.resolution())?,
-        map,
-        integ: cfg.integrator()?,
-        sequence: 0,
-        stamp_ns: now_ns(),
-        sensor: [0.0; 3],
+        mapper: cfg.mapper()?,
+        started_ns: now_ns(),
         scope: MapScope::Whole,
         stats: stats::Stats::default(),
     };
-    s.stats.kernel = s.integ.kernel().name();
-    if a.load.is_some() {
-        s.take_field(carried);
+    s.stats.kernel = s.mapper.integrator().kernel().name();
+    if let Some(p) = &a.load {
+        let (map, carried) = mapfile::load_map_with_field(p)?;
+        s.load(map, carried)
+            .with_context(|| format!("{} not loaded", p.display()))?;
     }
     // After the integration pool exists, so only this (I/O) thread runs real-time.
     if cfg.rt_priority > 0 {
@@ -301,7 +298,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         }
         if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
-            eprintln!("voxmap serve: {}", s.stats.log_line(&s.map));
+            eprintln!("voxmap serve: {}", s.stats.log_line(s.mapper.map()));
             if let Some(b) = &bridge {
                 eprintln!("voxmap serve: {}", b.counters.line());
             }
@@ -320,11 +317,14 @@ pub fn run(a: ServeArgs) -> Result<()> {
     control.finish(&mut s);
     out.publish(&mut s);
     if let Some(p) = &a.save_on_exit {
-        mapfile::save_map_with_field(&s.map, s.field.as_ref(), p)
+        mapfile::save_map_with_field(s.mapper.map(), s.mapper.field(), p)
             .with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
-    eprintln!("voxmap serve: exiting; {}", s.stats.log_line(&s.map));
+    eprintln!(
+        "voxmap serve: exiting; {}",
+        s.stats.log_line(s.mapper.map())
+    );
     if let Some((end, line)) = bridge_end {
         eprintln!("voxmap serve: exiting; {line}");
         end.context("the ROS 2 bridge failed")?;
@@ -333,7 +333,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
 }
 
 fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
-    let field = match &s.field {
+    let field = match s.mapper.field() {
         None => String::new(),
         Some(f) => format!(
             ", distance field to {} m (unknown {}{})",
@@ -348,11 +348,11 @@ fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
         "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}{field}; frames on '{}'",
         cfg.prefix,
         cfg.map,
-        s.map.resolution(),
+        s.mapper.map().resolution(),
         cfg.max_range,
         cfg.ray_mode().name(),
         cfg.threads(),
-        s.integ.kernel().name(),
+        s.mapper.integrator().kernel().name(),
         cfg.intake,
         names.frames
     );

@@ -9,8 +9,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use std::time::Instant;
-use voxmap_core::snapshot::{Meta, Plan};
 use voxmap_ipc::{SnapshotHeader, SNAPSHOT_WIRE_VERSION};
+use voxmap_map::snapshot::Meta;
 
 /// The snapshot publisher and its wake-up.
 pub(super) struct SnapshotOut {
@@ -27,37 +27,33 @@ impl SnapshotOut {
     pub fn publish(&self, s: &mut MapState) {
         if let Err(e) = self.try_publish(s) {
             s.stats.publish_failures += 1;
-            eprintln!("voxmap serve: snapshot {} not published: {e:#}", s.sequence);
+            eprintln!(
+                "voxmap serve: snapshot {} not published: {e:#}",
+                s.sequence()
+            );
         }
     }
 
     fn try_publish(&self, s: &mut MapState) -> Result<()> {
         let t = Instant::now();
         let meta = Meta {
-            sequence: s.sequence,
-            timestamp_ns: s.stamp_ns,
+            sequence: s.sequence(),
+            timestamp_ns: s.stamp_ns(),
             with_values: self.with_values,
         };
         let scope = s.snapshot_scope();
-        let (integ, map, field) = (&s.integ, &s.map, &s.field);
-        let plan = integ.install(|| {
-            let plan = Plan::new(map, scope, meta);
-            match field {
-                Some(f) => plan.with_field(f),
-                None => plan,
-            }
-        });
+        let plan = s.mapper.snapshot(scope, meta);
         let n = plan.encoded_len();
         let mut sample = self
             .publisher
             .loan_slice(n)
             .map_err(|e| anyhow!(e).context(format!("loaning {n} bytes for a snapshot")))?;
         let payload = sample.payload_mut();
-        integ.install(|| plan.write(payload))?;
+        s.mapper.write_snapshot(&plan, payload)?;
         *sample.user_header_mut() = SnapshotHeader {
             version: SNAPSHOT_WIRE_VERSION,
             reserved: 0,
-            sequence: s.sequence,
+            sequence: s.sequence(),
             len: n as u64,
             published_ns: now_ns(),
         };
@@ -68,7 +64,7 @@ impl SnapshotOut {
             .notify()
             .map_err(|e| anyhow!(e).context("waking the planners"))?;
         s.stats.last_snapshot_bytes = n;
-        s.stats.sequence = s.sequence;
+        s.stats.sequence = s.sequence();
         s.stats.last_encode_ms = t.elapsed().as_secs_f64() * 1e3;
         Ok(())
     }

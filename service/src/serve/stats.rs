@@ -1,8 +1,8 @@
 //! The service's counters: for the periodic log line and the `stats` control request.
 
 use crate::quantile::percentile;
-use voxmap_core::OccupancyMap;
 use voxmap_ipc::StatsWire;
+use voxmap_map::OccupancyMap;
 
 /// Counters for the periodic log line and the `stats` request.
 #[derive(Default, Debug)]

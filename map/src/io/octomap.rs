@@ -21,8 +21,8 @@
 //! The writer prunes as OctoMap does: eight known children of one state become one leaf.
 
 use crate::coord::VoxelCoord;
-use crate::map::LeafOccupancy;
 use crate::mask::Mask512;
+use crate::occupancy::LeafOccupancy;
 
 const HEADER_LINE: &str = "# Octomap OcTree binary file";
 /// Tree depth: leaves at depth 16 are voxels.

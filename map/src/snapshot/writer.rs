@@ -8,8 +8,8 @@ use super::record;
 use crate::coord::{VoxelCoord, WorldPoint};
 use crate::field::offset_len2;
 use crate::grid::{block_origin, leaf_box_mask, leaf_in_block, Leaf, LEAF_VOXELS};
-use crate::map::OccupancyMap;
 use crate::mask::Mask512;
+use crate::occupancy::OccupancyMap;
 use crate::tree::{MORTON, UNMORTON};
 use rayon::prelude::*;
 

@@ -17,8 +17,8 @@
 use crate::coord::VoxelCoord;
 use crate::field::{DistanceField, FieldConfig, LeafBand};
 use crate::grid::LEAF_VOXELS;
-use crate::map::OccupancyMap;
 use crate::model::SensorModel;
+use crate::occupancy::OccupancyMap;
 use crate::snapshot::{SnapshotError, SnapshotView};
 use serde::{Deserialize, Serialize};
 use std::io::Write;

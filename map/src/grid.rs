@@ -80,7 +80,7 @@ pub struct Leaf<V> {
     pub active: Mask512,
     /// A subset of `active` that the grid's owner keeps in step with the values; the grid
     /// itself never writes it. An occupancy map marks its occupied voxels
-    /// ([`crate::map::OccupancyMap`]), so that readers of occupancy (snapshots, counts)
+    /// ([`crate::occupancy::OccupancyMap`]), so that readers of occupancy (snapshots, counts)
     /// read two masks per leaf, not its 512 values.
     pub marked: Mask512,
     pub values: [V; LEAF_VOXELS],
@@ -625,7 +625,7 @@ impl Internal {
 /// ray, across a box) skip the root hash and the internal node. One per thread.
 ///
 /// ```
-/// use voxmap_core::{grid::Grid, coord::VoxelCoord};
+/// use voxmap_map::{grid::Grid, coord::VoxelCoord};
 /// let mut g = Grid::<i8>::new();
 /// g.set(VoxelCoord::new(1, 2, 3), 5);
 /// let mut acc = g.accessor();

@@ -111,7 +111,8 @@ pub(super) fn block_word(b: &[u8; BLOCK_SIZE], w: usize) -> u64 {
 }
 
 /// A sink writing states as their codes (`state as u8`) into a byte buffer, in order.
-pub(super) struct StateCodes<'o>(pub(super) std::slice::IterMut<'o, u8>);
+#[doc(hidden)]
+pub struct StateCodes<'o>(pub std::slice::IterMut<'o, u8>);
 
 impl Extend<VoxelState> for StateCodes<'_> {
     fn extend<I: IntoIterator<Item = VoxelState>>(&mut self, states: I) {
@@ -133,18 +134,8 @@ pub(super) struct LeafRef {
 
 /// A validated snapshot over borrowed bytes (e.g. a shared-memory sample): no copy, no
 /// deserialization. Construction checks every offset, length and count; afterwards each
-/// query is O(1) per voxel and cannot panic, whatever the bytes held.
-///
-/// ```
-/// use voxmap_core::{OccupancyMap, SensorModel, VoxelCoord, VoxelState};
-/// use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
-/// let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-/// map.set_value(VoxelCoord::new(3, -2, 7), 100);
-/// let bytes = Plan::new(&map, Scope::Whole, Meta::default()).to_vec();
-/// let view = SnapshotView::open(&bytes).unwrap();
-/// assert_eq!(view.state(VoxelCoord::new(3, -2, 7)), VoxelState::Occupied);
-/// assert_eq!(view.state(VoxelCoord::new(0, 0, 0)), VoxelState::Unknown);
-/// ```
+/// query is O(1) per voxel and cannot panic, whatever the bytes held. (A map written into
+/// a snapshot and read back: the example of `voxmap_map::snapshot`.)
 #[derive(Clone, Copy)]
 pub struct SnapshotView<'a> {
     bytes: &'a [u8],
@@ -524,7 +515,8 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// Every stored leaf as (origin, entry), in leaf order.
-    pub(super) fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + 'a {
+    #[doc(hidden)]
+    pub fn stored_leaves(&self) -> impl Iterator<Item = (VoxelCoord, LeafEntry)> + 'a {
         let v = *self;
         self.blocks.iter().flat_map(move |b| {
             let origin = VoxelCoord::from_array(block_origin_of(b));
@@ -604,7 +596,8 @@ impl<'a> SnapshotView<'a> {
     }
 
     /// `None`: outside the index space, unknown. Not `staged`: one [`Self::state`] each.
-    pub(super) fn states_of(
+    #[doc(hidden)]
+    pub fn states_of(
         &self,
         voxels: impl ExactSizeIterator<Item = Option<VoxelCoord>>,
         staged: bool,

@@ -4,7 +4,7 @@
 
 /// Ask for the cache line holding `items[i]`, if there is one, to be loaded.
 #[inline(always)]
-pub(crate) fn prefetch<T>(items: &[T], i: usize) {
+pub fn prefetch<T>(items: &[T], i: usize) {
     #[cfg(target_arch = "x86_64")]
     if let Some(item) = items.get(i) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
@@ -26,7 +26,7 @@ pub(crate) fn prefetch<T>(items: &[T], i: usize) {
 /// from a loop with several stores a line, few of those fetches overlap, where one store a
 /// line keeps many in flight. Overwrites what `items` held, so only for a buffer that is
 /// about to be written anyway.
-pub(crate) fn own_lines<T: bytemuck::Zeroable>(items: &mut [T]) {
+pub fn own_lines<T: bytemuck::Zeroable>(items: &mut [T]) {
     const LINE: usize = 64;
     let size = std::mem::size_of::<T>();
     if size == 0 || items.is_empty() {

@@ -4,7 +4,7 @@
 //! and each cell's bricks get their leaves in parallel, one cell per internal node.
 
 use super::marks::{FrameMarks, CELL_LOG2};
-use crate::map::OccupancyMap;
+use crate::occupancy::OccupancyMap;
 use rayon::prelude::*;
 
 /// Give every touched brick its map leaf; returns (leaf index, (slot, leaf is new)) sorted

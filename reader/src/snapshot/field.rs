@@ -231,23 +231,8 @@ enum Cell {
 
 /// The distance field of a snapshot, queried in place (from
 /// [`SnapshotView::distance_field`]). Distances are in metres between voxel centres,
-/// exact for the voxels (see [`crate::field`]); `distance_at` interpolates them.
-///
-/// ```
-/// use voxmap_core::{OccupancyMap, SensorModel, VoxelCoord, WorldPoint};
-/// use voxmap_core::field::{DistanceField, FieldConfig};
-/// use voxmap_core::snapshot::{Meta, Plan, Scope, SnapshotView};
-/// let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-/// for x in -10..10 { map.set_value(VoxelCoord::new(x, 0, 0), -10); }
-/// map.set_value(VoxelCoord::new(0, 0, 0), 100);
-/// let mut field = DistanceField::new(FieldConfig::default(), 0.1).unwrap();
-/// field.rebuild(&map, None);
-/// let bytes = Plan::new(&map, Scope::Whole, Meta::default()).with_field(&field).to_vec();
-/// let view = SnapshotView::open(&bytes).unwrap();
-/// let f = view.distance_field().unwrap();
-/// assert!((f.distance(VoxelCoord::new(5, 0, 0)).unwrap() - 0.5).abs() < 1e-12);
-/// assert_eq!(f.distance(VoxelCoord::new(0, 40, 0)), None); // nothing known there
-/// ```
+/// exact for the voxels (see [`crate::field`]); `distance_at` interpolates them. (A field
+/// written into a snapshot and read back: the example of `voxmap_map::snapshot`.)
 #[derive(Clone, Copy, Debug)]
 pub struct FieldView<'a> {
     view: SnapshotView<'a>,

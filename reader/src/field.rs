@@ -9,23 +9,11 @@
 //! distance the one with the smallest dx, then dy, then the lower one is kept, so the
 //! field is a function of the obstacles alone, whatever computed it.
 //!
-//! This module holds what the writer and the reader share ([`FieldConfig`],
-//! [`UnknownPolicy`]); with the `map` feature, [`DistanceField`] builds and maintains a
-//! field beside an [`crate::OccupancyMap`] (`esdf.rs`, on tiles transformed by `tile.rs`).
-//! Snapshots carry it (`snapshot::field`), where planners query it in place.
+//! This module holds what the map's writer and a planner's reader share ([`FieldConfig`],
+//! [`UnknownPolicy`]); the map crate's `DistanceField` builds and maintains a field beside
+//! a map. Snapshots carry it ([`crate::snapshot::field`]), where planners query it in place.
 
 use crate::coord::ConfigError;
-
-#[cfg(feature = "map")]
-mod esdf;
-#[cfg(feature = "map")]
-pub(crate) mod tile;
-
-#[cfg(all(test, feature = "map"))]
-mod tests;
-
-#[cfg(feature = "map")]
-pub use esdf::{DistanceField, FieldReport, LeafBand};
 
 /// Largest band radius in voxels: offsets are stored as `i8`, and the transform's keys
 /// hold a squared distance below `2 * 63²` in 13 bits.

@@ -12,8 +12,8 @@
 use super::tile::{self, Region, Scratch, TILE, TILE_LOG2};
 use super::FieldConfig;
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
-use crate::map::OccupancyMap;
 use crate::mask::Mask512;
+use crate::occupancy::OccupancyMap;
 use crate::tree::{leaf_offset, leaf_origin, LEAF_VOXELS};
 use hashbrown::HashMap;
 use rayon::prelude::*;
@@ -111,8 +111,8 @@ fn table_bytes<K, V>(m: &HashMap<K, V>) -> usize {
 /// A distance field over an [`OccupancyMap`] (see the module doc of [`crate::field`]).
 ///
 /// ```
-/// use voxmap_core::{OccupancyMap, SensorModel, VoxelCoord};
-/// use voxmap_core::field::{DistanceField, FieldConfig};
+/// use voxmap_map::{OccupancyMap, SensorModel, VoxelCoord};
+/// use voxmap_map::field::{DistanceField, FieldConfig};
 /// let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
 /// map.set_value(VoxelCoord::new(0, 0, 0), 100);      // one occupied voxel
 /// map.set_value(VoxelCoord::new(3, 4, 0), -10);      // a free one, 0.5 m away

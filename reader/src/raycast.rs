@@ -30,7 +30,8 @@ use crate::coord::VoxelCoord;
 /// the longest walk (65536 voxels per axis, a snapshot's `first_hit`; integration rays are
 /// at most 8192) stays below 1e-13 of the ray.
 const T_BITS: u32 = 60;
-pub(crate) const T_ONE: f64 = (1u64 << T_BITS) as f64;
+#[doc(hidden)]
+pub const T_ONE: f64 = (1u64 << T_BITS) as f64;
 
 /// The state of one traversal. Call [`Dda::step`] exactly [`Dda::steps`] times.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -57,7 +58,8 @@ pub struct Dda {
 
 /// Per-axis setup: (step, first crossing, delta, last crossing, crossings).
 #[inline(always)]
-pub(crate) fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
+#[doc(hidden)]
+pub fn axis(o: f64, e: f64) -> (i32, i32, u64, u64, u64, u32) {
     let s = o.floor();
     let t = e.floor();
     let n = (t as i64 - s as i64).unsigned_abs() as u32;
@@ -257,7 +259,8 @@ impl Dda {
     /// The state after `made[a]` more crossings of each axis `a`: the state [`Dda::step`]s
     /// from this one reach if those are the crossings they take first (each count at most
     /// the axis's crossings left).
-    pub(crate) fn after(&self, made: [u64; 3]) -> Dda {
+    #[doc(hidden)]
+    pub fn after(&self, made: [u64; 3]) -> Dda {
         let [cx, cy, cz] = made;
         // After its last crossing an axis is done, as `step` marks it.
         let next = |t0: u64, d: u64, last: u64, c: u64| {
@@ -282,7 +285,8 @@ impl Dda {
 
     /// Per axis: the next crossing (`u64::MAX` for none), between crossings, the last
     /// crossing and the direction.
-    pub(crate) fn axes(&self) -> ([u64; 3], [u64; 3], [u64; 3], [i32; 3]) {
+    #[doc(hidden)]
+    pub fn axes(&self) -> ([u64; 3], [u64; 3], [u64; 3], [i32; 3]) {
         (
             [self.tx, self.ty, self.tz],
             [self.dx, self.dy, self.dz],
@@ -300,7 +304,8 @@ impl Dda {
 /// The `t` of an axis's `k`-th crossing (`k >= 1`; the first at `t0`, then every `d`),
 /// `u64::MAX` if the axis has fewer crossings (its last at `last`).
 #[inline]
-pub(crate) fn kth_crossing(t0: u64, d: u64, last: u64, k: u64) -> u64 {
+#[doc(hidden)]
+pub fn kth_crossing(t0: u64, d: u64, last: u64, k: u64) -> u64 {
     let t = t0.saturating_add(d.saturating_mul(k - 1));
     if t > last {
         u64::MAX
@@ -312,7 +317,8 @@ pub(crate) fn kth_crossing(t0: u64, d: u64, last: u64, k: u64) -> u64 {
 /// How many of an axis's crossings (the first at `t0`, `u64::MAX` for none, then every
 /// `d` up to `last`) come at `t` or before.
 #[inline]
-pub(crate) fn crossings_by(t0: u64, d: u64, last: u64, t: u64) -> u64 {
+#[doc(hidden)]
+pub fn crossings_by(t0: u64, d: u64, last: u64, t: u64) -> u64 {
     if t0 == u64::MAX || d == 0 || t0 > t.min(last) {
         0
     } else {

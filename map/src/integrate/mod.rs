@@ -33,8 +33,8 @@
 //! bricks only near the sensor.
 
 use crate::coord::{ConfigError, MAX_VOXEL_INDEX};
-use crate::kernel::{Kernel, Kernels};
-use crate::map::OccupancyMap;
+use crate::kernel::{Kernel, KernelError, Kernels};
+use crate::occupancy::OccupancyMap;
 use marks::FrameMarks;
 use nalgebra::{Isometry3, Point3};
 use prepare::{Extent, Ray, Sides};
@@ -159,6 +159,40 @@ impl std::fmt::Display for IntegrateError {
 
 impl std::error::Error for IntegrateError {}
 
+/// Why an integrator (or a [`crate::Mapper`]) could not be set up.
+#[derive(Clone, Debug, PartialEq)]
+#[non_exhaustive]
+pub enum SetupError {
+    /// A setting is out of its range.
+    Config(ConfigError),
+    /// `VOXMAP_KERNEL` names a kernel this build or CPU lacks.
+    Kernel(KernelError),
+}
+
+impl std::fmt::Display for SetupError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Config(e) => write!(f, "{e}"),
+            Self::Kernel(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl std::error::Error for SetupError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Config(e) => Some(e),
+            Self::Kernel(e) => Some(e),
+        }
+    }
+}
+
+impl From<ConfigError> for SetupError {
+    fn from(e: ConfigError) -> Self {
+        Self::Config(e)
+    }
+}
+
 impl IntegrateError {
     /// A short name of the reason, for counting.
     pub fn kind(&self) -> &'static str {
@@ -239,20 +273,22 @@ pub struct Integrator {
 }
 
 impl Integrator {
-    pub fn new(cfg: IntegratorConfig) -> Result<Self, ConfigError> {
+    pub fn new(cfg: IntegratorConfig) -> Result<Self, SetupError> {
         if cfg.threads == 0 || cfg.threads > 1024 {
             return Err(ConfigError::Invalid {
                 name: "threads",
                 value: cfg.threads as f64,
                 why: "must be 1..=1024",
-            });
+            }
+            .into());
         }
         if !(cfg.max_range.is_finite() && cfg.max_range > 0.0) {
             return Err(ConfigError::Invalid {
                 name: "max_range",
                 value: cfg.max_range,
                 why: "must be finite and > 0",
-            });
+            }
+            .into());
         }
         match cfg.mode {
             RayMode::Subsample { factor } if !(1..=64).contains(&factor) => {
@@ -260,18 +296,20 @@ impl Integrator {
                     name: "subsample_factor",
                     value: factor as f64,
                     why: "must be 1..=64",
-                })
+                }
+                .into())
             }
             RayMode::Bundle { threshold: 0 } => {
                 return Err(ConfigError::Invalid {
                     name: "bundle_threshold",
                     value: 0.0,
                     why: "must be >= 1",
-                })
+                }
+                .into())
             }
             _ => {}
         }
-        let kernels = Kernels::process().map_err(ConfigError::Kernel)?;
+        let kernels = Kernels::process().map_err(SetupError::Kernel)?;
         let cpus = if cfg.pin_threads {
             crate::cpus::allowed()
         } else {

@@ -59,7 +59,6 @@ fn gather_bytes(words: &[u64; 8], y: usize) -> u64 {
 /// The mask's rows along `axis` (0, 1, 2), as 64 bytes held in 8 words (row `r` is byte
 /// `r & 7` of word `r >> 3`).
 #[inline(always)]
-#[cfg(feature = "map")]
 fn to_rows(m: &Mask512, axis: u8) -> [u64; 8] {
     match axis {
         0 => m.words,
@@ -93,7 +92,6 @@ fn nonzero_bytes(v: u64) -> u8 {
 
 /// The presence word of `rows`.
 #[inline(always)]
-#[cfg(feature = "map")]
 fn presence(rows: &[u64; 8]) -> u64 {
     rows.iter()
         .enumerate()
@@ -149,7 +147,6 @@ impl Shifts {
 
 /// Axis and complement of a kind >= 2.
 #[inline]
-#[cfg(feature = "map")]
 fn rows_kind(kind: u8) -> (u8, bool) {
     (axis_of(kind), kind >= 5)
 }
@@ -232,8 +229,7 @@ fn smallest(rows: &[u32; 6]) -> Choice {
 /// the length written at the start of `out`. With `avx512`, rows are compressed with one
 /// VBMI2 store.
 #[inline(always)]
-#[cfg(feature = "map")]
-pub(crate) fn encode(
+pub fn encode(
     known: &Mask512,
     known_kind: u8,
     occupied: &Mask512,
@@ -289,7 +285,6 @@ pub(crate) fn encode(
 /// of the random 500k 60 m map took 277-305 ms against 314-389 (minimum of 12 encodes,
 /// three alternated probe runs).
 #[inline(always)]
-#[cfg(feature = "map")]
 fn compress_rows(
     rows: &[u64; 8],
     present: u64,
@@ -315,17 +310,15 @@ fn compress_rows(
 }
 
 /// Proof that the CPU has AVX-512F and VBMI2, so that the record encoder may compress rows
-/// with one store. Made by the AVX-512 snapshot encoder (`writer::encode_piece_avx512`),
-/// which enables those features, and by the tests after checking the CPU.
+/// with one store. Made by the map crate's AVX-512 snapshot encoder, which enables those
+/// features, and by the tests after checking the CPU.
 #[derive(Clone, Copy, Debug)]
-#[cfg(feature = "map")]
-pub(crate) struct Avx512Encode(());
+pub struct Avx512Encode(());
 
-#[cfg(feature = "map")]
 impl Avx512Encode {
     /// # Safety
     /// The CPU must have AVX-512F and VBMI2.
-    pub(crate) unsafe fn new() -> Avx512Encode {
+    pub unsafe fn new() -> Avx512Encode {
         Avx512Encode(())
     }
 }
@@ -334,7 +327,6 @@ impl Avx512Encode {
 /// The CPU must have AVX-512F and VBMI2, and `out` must hold `present.count_ones()` bytes.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vbmi2")]
-#[cfg(feature = "map")]
 unsafe fn compress_rows_vbmi2(rows: &[u64; 8], present: u64, out: &mut [u8]) -> usize {
     use std::arch::x86_64::*;
     // SAFETY: the load reads the 64 bytes of `rows`; the compressing store writes
@@ -572,13 +564,20 @@ mod tests {
                 .for_each(|(o, k)| *o &= k);
             masks.push((known, occ));
         }
-        let avx512 = if crate::kernel::Kernel::Avx512.supported() {
-            // SAFETY: the AVX-512 kernel's features include AVX-512F and VBMI2.
+        #[cfg(target_arch = "x86_64")]
+        let vbmi2 = std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512vbmi2");
+        #[cfg(not(target_arch = "x86_64"))]
+        let vbmi2 = false;
+        let avx512 = if vbmi2 {
+            // SAFETY: the CPU has AVX-512F and VBMI2 (checked above).
             Some(unsafe { Avx512Encode::new() })
         } else {
-            crate::kernel::skip_notice(format_args!(
-                "the AVX-512 record encoder is skipped: this CPU lacks the AVX-512 kernel"
-            ));
+            use std::io::Write;
+            let _ = writeln!(
+                std::io::stderr(),
+                "NOTICE: the AVX-512 record encoder is skipped: this CPU lacks AVX-512 VBMI2"
+            );
             None
         };
         for (known, occ) in masks {

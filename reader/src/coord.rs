@@ -71,7 +71,8 @@ pub const MAX_VOXEL_INDEX: f64 = (1u32 << 30) as f64;
 /// Points closer than this (in voxel units) to a voxel face count as lying on it. This
 /// absorbs the decimal rounding of `x / resolution` (2.3 / 0.1 = 22.999999999999996)
 /// without affecting any physically meaningful position.
-pub(crate) const FACE_SNAP: f64 = 1e-9;
+#[doc(hidden)]
+pub const FACE_SNAP: f64 = 1e-9;
 
 /// Errors in grid or sensor-model parameters.
 #[derive(Clone, Debug, PartialEq)]
@@ -85,8 +86,6 @@ pub enum ConfigError {
         value: f64,
         why: &'static str,
     },
-    /// `VOXMAP_KERNEL` names a kernel this build or CPU lacks.
-    Kernel(crate::kernel::KernelError),
 }
 
 impl std::fmt::Display for ConfigError {
@@ -101,7 +100,6 @@ impl std::fmt::Display for ConfigError {
             ConfigError::Invalid { name, value, why } => {
                 write!(f, "{name} = {value} is invalid: {why}")
             }
-            ConfigError::Kernel(e) => write!(f, "{e}"),
         }
     }
 }
