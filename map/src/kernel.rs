@@ -18,8 +18,8 @@
 use crate::field::tile::{self, Region, Scratch};
 use crate::grid::Leaf;
 use crate::integrate::marks::{FrameMarks, Slot};
-use crate::integrate::prepare::{self, ChunkOrder, ExtentSum, Ray, RayMaker, Sides};
-use crate::integrate::thin::{self, CellBox, CellKeys, Chooser};
+use crate::integrate::ray::{self, CellKeys, ChunkOrder, ExtentSum, Ray, RayMaker, Sides};
+use crate::integrate::select::{self, CellBox, Chooser};
 use crate::integrate::update;
 use crate::integrate::walk::covered::Covered;
 use crate::integrate::walk::dense::{self, DenseBits, DenseBox};
@@ -217,10 +217,10 @@ pub struct Kernels {
     /// The dense walk of `rays[ranges[..]]` into one thread's bit grids; returns voxels on
     /// the rays and, of those, the ones skipped in the covered box.
     pub(crate) walk_dense: WalkDense,
-    /// The sparse walk of a chunk of rays into the frame's brick tables; returns voxels on
+    /// The sparse walk of a chunk of rays into the frame's leaf tables; returns voxels on
     /// the rays.
     pub(crate) walk_sparse: fn(&FrameMarks, [f64; 3], &[Ray]) -> u64,
-    /// One brick's marks observed into its leaf (see `integrate::update::observe_leaf`).
+    /// One leaf's marks observed into the map's leaf (see `integrate::update::observe_leaf`).
     pub(crate) observe_leaf: fn(&mut Leaf<i8>, &Slot, &QuantizedModel, bool) -> u64,
     /// The distance field's three passes over one tile (see `field::tile::passes`).
     pub(crate) field_passes: fn(&mut Scratch, usize, usize, Region),
@@ -293,13 +293,13 @@ static SCALAR: Kernels = Kernels {
 #[cfg(target_arch = "x86_64")]
 static AVX2: Kernels = Kernels {
     kernel: Kernel::Avx2,
-    make_rays: |m, out, pts| unsafe { prepare::avx2::make_rays(m, out, pts) },
-    make_laid_out: |m, sides, pts, out| unsafe { prepare::avx2::make_laid_out(m, sides, pts, out) },
-    extent_of: |origin, rays| unsafe { prepare::avx2::extent_of(origin, rays) },
-    cell_keys: |c, rays, out| unsafe { thin::avx2::keys(c, rays, out) },
-    notes: |b, c, sides, rays, out| unsafe { thin::avx2::notes(b, c, sides, rays, out) },
+    make_rays: |m, out, pts| unsafe { ray::avx2::make_rays(m, out, pts) },
+    make_laid_out: |m, sides, pts, out| unsafe { ray::avx2::make_laid_out(m, sides, pts, out) },
+    extent_of: |origin, rays| unsafe { ray::avx2::extent_of(origin, rays) },
+    cell_keys: |c, rays, out| unsafe { select::avx2::keys(c, rays, out) },
+    notes: |b, c, sides, rays, out| unsafe { select::avx2::notes(b, c, sides, rays, out) },
     make_noted: |how, pts, made, notes, set| unsafe {
-        thin::avx2::make_noted(how, pts, made, notes, set)
+        select::avx2::make_noted(how, pts, made, notes, set)
     },
     walk_dense: |bits, rays, ranges, how| unsafe {
         let (dbox, origin) = (how.dbox, how.origin);
@@ -319,7 +319,7 @@ static AVX2: Kernels = Kernels {
 #[cfg(target_arch = "x86_64")]
 static AVX512: Kernels = Kernels {
     kernel: Kernel::Avx512,
-    make_rays: |m, out, pts| unsafe { prepare::avx512::make_rays(m, out, pts) },
+    make_rays: |m, out, pts| unsafe { ray::avx512::make_rays(m, out, pts) },
     // The fused passes are AVX2's alone: AVX-512 makes its rays eight at a time instead.
     make_laid_out: |_, _, _, _| None,
     extent_of: AVX2.extent_of,

@@ -441,7 +441,7 @@ fn bench_json_has_a_row_per_threads_and_mode_with_the_documented_keys() {
         // A room seen from inside: a small box, walked dense.
         assert_eq!(r["walk"], "dense", "{r}");
         // Thinning is part of the prepare phase, and only a trade-off mode thins.
-        let thin = f(r, "thin_ms");
+        let thin = f(r, "select_ms");
         assert_eq!(thin == 0.0, r["mode"] == "exact", "{r}");
         assert!(thin <= f(r, "prepare_ms"), "{r}");
     }

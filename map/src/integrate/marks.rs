@@ -1,5 +1,5 @@
 //! The per-frame mark tables ([`FrameMarks`]): which voxels this frame's rays crossed
-//! (free) and ended in (hit), per touched brick, kept apart from the map until the update.
+//! (free) and ended in (hit), per touched leaf, kept apart from the map until the update.
 
 use crate::coord::VoxelCoord;
 use crate::grid::{leaf_offset, NodeLeaves};
@@ -10,14 +10,14 @@ use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering::*};
 use std::sync::OnceLock;
 
-/// Bricks per coarse-cell edge (a coarse cell is 16^3 bricks, 128^3 voxels).
+/// Leaves per node edge (a node is 16^3 leaves, 128^3 voxels).
 pub(crate) const CELL_LOG2: u32 = 4;
 pub(crate) const CELL_ENTRIES: usize = 1 << (3 * CELL_LOG2);
 /// Pool chunks of one huge page each (see [`Zeroed`]).
 pub(crate) const SLOT_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<Slot>();
-pub(crate) const ENTRIES_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<CellEntries>();
+pub(crate) const ENTRIES_CHUNK: usize = HUGE_PAGE / std::mem::size_of::<NodeEntries>();
 
-/// Free and hit marks of one 8x8x8 brick, bit `x | y << 3 | z << 6` as in a leaf. Aligned
+/// Free and hit marks of one 8x8x8 leaf, bit `x | y << 3 | z << 6` as in a leaf. Aligned
 /// to 64 bytes, so each of the two is one cache line and the vector walks OR it with
 /// aligned accesses.
 #[derive(bytemuck::Zeroable)]
@@ -70,16 +70,16 @@ impl Slot {
     }
 }
 
-// A coarse cell covers exactly one grid internal node, and both number their 16^3
-// children x | y << 4 | z << 8: walking cells and their entries in order is walking the
+// A node covers exactly one grid internal node, and both number their 16^3
+// children x | y << 4 | z << 8: walking nodes and their entries in order is walking the
 // grid's internal nodes and their children in order.
 const _: () = assert!(3 + CELL_LOG2 == crate::grid::INTERNAL_TOTAL_LOG2);
 
-/// The brick entries of one coarse cell: slot id + 1, or 0.
+/// The leaf entries of one node: slot id + 1, or 0.
 #[derive(bytemuck::Zeroable)]
-pub(crate) struct CellEntries(pub(crate) [AtomicU32; CELL_ENTRIES]);
+pub(crate) struct NodeEntries(pub(crate) [AtomicU32; CELL_ENTRIES]);
 
-impl Zero for CellEntries {
+impl Zero for NodeEntries {
     fn zero(&self) {
         self.0.iter().for_each(|e| e.store(0, Relaxed));
     }
@@ -210,49 +210,49 @@ pub(crate) fn claim(entry: &AtomicU32, alloc: impl FnOnce() -> u32) -> u32 {
     }
 }
 
-/// The per-frame mark tables, one per pool thread: a dense array of coarse cells over the
-/// frame's bounding box, each pointing to the cell's brick entries, each pointing to a
-/// [`Slot`]. Only touched bricks get a slot; slots are contiguous, so the merge pass walks
+/// The per-frame mark tables, one per pool thread: a dense array of nodes over the
+/// frame's bounding box, each pointing to the node's leaf entries, each pointing to a
+/// [`Slot`]. Only touched leaves get a slot; slots are contiguous, so the merge pass walks
 /// a compact list.
 ///
 /// A table is written by one task at a time: [`FrameMarks::cache`] takes one, and dropping
 /// the cache gives it back. So marks are plain read-modify-writes, not locked ones. A
 /// locked OR holds back every later load until its cache line arrives; at 60 m, where most
-/// marks miss cache, that was a quarter of the walk. A brick walked from several tables
-/// has a slot in each, and [`FrameMarks::bricks_in_order`] ORs them into one. The tables
+/// marks miss cache, that was a quarter of the walk. A leaf walked from several tables
+/// has a slot in each, and [`FrameMarks::leaves_in_order`] ORs them into one. The tables
 /// cost little: rayon gives each thread long runs of neighbouring chunks, and rays sorted
-/// by direction, so the tables share bricks only near the sensor.
+/// by direction, so the tables share leaves only near the sensor.
 #[derive(Default)]
 pub(crate) struct FrameMarks {
     pub(crate) lo: VoxelCoord,
-    pub(crate) cells_dim: [usize; 3],
-    /// Coarse cells of the box.
-    pub(crate) ncells: usize,
-    /// Table t's cells are `cells[t * ncells..][..ncells]`: [`CellEntries`] id + 1, or 0.
-    pub(crate) cells: Vec<AtomicU32>,
-    /// Whether each table is held by a live [`BrickCache`].
+    pub(crate) nodes_dim: [usize; 3],
+    /// Coarse nodes of the box.
+    pub(crate) nnodes: usize,
+    /// Table t's nodes are `nodes[t * nnodes..][..nnodes]`: [`NodeEntries`] id + 1, or 0.
+    pub(crate) nodes: Vec<AtomicU32>,
+    /// Whether each table is held by a live [`LeafCache`].
     pub(crate) taken: Vec<AtomicBool>,
     /// Per table, the slot ids its last cache reserved and left unused (start << 32 |
     /// end), for its next: a task's leftover batch is not lost, so that a batch can be
     /// large and only the tables' last batches stay unused. Read and written only by the
     /// table's holder.
     pub(crate) spare: Vec<AtomicU64>,
-    pub(crate) entries: Pool<CellEntries, ENTRIES_CHUNK>,
+    pub(crate) entries: Pool<NodeEntries, ENTRIES_CHUNK>,
     pub(crate) slots: Pool<Slot, SLOT_CHUNK>,
 }
 
 /// A task's hold on one table of the [`FrameMarks`], with its recent lookups: the last
-/// cell's entries, and a direct-mapped cache of bricks (by the low bits of their coordinates) to
-/// slots. Sorted rays revisit the same bricks near the sensor over and over; a hit here
+/// node's entries, and a direct-mapped cache of leaves (by the low bits of their coordinates) to
+/// slots. Sorted rays revisit the same leaves near the sensor over and over; a hit here
 /// skips the table walk.
-pub(crate) struct BrickCache<'a> {
+pub(crate) struct LeafCache<'a> {
     pub(crate) marks: &'a FrameMarks,
     pub(crate) table: usize,
-    pub(crate) cell: usize,
-    pub(crate) cell_entries: Option<u32>,
-    pub(crate) bricks: [Option<(VoxelCoord, &'a Slot)>; BRICK_CACHE],
+    pub(crate) node: usize,
+    pub(crate) node_entries: Option<u32>,
+    pub(crate) leaves: [Option<(VoxelCoord, &'a Slot)>; LEAF_CACHE],
     /// Slot ids this table has reserved and not yet used: one shared counter increment
-    /// per [`SLOT_BATCH`] new bricks instead of one per brick, which at 60 m (a new slot
+    /// per [`SLOT_BATCH`] new leaves instead of one per leaf, which at 60 m (a new slot
     /// every few steps) made the threads fight over the counter's cache line; and each
     /// thread's new slots lie together.
     pub(crate) spare_slots: Range<u32>,
@@ -261,14 +261,14 @@ pub(crate) struct BrickCache<'a> {
 /// Slot ids a table reserves at once.
 pub(crate) const SLOT_BATCH: u32 = 512;
 
-/// Bricks in a [`BrickCache`], 16 per axis (96 KiB, in L2). A chunk's rays cross about
-/// 170 bricks each at 60 m, in a cone wider than 8 bricks: with 512 (8 per axis), the
+/// Leaves in a [`LeafCache`], 16 per axis (96 KiB, in L2). A chunk's rays cross about
+/// 170 leaves each at 60 m, in a cone wider than 8 leaves: with 512 (8 per axis), the
 /// AVX-512 sparse walk's ray phase took 1539-1805 ms against 1267-1367 ms (random 500k
 /// 60 m, one thread, three alternated runs).
-pub(crate) const BRICK_CACHE: usize = 4096;
+pub(crate) const LEAF_CACHE: usize = 4096;
 
 #[inline]
-pub(crate) fn brick_cache_index(b: VoxelCoord) -> usize {
+pub(crate) fn leaf_cache_index(b: VoxelCoord) -> usize {
     ((b.x & 15) | (b.y & 15) << 4 | (b.z & 15) << 8) as usize
 }
 
@@ -278,25 +278,25 @@ impl FrameMarks {
         let tables = tables.max(1);
         self.lo = lo.shr(3 + CELL_LOG2).shl(3 + CELL_LOG2);
         let d = hi.shr(3 + CELL_LOG2) - lo.shr(3 + CELL_LOG2);
-        self.cells_dim = [d.x as usize + 1, d.y as usize + 1, d.z as usize + 1];
-        self.ncells = self.cells_dim.iter().product::<usize>();
-        self.cells.clear();
-        self.cells
-            .resize_with(self.ncells * tables, || AtomicU32::new(0));
+        self.nodes_dim = [d.x as usize + 1, d.y as usize + 1, d.z as usize + 1];
+        self.nnodes = self.nodes_dim.iter().product::<usize>();
+        self.nodes.clear();
+        self.nodes
+            .resize_with(self.nnodes * tables, || AtomicU32::new(0));
         self.taken.clear();
         self.taken.resize_with(tables, || AtomicBool::new(false));
         self.spare.clear();
         self.spare.resize_with(tables, || AtomicU64::new(0));
-        self.entries.reserve(self.ncells * tables);
+        self.entries.reserve(self.nnodes * tables);
         // Each table may leave a batch of reserved ids unused.
         self.slots
-            .reserve((self.ncells * CELL_ENTRIES + SLOT_BATCH as usize) * tables);
+            .reserve((self.nnodes * CELL_ENTRIES + SLOT_BATCH as usize) * tables);
     }
 
     /// Take a free table for one task. Each thread holds at most one cache at a time and
     /// there are as many tables as threads, so one is free; the thread's own index is tried
-    /// first, so that a thread keeps finding its own cells' entries.
-    pub(crate) fn cache(&self) -> BrickCache<'_> {
+    /// first, so that a thread keeps finding its own nodes' entries.
+    pub(crate) fn cache(&self) -> LeafCache<'_> {
         let n = self.taken.len();
         let first = rayon::current_thread_index().unwrap_or(0);
         let mut i = 0;
@@ -314,21 +314,21 @@ impl FrameMarks {
             }
         };
         let spare = self.spare[table].load(Relaxed);
-        BrickCache {
+        LeafCache {
             marks: self,
             table,
-            cell: 0,
-            cell_entries: None,
-            bricks: [None; BRICK_CACHE],
+            node: 0,
+            node_entries: None,
+            leaves: [None; LEAF_CACHE],
             spare_slots: (spare >> 32) as u32..spare as u32,
         }
     }
 
     /// Run `f` with a cache of its own ([`Self::cache`]). Not inlined: a cache holds
-    /// [`BRICK_CACHE`] bricks (96 KiB), which, inlined into a rayon task, sat in each level
+    /// [`LEAF_CACHE`] leaves (96 KiB), which, inlined into a rayon task, sat in each level
     /// of rayon's recursion and overflowed a worker's 2 MiB stack.
     #[inline(never)]
-    pub(crate) fn with_cache<R>(&self, f: impl FnOnce(&mut BrickCache<'_>) -> R) -> R {
+    pub(crate) fn with_cache<R>(&self, f: impl FnOnce(&mut LeafCache<'_>) -> R) -> R {
         f(&mut self.cache())
     }
 
@@ -336,32 +336,32 @@ impl FrameMarks {
         self.slots.get(s)
     }
 
-    /// Every touched brick's slot, per coarse cell in (z, y, x) order of cells and, within
-    /// a cell, of bricks: a cell is one internal node of the map (see `merge`), and its
-    /// bricks are named by their index in it, as the map's nodes name their children. A
-    /// brick with slots in several tables gets the others' marks ORed into the first. The
-    /// cells are read in parallel, and their entries left zero (the frame's marks are then
+    /// Every touched leaf's slot, per node in (z, y, x) order of nodes and, within
+    /// a node, of leaves: a node is one internal node of the map (see `merge`), and its
+    /// leaves are named by their index in it, as the map's nodes name their children. A
+    /// leaf with slots in several tables gets the others' marks ORed into the first. The
+    /// nodes are read in parallel, and their entries left zero (the frame's marks are then
     /// only in the listed slots). Call once a frame, between its phases, when no cache is
     /// live.
-    pub(crate) fn bricks_in_order(&self) -> Vec<NodeLeaves<u32>> {
-        (0..self.ncells)
+    pub(crate) fn leaves_in_order(&self) -> Vec<NodeLeaves<u32>> {
+        (0..self.nnodes)
             .into_par_iter()
-            .map(|c| self.cell_bricks(c))
+            .map(|c| self.node_leaves(c))
             .collect()
     }
 
-    /// The touched bricks of coarse cell `c`, as [`FrameMarks::bricks_in_order`] lists them.
-    fn cell_bricks(&self, c: usize) -> NodeLeaves<u32> {
-        let [dx, dy, _] = self.cells_dim;
-        let (n, tables) = (self.ncells, self.taken.len());
-        let cell = VoxelCoord::new(
+    /// The touched leaves of node `c`, as [`FrameMarks::leaves_in_order`] lists them.
+    fn node_leaves(&self, c: usize) -> NodeLeaves<u32> {
+        let [dx, dy, _] = self.nodes_dim;
+        let (n, tables) = (self.nnodes, self.taken.len());
+        let node = VoxelCoord::new(
             (c % dx) as i32,
             (c / dx % dy) as i32,
             (c / (dx * dy)) as i32,
         );
-        let node = self.lo + cell.shl(3 + CELL_LOG2);
-        let entries: Vec<&CellEntries> = (0..tables)
-            .filter_map(|l| match self.cells[l * n + c].load(Relaxed) {
+        let node = self.lo + node.shl(3 + CELL_LOG2);
+        let entries: Vec<&NodeEntries> = (0..tables)
+            .filter_map(|l| match self.nodes[l * n + c].load(Relaxed) {
                 0 => None,
                 b => Some(self.entries.get(b - 1)),
             })
@@ -369,7 +369,7 @@ impl FrameMarks {
         let children = match entries[..] {
             [] => Vec::new(),
             [only] => {
-                // One table's, as most cells are away from the sensor: no slots to join,
+                // One table's, as most nodes are away from the sensor: no slots to join,
                 // and each entry written whether used or not, counted if used (a coin toss
                 // for the branch predictor in a sparse frame).
                 let ids = &only.0;
@@ -409,43 +409,43 @@ impl FrameMarks {
     }
 
     /// Ready the pools for the next frame, keeping their memory. Everything this frame
-    /// used must be zero again: the tables' entries by [`Self::bricks_in_order`], each
-    /// brick's slot by the update ([`Slot::take`]) or by the slot that absorbed it.
+    /// used must be zero again: the tables' entries by [`Self::leaves_in_order`], each
+    /// leaf's slot by the update ([`Slot::take`]) or by the slot that absorbed it.
     pub(crate) fn clear_used(&mut self) {
         self.slots.restart();
         self.entries.restart();
     }
 }
 
-impl<'a> BrickCache<'a> {
+impl<'a> LeafCache<'a> {
     #[inline]
-    pub(crate) fn slot_for(&mut self, brick: VoxelCoord) -> &'a Slot {
-        let ci = brick_cache_index(brick);
-        if let Some((b, slot)) = self.bricks[ci] {
-            if b == brick {
+    pub(crate) fn slot_for(&mut self, leaf: VoxelCoord) -> &'a Slot {
+        let ci = leaf_cache_index(leaf);
+        if let Some((b, slot)) = self.leaves[ci] {
+            if b == leaf {
                 return slot;
             }
         }
-        let slot = self.slot_lookup(brick);
-        self.bricks[ci] = Some((brick, slot));
+        let slot = self.slot_lookup(leaf);
+        self.leaves[ci] = Some((leaf, slot));
         slot
     }
 
     #[inline(never)]
-    pub(crate) fn slot_lookup(&mut self, brick: VoxelCoord) -> &'a Slot {
+    pub(crate) fn slot_lookup(&mut self, leaf: VoxelCoord) -> &'a Slot {
         let marks = self.marks;
-        let r = brick - marks.lo.shr(3);
+        let r = leaf - marks.lo.shr(3);
         let (x, y, z) = (r.x as usize, r.y as usize, r.z as usize);
-        let cell = (x >> CELL_LOG2)
-            + marks.cells_dim[0] * ((y >> CELL_LOG2) + marks.cells_dim[1] * (z >> CELL_LOG2));
-        let entries = match self.cell_entries {
-            Some(b) if self.cell == cell => b,
+        let node = (x >> CELL_LOG2)
+            + marks.nodes_dim[0] * ((y >> CELL_LOG2) + marks.nodes_dim[1] * (z >> CELL_LOG2));
+        let entries = match self.node_entries {
+            Some(b) if self.node == node => b,
             _ => {
-                let b = claim(&marks.cells[self.table * marks.ncells + cell], || {
+                let b = claim(&marks.nodes[self.table * marks.nnodes + node], || {
                     marks.entries.alloc()
                 });
-                self.cell = cell;
-                self.cell_entries = Some(b);
+                self.node = node;
+                self.node_entries = Some(b);
                 b
             }
         };
@@ -464,10 +464,10 @@ impl<'a> BrickCache<'a> {
         marks.slots.get(s)
     }
 
-    /// OR a brick's free marks into its slot ([`Slot::or_free`]).
+    /// OR a leaf's free marks into its slot ([`Slot::or_free`]).
     #[inline]
-    pub(crate) fn or_free(&mut self, brick: VoxelCoord, bits: &[u64; 8]) {
-        self.slot_for(brick).or_free(bits);
+    pub(crate) fn or_free(&mut self, leaf: VoxelCoord, bits: &[u64; 8]) {
+        self.slot_for(leaf).or_free(bits);
     }
 
     #[inline]
@@ -479,7 +479,7 @@ impl<'a> BrickCache<'a> {
     }
 }
 
-impl Drop for BrickCache<'_> {
+impl Drop for LeafCache<'_> {
     fn drop(&mut self) {
         let Range { start, end } = self.spare_slots;
         self.marks.spare[self.table].store(u64::from(start) << 32 | u64::from(end), Relaxed);

@@ -5,23 +5,23 @@
 //!
 //! | phase | what it does | file | test that pins it down |
 //! |---|---|---|---|
-//! | prepare | points → rays in voxel units (pose, max-range cut, trade-off modes), laid out by the sensor's sides; sorted by direction for the sparse walk | `prepare/` (`thin.rs` for the modes) | `rays_made_in_bulk_equal_rays_made_one_by_one`, `sides_cut_across_the_axis_that_halves_the_frame`, `trade_off_modes_cast_fewer_rays_and_stay_close` |
-//! | walk | exact DDA through every ray's voxels, marks into per-thread grids (dense) or per-frame brick tables (sparse) | `walk/` (one dispatch point, `walk::run`) | `dense_and_sparse_walks_agree` |
-//! | merge | dense grids folded into the brick tables; every touched brick gets its map leaf | `merge.rs`, `walk/dense.rs` (`fold_into`) | `tables_are_held_one_cache_each_and_merge_their_marks` |
+//! | prepare | points → rays in voxel units (pose, max-range cut, ray modes), laid out by the sensor's sides; sorted by direction for the sparse walk | `prepare.rs`, `ray/` (`select/` for the modes) | `rays_made_in_bulk_equal_rays_made_one_by_one`, `sides_cut_across_the_axis_that_halves_the_frame`, `trade_off_modes_cast_fewer_rays_and_stay_close` |
+//! | walk | exact DDA through every ray's voxels, marks into per-thread grids (dense) or per-frame leaf tables (sparse) | `walk/` (one dispatch point, `walk::run`) | `dense_and_sparse_walks_agree` |
+//! | merge | dense grids folded into the mark tables; every touched leaf's marks paired with its map leaf | `merge.rs`, `walk/dense.rs` (`fold_into`) | `tables_are_held_one_cache_each_and_merge_their_marks` |
 //! | update | one log-odds observation per touched voxel, hit beating free | `update/` | `matches_the_reference_update_over_several_frames`, `observing_a_word_at_once_equals_bit_by_bit` |
 //!
 //! The per-frame marks live in `marks.rs` ([`marks::FrameMarks`]). Marks are OR-ed and each
 //! voxel is updated once from its final marks, so the map after a frame does not depend on
 //! the thread count or scheduling (`result_is_identical_for_any_thread_count`).
 //!
-//! Words used with one meaning each here:
-//! - **leaf**: the map's node of 8³ voxels, holding their values ([`crate::grid::Leaf`]);
-//!   **brick**: the same 8³ cube of the per-frame marks, its free and hit bits
-//!   ([`marks::Slot`]), which the merge pairs with its leaf.
-//! - **coarse cell**: 16³ bricks of the mark tables, one grid internal node's span; its
-//!   brick entries are a [`marks::CellEntries`]. (The snapshot's "block" is another thing.)
+//! The words (the glossary of `docs/architecture.md` has them all):
+//! - **leaf**: 8³ voxels: the map's leaf holds their values ([`crate::grid::Leaf`]); a
+//!   frame's marks of a leaf (its free and hit bits) are a **slot** ([`marks::Slot`]),
+//!   which the merge pairs with the map's leaf.
+//! - **node**: 16³ leaves, one internal node of the map; the mark tables list a node's
+//!   touched leaves in a [`marks::NodeEntries`]. (A snapshot's **block** is 8³ leaves.)
 //! - **table**: one thread's share of the mark tables; **lane**: one ray of a vector walk.
-//! - **chunk**: [`prepare::RAY_CHUNK`] rays, the unit of parallel work and of the layout.
+//! - **chunk**: [`ray::RAY_CHUNK`] rays, the unit of parallel work and of the layout.
 //!
 //! Each phase with a vector form calls its entry in the process's [`Kernels`] table (the
 //! kernel chosen once per process, `VOXMAP_KERNEL` forcing one); every kernel gives the
@@ -30,58 +30,33 @@
 //! The walks are 2-4x faster dense than sparse with AVX-512, 1.3-2x without. The sparse walk
 //! is what keeps 2 threads ahead of 1 at 60 m, where the paper's per-thread dense grids made
 //! the merge dominate: threads walk rays of different directions, so their tables share
-//! bricks only near the sensor.
+//! leaves only near the sensor.
 
 use crate::coord::{ConfigError, MAX_VOXEL_INDEX};
 use crate::kernel::{Kernel, KernelError, Kernels};
 use crate::occupancy::OccupancyMap;
 use marks::FrameMarks;
-use nalgebra::{Isometry3, Point3};
-use prepare::{Extent, Ray, Sides};
+use nalgebra::Point3;
+use ray::{Extent, Ray, Sides};
 use std::time::{Duration, Instant};
 
 pub(crate) mod marks;
 mod merge;
 pub(crate) mod prepare;
-pub(crate) mod thin;
+pub(crate) mod ray;
+pub(crate) mod select;
 pub(crate) mod update;
 pub(crate) mod walk;
+
+pub use ray::Frame;
+pub use select::RayMode;
+use walk::Walk;
 
 #[cfg(test)]
 mod tests;
 
 /// Longest allowed ray, in voxels; bounds the per-frame mark table.
 pub const MAX_RANGE_VOXELS: f64 = 8192.0;
-
-/// How rays are chosen from a frame's points. Every mode but `Exact` trades map quality
-/// for speed.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case", tag = "mode")]
-pub enum RayMode {
-    /// One ray per point.
-    #[default]
-    Exact,
-    /// Skip a point whose end falls in a sub-cell (`factor` times finer than the map)
-    /// already seen in this frame.
-    Subsample { factor: u32 },
-    /// Points whose end voxels coincide form a bundle; a bundle of more than `threshold`
-    /// points casts one ray to their mean end point.
-    Bundle { threshold: u32 },
-    /// One ray per distinct end voxel, to its centre (OctoMap's discretized insert).
-    UniqueEnd,
-}
-
-impl RayMode {
-    /// Short name used in reports: `exact`, `subsample`, `bundle`, `unique_end`.
-    pub fn name(&self) -> &'static str {
-        match self {
-            RayMode::Exact => "exact",
-            RayMode::Subsample { .. } => "subsample",
-            RayMode::Bundle { .. } => "bundle",
-            RayMode::UniqueEnd => "unique_end",
-        }
-    }
-}
 
 /// Integration parameters.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -114,13 +89,6 @@ impl Default for IntegratorConfig {
             pin_threads: true,
         }
     }
-}
-
-/// One frame: points in the sensor frame and the sensor's pose in the map frame.
-#[derive(Clone, Copy, Debug)]
-pub struct Frame<'a> {
-    pub pose: Isometry3<f64>,
-    pub points: &'a [[f32; 3]],
 }
 
 /// Why a whole frame was rejected. Nothing reached the map.
@@ -208,11 +176,11 @@ impl IntegrateError {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PhaseTimes {
     pub prepare: Duration,
-    /// Of `prepare`: a trade-off mode choosing its rays and dropping the others from the
+    /// Of `prepare`: a ray mode choosing its rays and dropping the others from the
     /// layout (zero in exact mode), what the mode costs before its walk saves anything.
     /// Where rays are chosen as they are made, it counts their layout too, which the
     /// exact mode also does: an upper bound.
-    pub thin: Duration,
+    pub select: Duration,
     pub raycast: Duration,
     pub merge: Duration,
     pub update: Duration,
@@ -231,7 +199,7 @@ pub struct IntegrateReport {
     pub points: u64,
     /// Points skipped for a non-finite coordinate.
     pub skipped_nonfinite: u64,
-    /// Rays cast (after the trade-off mode).
+    /// Rays cast (after the ray mode).
     pub rays: u64,
     /// Rays cut at max range (free space only).
     pub cut_rays: u64,
@@ -240,7 +208,7 @@ pub struct IntegrateReport {
     /// Of `voxel_steps`, those the dense walk did not walk: inside a box around the sensor
     /// whose voxels the frame's first rays had all marked already (`walk::covered`).
     pub covered_steps: u64,
-    /// Leaves (8x8x8 bricks) and voxels updated.
+    /// Leaves (8x8x8 leaves) and voxels updated.
     pub touched_leaves: u64,
     pub touched_voxels: u64,
     /// Inclusive voxel bounds of the sensor origin and every ray's end: no voxel outside
@@ -259,9 +227,9 @@ pub struct Integrator {
     marks: FrameMarks,
     rays: Vec<Ray>,
     /// Per chunk of `rays`: how many lie on either side of the sensor (see [`Sides`]).
-    sides: Vec<[u32; 2]>,
-    /// What the trade-off modes reuse from frame to frame.
-    thin: thin::Buffers,
+    counts: Vec<[u32; 2]>,
+    /// What the ray modes reuse from frame to frame.
+    select: select::Buffers,
     /// Per pool thread: dense marks for frames with a small box.
     dense: Vec<std::sync::Mutex<walk::dense::DenseBits>>,
     /// Frames integrated, to tell this frame's dense marks from stale ones.
@@ -335,8 +303,8 @@ impl Integrator {
             pool,
             marks: FrameMarks::default(),
             rays: Vec::new(),
-            sides: Vec::new(),
-            thin: Default::default(),
+            counts: Vec::new(),
+            select: Default::default(),
             frames: 0,
             walk: Walk::Auto,
             kernels,
@@ -389,12 +357,12 @@ impl Integrator {
         let mode = self.cfg.mode;
         self.frames += 1;
         let frame_no = self.frames;
-        let (pool, marks, rays, sides, thin, dense, walk, kernels) = (
+        let (pool, marks, rays, counts, select, dense, walk, kernels) = (
             &self.pool,
             &mut self.marks,
             &mut self.rays,
-            &mut self.sides,
-            &mut self.thin,
+            &mut self.counts,
+            &mut self.select,
             &self.dense,
             self.walk,
             self.kernels,
@@ -406,18 +374,18 @@ impl Integrator {
         pool.install(|| {
             let t0 = Instant::now();
             // Prepare.
-            let halves = Sides::new(frame, origin, rayon::current_num_threads());
-            let (skipped, extent, thin_time) = prepare::prepare_rays(
+            let sides = Sides::new(frame, origin, rayon::current_num_threads());
+            let (skipped, extent, select_time) = prepare::prepare_rays(
                 rays,
+                counts,
                 sides,
-                halves,
                 frame,
                 &tf,
                 origin,
                 range_units,
                 mode,
                 kernels,
-                thin,
+                select,
             );
             let Extent {
                 lo,
@@ -427,7 +395,7 @@ impl Integrator {
             } = extent;
             report.skipped_nonfinite = skipped;
             // Not `rays.len()`: skipped points leave gaps (see `Sides`).
-            report.rays = prepare::ray_count(sides);
+            report.rays = ray::ray_count(counts);
             report.cut_rays = cut_rays;
             report.bounds = Some((lo, hi));
             let dense_box = walk::plan(walk, lo, hi, steps);
@@ -438,7 +406,7 @@ impl Integrator {
             // of its prepare time). The sparse walk needs them sorted by direction, without
             // gaps.
             if !report.dense {
-                prepare::order_by_direction(rays, sides, origin);
+                prepare::order_by_direction(rays, counts, origin);
             }
             marks.reset(lo, hi, rayon::current_num_threads());
             let t1 = Instant::now();
@@ -446,7 +414,7 @@ impl Integrator {
             let input = walk::WalkInput {
                 origin,
                 rays,
-                sides,
+                counts,
                 steps,
                 bounds: (lo, hi),
                 range: range_units,
@@ -475,7 +443,7 @@ impl Integrator {
             let t4 = Instant::now();
             report.times = PhaseTimes {
                 prepare: t1 - t0,
-                thin: thin_time,
+                select: select_time,
                 raycast: t2 - t1,
                 merge: t3 - t2,
                 update: t4 - t3,
@@ -516,28 +484,4 @@ impl Integrator {
         }
         Ok((range_units, origin))
     }
-}
-
-/// The walks an integrator can take; tests force each in turn.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(not(test), allow(dead_code))]
-enum Walk {
-    /// Dense when the frame's box fits the budget and its rays are many enough to pay for
-    /// the grids, sparse otherwise.
-    Auto,
-    /// Sparse.
-    Sparse,
-    /// Dense whenever the box fits the budget; the AVX2 kernel refills each lane as its
-    /// ray ends, whatever the rays' length (see `walk::avx2::walks_grouped`).
-    Dense,
-    /// Dense, testing each mark before writing it on every frame (see
-    /// `walk::avx512::walk_dense`; the other kernels walk `Dense`).
-    DenseTestFirst,
-    /// Dense, the AVX2 kernel walking its rays in groups on every frame (the other kernels
-    /// walk `Dense`).
-    DenseGrouped,
-}
-
-fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }

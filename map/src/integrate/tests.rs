@@ -1,8 +1,8 @@
 //! The integrator's tests: against a reference update written the slow way, across walks,
-//! kernels, thread counts and trade-off modes.
+//! kernels, thread counts and ray modes.
 
 use super::marks::FrameMarks;
-use super::prepare::{RayMaker, Sides, RAY_CHUNK, SKIPPED};
+use super::ray::{CellKeys, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 #[cfg(target_arch = "x86_64")]
 use super::update::{avx512::Avx512, observe_scalar};
 use super::*;
@@ -14,6 +14,7 @@ use crate::model::{SensorModel, VoxelState};
 use crate::raycast::for_each_voxel;
 use crate::test_rng::Rng;
 use hashbrown::HashMap;
+use nalgebra::Isometry3;
 use nalgebra::{Translation3, UnitQuaternion};
 
 /// Integrate `pts` seen from the origin, exact mode, 2 threads.
@@ -144,7 +145,7 @@ fn matches_the_reference_update_over_several_frames() {
 fn result_is_identical_for_any_thread_count() {
     let mut rng = Rng(11);
     // Non-finite points leave gaps among the rays, laid out by sides from 2 threads
-    // and in scan order on 1 (see `Sides`); the trade-off modes keep the first ray of a
+    // and in scan order on 1 (see `Sides`); the ray modes keep the first ray of a
     // kind, which must not depend on that layout.
     let frames: Vec<_> = (0..3)
         .map(|_| {
@@ -194,7 +195,7 @@ fn result_is_identical_for_any_thread_count() {
     }
 }
 
-/// The dense walk's halves cut across the sensor axis that halves a frame best, found
+/// The dense walk's sides cut across the sensor axis that sides a frame best, found
 /// from a sample of its points, and only on more than one thread.
 #[test]
 fn sides_cut_across_the_axis_that_halves_the_frame() {
@@ -202,7 +203,7 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
     let (pose, pts) = random_frame(&mut rng, 30000, 6.0);
     let origin = [1.0, 2.0, 3.0];
     // Keep the points with x and z in front (a sensor looking along x and z): only y
-    // halves them.
+    // sides them.
     let front: Vec<_> = pts.iter().map(|p| [p[0].abs(), p[1], p[2].abs()]).collect();
     let frame = Frame {
         pose,
@@ -266,7 +267,7 @@ fn sides_cut_across_the_axis_that_halves_the_frame() {
 }
 
 /// The dense walks (eight rays at a time or one, into per-thread bit grids) and the
-/// sparse walk (one ray at a time into shared bricks) give the same map, steps and report,
+/// sparse walk (one ray at a time into shared leaves) give the same map, steps and report,
 /// on frames with fewer rays than lanes, rays ending in their start voxel, rays cut at
 /// max range, negative coordinates, and a frame too big for the dense box.
 /// The vectorised observation of a leaf word gives the values the scalar one does:
@@ -333,7 +334,7 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
     let mut marks = FrameMarks::default();
     let lo = VoxelCoord::new(-300, 0, 0);
     marks.reset(lo, VoxelCoord::new(300, 15, 15), 2);
-    // Bricks (voxel coordinates >> 3) at both ends of the box and one in between.
+    // Leaves (voxel coordinates >> 3) at both ends of the box and one in between.
     let shared = VoxelCoord::new(-1, 1, 0);
     let (only_a, only_b) = (VoxelCoord::new(-37, 0, 0), VoxelCoord::new(37, 1, 1));
     let mut a = marks.cache();
@@ -352,10 +353,10 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
         "a dropped cache frees its table"
     );
     drop(b);
-    let bricks: Vec<(VoxelCoord, u32)> = (marks.bricks_in_order().iter())
+    let leaves: Vec<(VoxelCoord, u32)> = (marks.leaves_in_order().iter())
         .flat_map(|g| (g.children.iter()).map(|&(c, s)| (crate::grid::child_origin(g.node, c), s)))
         .collect();
-    let origins: Vec<_> = bricks.iter().map(|&(o, _)| o).collect();
+    let origins: Vec<_> = leaves.iter().map(|&(o, _)| o).collect();
     assert_eq!(origins, [only_a.shl(3), shared.shl(3), only_b.shl(3)]);
     // Read as the update reads them, leaving the slots zero for `clear_used` below.
     let words = |s: u32| {
@@ -363,13 +364,13 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
         let taken: [(u64, u64); 8] = std::array::from_fn(|w| slot.take(w));
         (taken.map(|t| t.0), taken.map(|t| t.1))
     };
-    let (free, hit) = words(bricks[1].1);
+    let (free, hit) = words(leaves[1].1);
     assert_eq!(free, [5, 0, 0, 0, 0, 0, 0, 1 << 63]);
     assert_eq!(hit, [0, 0, 0, 0, 0, 0, 0, 1 << 63]);
-    assert_eq!(words(bricks[0].1).0, [0, 2, 0, 0, 0, 0, 0, 0]);
-    assert_eq!(words(bricks[2].1).0, [0, 0, 8, 0, 0, 0, 0, 0]);
+    assert_eq!(words(leaves[0].1).0, [0, 2, 0, 0, 0, 0, 0, 0]);
+    assert_eq!(words(leaves[2].1).0, [0, 0, 8, 0, 0, 0, 0, 0]);
     // A table's reserved ids that a cache left unused go to the table's next caches: one
-    // batch per table, however many tasks take it, so distinct new bricks get distinct
+    // batch per table, however many tasks take it, so distinct new leaves get distinct
     // ids from it; a new frame starts without them.
     let reserved = marks.slots.used();
     assert_eq!(reserved, 2 * super::marks::SLOT_BATCH);
@@ -382,8 +383,8 @@ fn tables_are_held_one_cache_each_and_merge_their_marks() {
     ids.sort();
     ids.dedup();
     assert_eq!(ids.len(), 5);
-    // Listed, as a frame lists its bricks, so that the tables are empty again.
-    let listed: usize = (marks.bricks_in_order().iter())
+    // Listed, as a frame lists its leaves, so that the tables are empty again.
+    let listed: usize = (marks.leaves_in_order().iter())
         .map(|g| g.children.len())
         .sum();
     assert_eq!(listed, 5);
@@ -751,20 +752,20 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                     "{kernel:?}, point {p:?}"
                 );
             }
-            // The trade-off modes' cell keys and the extent, noted as the rays are made:
+            // The ray modes' cell keys and the extent, noted as the rays are made:
             // the same bits as the scalar code's.
             for factor in [1, 2, 64] {
-                let cells = super::thin::CellKeys::new(o, factor);
+                let cells = CellKeys::new(o, factor);
                 let mut keys = vec![0; bulk.len()];
                 cells.keys(kernel.table().unwrap(), &bulk, &mut keys);
                 for (r, &k) in bulk.iter().zip(&keys) {
                     assert_eq!(k, cells.key(r), "{kernel:?}, factor {factor}, {r:?}");
                 }
                 // And their notes in the box about the sensor and in the frame's box.
-                let extent = super::prepare::bounds(&bulk, o);
+                let extent = super::ray::bounds(&bulk, o);
                 let boxes = [
-                    super::thin::CellBox::around(o, range, &cells),
-                    super::thin::CellBox::new(&extent, &cells),
+                    super::select::CellBox::around(o, range, &cells),
+                    super::select::CellBox::new(&extent, &cells),
                 ];
                 let sides = [None, Some([0.6, -0.8, 0.0])].map(|axis| Sides { origin: o, axis });
                 for (b, s) in boxes
@@ -780,14 +781,14 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                     }
                 }
             }
-            let sum = |s: super::prepare::ExtentSum| {
+            let sum = |s: super::ray::ExtentSum| {
                 let bits = |v: [f64; 3]| v.map(f64::to_bits);
                 (bits(s.lo), bits(s.hi), bits(s.length), s.cut, s.skipped)
             };
             for n in [0, 1, 2, 5, bulk.len()] {
                 assert_eq!(
                     sum((kernel.table().unwrap().extent_of)(o, &bulk[..n])),
-                    sum(super::prepare::ExtentSum::of_scalar(o, &bulk[..n])),
+                    sum(super::ray::ExtentSum::of_scalar(o, &bulk[..n])),
                     "{kernel:?}, {n} rays"
                 );
             }
@@ -804,13 +805,13 @@ fn rays_made_in_bulk_equal_rays_made_one_by_one() {
                 (on, Some([0.6, -0.8, 0.0])),
             ];
             for (origin, axis) in planes {
-                let halves = Sides { origin, axis };
+                let sides = Sides { origin, axis };
                 for len in [RAY_CHUNK, 500, 8, 7] {
                     let run = |m: &RayMaker| {
                         let mut out = vec![Ray::new([1.0; 3], 7, true); len];
                         let mut scratch = Vec::new();
                         let (counts, order, s) =
-                            halves.make(m, &pts[..len], &mut out, &mut scratch, None);
+                            sides.make(m, &pts[..len], &mut out, &mut scratch, None);
                         let rays: Vec<_> = (out.iter())
                             .map(|r| (r.end.map(f64::to_bits), r.key, r.hit))
                             .collect();
@@ -936,7 +937,7 @@ fn a_bundle_that_merges_nothing_casts_what_exact_casts() {
     }
 }
 
-/// Frames with no rays to thin (no points, or only non-finite ones) integrate in every
+/// Frames with no rays to choose from (no points, or only non-finite ones) integrate in every
 /// mode and on any thread count, casting nothing.
 #[test]
 fn trade_off_modes_take_frames_without_rays() {
@@ -1021,8 +1022,9 @@ fn trade_off_modes_cast_fewer_rays_and_stay_close() {
 /// hits, the cut ones counted, all within the extent.
 #[test]
 fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
-    use super::prepare::{prepare_rays, ray_count, Ray};
-    use super::thin::{cell_factor, thin_hashed, Buffers, CellBox, CellKeys};
+    use super::prepare::prepare_rays;
+    use super::ray::{ray_count, Ray};
+    use super::select::{cell_factor, choose_hashed, Buffers, CellBox};
     let mut rng = Rng(21);
     let tf = crate::coord::GridTransform::new(0.1).unwrap();
     let mut frames: Vec<_> = [20_000, 5_000, 30_000]
@@ -1044,8 +1046,8 @@ fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
         (30.0, RayMode::UniqueEnd, "extent"),
         (5.0, RayMode::Subsample { factor: 4 }, "hashed"),
     ];
-    let mut thin = Buffers::default();
-    let (mut rays, mut sides) = (Vec::new(), Vec::new());
+    let mut select = Buffers::default();
+    let (mut rays, mut counts) = (Vec::new(), Vec::new());
     for kernel in kernels("modes_keep_what_the_scan_order_hash_keeps_on_every_path") {
         for threads in [1, 2, 3] {
             let pool = rayon::ThreadPoolBuilder::new()
@@ -1065,11 +1067,11 @@ fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
                     .filter(|r| r.key != SKIPPED)
                     .collect();
                 let made = want.clone();
-                thin_hashed(&mut want, origin, mode);
+                choose_hashed(&mut want, origin, mode);
                 assert!(want.len() * 10 < made.len() * 9, "{mode:?}: few dropped");
                 let cells = CellKeys::new(origin, cell_factor(mode));
                 let around = CellBox::around(origin, range, &cells).is_some();
-                let extent = super::prepare::bounds(&made, origin);
+                let extent = super::ray::bounds(&made, origin);
                 let boxed = CellBox::new(&extent, &cells).is_some();
                 let took = match (around, boxed) {
                     (true, _) => "around",
@@ -1078,27 +1080,27 @@ fn modes_keep_what_the_scan_order_hash_keeps_on_every_path() {
                 };
                 assert_eq!(took, path, "{range_m} m, {mode:?}");
                 let (skipped, extent, _) = pool.install(|| {
-                    let halves = Sides::new(&frame, origin, threads);
+                    let sides = Sides::new(&frame, origin, threads);
                     prepare_rays(
                         &mut rays,
-                        &mut sides,
-                        halves,
+                        &mut counts,
+                        sides,
                         &frame,
                         &tf,
                         origin,
                         range,
                         mode,
                         kernel.table().unwrap(),
-                        &mut thin,
+                        &mut select,
                     )
                 });
-                let cast: Vec<Ray> = (rays.chunks(RAY_CHUNK).zip(&sides))
+                let cast: Vec<Ray> = (rays.chunks(RAY_CHUNK).zip(&counts))
                     .flat_map(|(c, &[front, back])| {
                         let (f, b) = (front as usize, back as usize);
                         c[..f].iter().chain(&c[c.len() - b..]).copied()
                     })
                     .collect();
-                assert_eq!(cast.len() as u64, ray_count(&sides));
+                assert_eq!(cast.len() as u64, ray_count(&counts));
                 let ends = |v: &[Ray]| {
                     let mut e: Vec<_> =
                         v.iter().map(|r| (r.end.map(f64::to_bits), r.hit)).collect();

@@ -509,7 +509,7 @@ mod tests {
         let half: Vec<usize> = (0..256).collect();
         let bt = encode_bt([leaf([0, 0, 0], &all[256..], &half)], 0.05).unwrap();
         let s = read_bt(&bt).unwrap();
-        // Two pruned 8x8x4 halves = 4 pruned 4x4x4 children each under the leaf node.
+        // Two pruned 8x8x4 sides = 4 pruned 4x4x4 children each under the leaf node.
         assert_eq!(s.nodes, 13 + 1 + 8);
         assert_eq!((s.occupied_voxels, s.free_voxels), (256, 256));
     }

@@ -327,7 +327,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         "voxel_steps": r.voxel_steps, "covered_steps": r.covered_steps, "occupied": counts.occupied, "free": counts.free,
                         "memory_bytes": mem, "touched_voxels": r.touched_voxels, "touched_leaves": r.touched_leaves,
                         "mpoints_per_s": mpts, "ns_per_step_per_thread": ns_step, "bytes_per_touched_voxel": bpv,
-                        "prepare_ms": ms(p.prepare), "thin_ms": ms(p.thin), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
+                        "prepare_ms": ms(p.prepare), "select_ms": ms(p.select), "raycast_ms": ms(p.raycast), "merge_ms": ms(p.merge), "update_ms": ms(p.update),
                         "paper_vdb_par_12t_ms": paper,
                     });
                     if let (Some(e), true) = (exact_counts, mode != RayMode::Exact) {
@@ -354,8 +354,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
                         println!(
                             "{:<22}    thinning (choosing and dropping rays, part of prep): {:.2} ms, {:.0}% of the frame",
                             "",
-                            ms(p.thin),
-                            100.0 * ms(p.thin) / med.max(1e-9)
+                            ms(p.select),
+                            100.0 * ms(p.select) / med.max(1e-9)
                         );
                     }
                 }
@@ -415,7 +415,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     Ok(())
 }
 
-/// How a trade-off mode's map agrees with the exact map of the same frame.
+/// How a ray mode's map agrees with the exact map of the same frame.
 struct Agreement {
     /// Voxels known in both maps, and those of them in the same state.
     both_known: u64,
@@ -673,7 +673,7 @@ fn median_phases(p: &mut [PhaseTimes]) -> PhaseTimes {
     };
     PhaseTimes {
         prepare: pick(|t| t.prepare),
-        thin: pick(|t| t.thin),
+        select: pick(|t| t.select),
         raycast: pick(|t| t.raycast),
         merge: pick(|t| t.merge),
         update: pick(|t| t.update),

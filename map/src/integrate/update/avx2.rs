@@ -19,7 +19,7 @@ pub(crate) fn observe_leaf(
 
 /// [`Observe`] with byte vectors: AVX2 has no byte-masked store, so each half of the word
 /// is blended (the observed bytes new, the others as they were, or zero when `FRESH`, which
-/// they are) and stored whole, both halves whatever their bits: which half of a plane a
+/// they are) and stored whole, both sides whatever their bits: which half of a plane a
 /// ray crosses is a coin toss to the branch predictor. The same values and marks as one
 /// at a time: an i8 add saturates only beyond the clamps, which are within i8.
 pub(crate) struct Avx2;

@@ -39,7 +39,7 @@ impl Observe for Scalar {
     }
 }
 
-/// Observe one brick's marks into its leaf, leaving the slot zero ([`Slot::take`]), with
+/// Observe one leaf's marks (its slot) into the map's leaf, leaving the slot zero ([`Slot::take`]), with
 /// observations by `O`; returns the voxels updated. Each kernel's entry in the
 /// [`crate::kernel::Kernels`] table is this function compiled for its features, so that
 /// the kernel's observation inlines into the loop.

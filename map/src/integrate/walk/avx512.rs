@@ -12,15 +12,15 @@
 //! - dense ([`walk_dense`]): a voxel is its bit index in the thread's [`DenseBits`], so a
 //!   step is one add and a mark one OR into memory that stays in cache;
 //! - sparse ([`walk_sparse`]): a voxel is [`Packed`]; each lane keeps the marks of its
-//!   current z plane in a vector lane and of its brick in its own words, and ORs the
-//!   brick's into the frame's tables when it leaves the brick, as the one-ray sparse walk
+//!   current z plane in a vector lane and of its leaf in its own words, and ORs the
+//!   leaf's into the frame's tables when it leaves the leaf, as the one-ray sparse walk
 //!   does.
 
 use super::covered::Covered;
 use super::dense::{set_bit, DenseBits, DenseBox};
 use super::{Packed, Spill};
-use crate::integrate::marks::BrickCache;
-use crate::integrate::prepare::Ray;
+use crate::integrate::marks::LeafCache;
+use crate::integrate::ray::Ray;
 use crate::mask::BitIter;
 #[cfg(doc)]
 use crate::raycast::Dda;
@@ -87,11 +87,11 @@ pub(crate) fn walk_dense(
 /// Walk `rays` from `origin` eight at a time, OR-ing their marks into the frame's tables
 /// through `cache`; returns voxels visited. The same marks and count as
 /// `super::sparse::walk_rays`, the one-ray sparse walk. The rays are sorted by direction and each
-/// lane takes the next: the lanes walk side by side, so they find the bricks they flush in
-/// `cache` and in the CPU's caches. Each lane gathers its current brick's marks in its own
+/// lane takes the next: the lanes walk side by side, so they find the leaves they flush in
+/// `cache` and in the CPU's caches. Each lane gathers its current leaf's marks in its own
 /// words, so lanes never write the same word.
 #[target_feature(enable = "avx512f,avx512dq")]
-pub(crate) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
+pub(crate) fn walk_sparse(cache: &mut LeafCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
     let v = crate::coord::units_to_voxel(origin).expect("origin checked");
     let packed = Packed::around(v);
     let mut lanes = SparseLanes {
@@ -227,34 +227,34 @@ impl<const TEST_FIRST: bool> Lanes for DenseLanes<'_, TEST_FIRST> {
     }
 }
 
-/// Brick buffers per lane: the one it fills and up to `QUEUE_AT` waiting in the queue.
+/// Leaf buffers per lane: the one it fills and up to `QUEUE_AT` waiting in the queue.
 const BUFFERS: usize = 32;
-/// Queued bricks that start a flush. A flush looks up all their slots first and prefetches
+/// Queued leaves that start a flush. A flush looks up all their slots first and prefetches
 /// them, so that their cache misses overlap.
 const QUEUE_AT: usize = 24;
 /// Room for a queue of `QUEUE_AT - 1` and a whole vector more.
 const QUEUE_LEN: usize = QUEUE_AT + 8;
-// A lane queues at most one brick per step and the queue is flushed once it holds
+// A lane queues at most one leaf per step and the queue is flushed once it holds
 // `QUEUE_AT`, so a lane never has more than `QUEUE_AT` waiting: its next buffer is free.
 const _: () = assert!(QUEUE_AT < BUFFERS && BUFFERS.is_power_of_two());
 
 /// The sparse walk's lanes. Each gathers the marks of its current z plane in a vector
-/// lane and those of its current brick in a buffer of its own; when it leaves the brick,
-/// it queues the buffer and takes its next one, and the queue's bricks are OR-ed into the
+/// lane and those of its current leaf in a buffer of its own; when it leaves the leaf,
+/// it queues the buffer and takes its next one, and the queue's leaves are OR-ed into the
 /// frame's tables together.
 struct SparseLanes<'c, 'a> {
-    cache: &'c mut BrickCache<'a>,
+    cache: &'c mut LeafCache<'a>,
     packed: Packed,
     /// 8 words (z planes) per buffer.
     buffers: [[u64; 8]; 8 * BUFFERS],
-    /// Queued bricks: a voxel of each (packed) and its buffer.
+    /// Queued leaves: a voxel of each (packed) and its buffer.
     queued_at: [u64; QUEUE_LEN],
     queued_buffer: [u64; QUEUE_LEN],
     queued: usize,
 }
 
 impl SparseLanes<'_, '_> {
-    /// OR the marks of buffer `b` into the brick of `q` and clear them.
+    /// OR the marks of buffer `b` into the leaf of `q` and clear them.
     #[inline]
     fn flush(&mut self, b: usize, q: u64) {
         self.cache
@@ -262,7 +262,7 @@ impl SparseLanes<'_, '_> {
         self.buffers[b] = [0; 8];
     }
 
-    /// Flush the queue: look up every queued brick's slot and prefetch it, then OR.
+    /// Flush the queue: look up every queued leaf's slot and prefetch it, then OR.
     #[inline(never)]
     #[target_feature(enable = "avx512f")]
     fn flush_queue(&mut self) {
@@ -294,8 +294,8 @@ impl SparseLanes<'_, '_> {
 /// A sparse walk's per-lane registers.
 #[derive(Clone, Copy)]
 struct SparseRegs {
-    /// Per lane the marks of its current z plane in its brick, bit `x | y << 3`. A ray
-    /// visits each plane of a brick in one run, so a plane is stored once, when the lane
+    /// Per lane the marks of its current z plane in its leaf, bit `x | y << 3`. A ray
+    /// visits each plane of a leaf in one run, so a plane is stored once, when the lane
     /// leaves it.
     plane: __m512i,
     /// Per lane the index of its current buffer, `BUFFERS * lane + b`.
@@ -328,8 +328,7 @@ impl Lanes for SparseLanes<'_, '_> {
     #[target_feature(enable = "avx512f,avx512dq")]
     unsafe fn stepped(&mut self, r: &mut SparseRegs, was: __m512i, p: __m512i, live: __mmask8) {
         let moved = _mm512_xor_si512(was, p);
-        let left =
-            _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::BRICK as i64));
+        let left = _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::LEAF as i64));
         let done = left
             | _mm512_mask_test_epi64_mask(live, moved, _mm512_set1_epi64(Packed::Z_FIELD as i64));
         // Lanes that left their plane store it: word z of the lane's buffer.
@@ -342,7 +341,7 @@ impl Lanes for SparseLanes<'_, '_> {
             _mm512_mask_i64scatter_epi64::<8>(self.buffers.as_mut_ptr().cast(), done, word, r.plane)
         };
         r.plane = _mm512_mask_mov_epi64(r.plane, done, _mm512_setzero_si512());
-        // Lanes that left their brick queue it and take their next buffer. Whole vectors
+        // Lanes that left their leaf queue it and take their next buffer. Whole vectors
         // are stored at the queue's end, the queued lanes first; the rest is overwritten.
         let n = self.queued;
         debug_assert!(n < QUEUE_AT);
@@ -378,7 +377,7 @@ impl Lanes for SparseLanes<'_, '_> {
             let b = buffer[l] as usize;
             self.buffers[b][(p[l] >> (2 * Packed::F) & 7) as usize] |= plane[l];
             plane[l] = 0;
-            // A ray's last step may enter a brick only to end there: nothing free to
+            // A ray's last step may enter a leaf only to end there: nothing free to
             // mark, and a slot would give the map an empty leaf.
             if self.buffers[b] != [0; 8] {
                 self.flush(b, p[l]);

@@ -13,7 +13,7 @@
 
 use super::dense::{DenseBits, DenseBox};
 use crate::coord::VoxelCoord;
-use crate::integrate::prepare::{Ray, SKIPPED};
+use crate::integrate::ray::{Ray, SKIPPED};
 use crate::raycast::{crossings_by, kth_crossing, Dda};
 
 /// Rays of a frame sampled to tell whether its covered box is worth skipping.
@@ -82,7 +82,7 @@ impl Covered {
                 up.map_or(hi.x, |i| x(i) - 1),
             )
         };
-        // Each run as its ends' offsets from `lo.x`, plus one, in the two halves of a word: 0
+        // Each run as its ends' offsets from `lo.x`, plus one, in the two sides of a word: 0
         // (never a run, whose first end is at least `lo.x`) for a row not read yet. Zeroed
         // memory: a big box's rows cost nothing until read.
         let mut runs = vec![0u64; ny * nz];

@@ -3,14 +3,14 @@
 //! When a frame's voxel box fits [`DENSE_BUDGET_WORDS`], each raycast thread marks into
 //! its own row-major bit grid over the whole box: a voxel is one bit index, a step one add,
 //! a mark one OR, and the grid stays in the thread's cache. The merge then ORs the threads'
-//! grids brick by brick into the frame's [`FrameMarks`] slots, which the update reads as
+//! grids leaf by leaf into the frame's [`FrameMarks`] slots, which the update reads as
 //! it would after the sparse walk. Marks are OR-ed, so the result does not depend on which
 //! thread walked which ray.
 
 use super::covered::Covered;
 use crate::coord::VoxelCoord;
-use crate::integrate::marks::{BrickCache, FrameMarks};
-use crate::integrate::prepare::Ray;
+use crate::integrate::marks::{FrameMarks, LeafCache};
+use crate::integrate::ray::Ray;
 use crate::raycast::Dda;
 use rayon::prelude::*;
 use std::ops::Range;
@@ -23,7 +23,7 @@ use std::sync::atomic::Ordering::Relaxed;
 pub(super) const DENSE_BUDGET_WORDS: u64 = 1 << 22;
 
 /// A frame's voxel box as a row-major bit grid: x fastest, rows padded to whole words,
-/// every edge a multiple of 8 from a brick-aligned corner, so a brick's row of 8 voxels is
+/// every edge a multiple of 8 from a leaf-aligned corner, so a leaf's row of 8 voxels is
 /// one byte of one word.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct DenseBox {
@@ -77,8 +77,8 @@ impl DenseBox {
         [1, self.n[0] as i64, (self.n[0] * self.n[1]) as i64]
     }
 
-    /// Rows of bricks (one per brick y and z), the merge's unit of parallel work.
-    pub(crate) fn brick_rows(&self) -> usize {
+    /// Rows of leaves (one per leaf y and z), the merge's unit of parallel work.
+    pub(crate) fn leaf_rows(&self) -> usize {
         (self.n[1] / 8 * self.n[2] / 8) as usize
     }
 }
@@ -122,7 +122,7 @@ pub(crate) fn with_live<R>(
     frame: u64,
     f: impl FnOnce(&[&DenseBits]) -> R,
 ) -> R {
-    let guards: Vec<_> = dense.iter().map(|m| crate::integrate::lock(m)).collect();
+    let guards: Vec<_> = dense.iter().map(|m| super::lock(m)).collect();
     let live: Vec<&DenseBits> = (guards.iter().map(|g| &**g))
         .filter(|g| g.frame() == frame)
         .collect();
@@ -199,16 +199,16 @@ pub(crate) fn walk_rays(
     (steps, skipped)
 }
 
-/// OR the threads' marks of this frame into `marks`, brick by brick; only bricks with a
+/// OR the threads' marks of this frame into `marks`, leaf by leaf; only leaves with a
 /// mark get a slot. `marks` must be reset for the frame's box.
 pub(crate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]) {
     let row_words = (dbox.n[0] / 64) as usize;
     let (ny, nby) = (dbox.n[1] as usize, dbox.n[1] as usize / 8);
-    // A brick row's marks into `cache`'s table.
-    let fold_row = |cache: &mut BrickCache<'_>, r: usize| {
+    // A leaf row's marks into `cache`'s table.
+    let fold_row = |cache: &mut LeafCache<'_>, r: usize| {
         let (by, bz) = (r % nby, r / nby);
         for wx in 0..row_words {
-            // Word (wx) of the 64 rows of this brick row: [z][y].
+            // Word (wx) of the 64 rows of this leaf row: [z][y].
             let mut free = [[0u64; 8]; 8];
             let mut hit = [[0u64; 8]; 8];
             let mut any = 0;
@@ -225,21 +225,21 @@ pub(crate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]
             if any == 0 {
                 continue;
             }
-            // Byte k of a row word is brick k's row; a brick's word z holds its rows y as
+            // Byte k of a row word is leaf k's row; a leaf's word z holds its rows y as
             // bytes y.
             for k in 0..8 {
-                let brick_word = |rows: &[u64; 8]| {
+                let leaf_word = |rows: &[u64; 8]| {
                     (0..8).fold(0u64, |w, y| w | (rows[y] >> (8 * k) & 0xff) << (8 * y))
                 };
-                let f: [u64; 8] = std::array::from_fn(|z| brick_word(&free[z]));
-                let h: [u64; 8] = std::array::from_fn(|z| brick_word(&hit[z]));
+                let f: [u64; 8] = std::array::from_fn(|z| leaf_word(&free[z]));
+                let h: [u64; 8] = std::array::from_fn(|z| leaf_word(&hit[z]));
                 if f.iter().chain(&h).all(|&w| w == 0) {
                     continue;
                 }
                 let origin = dbox.lo
                     + VoxelCoord::new((wx * 64 + k * 8) as i32, (by * 8) as i32, (bz * 8) as i32);
                 let slot = cache.slot_for(origin.shr(3));
-                // Each brick belongs to one row, and only this pass writes slots: plain
+                // Each leaf belongs to one row, and only this pass writes slots: plain
                 // stores suffice.
                 for (w, v) in slot.free.iter().zip(f) {
                     w.store(v, Relaxed);
@@ -253,7 +253,7 @@ pub(crate) fn fold_into(marks: &FrameMarks, dbox: &DenseBox, bits: &[&DenseBits]
     // Runs of rows, a few per thread, each with one cache: a cache starts with 96 KiB of
     // empty entries, which a cache per row (225 rows in a small frame's box) spent 10% of
     // the frame filling.
-    let rows = dbox.brick_rows();
+    let rows = dbox.leaf_rows();
     let per = rows.div_ceil(4 * rayon::current_num_threads()).max(1);
     (0..rows.div_ceil(per)).into_par_iter().for_each(|run| {
         marks.with_cache(|cache| {

@@ -7,7 +7,7 @@
 //! |---|---|---|
 //! | dense, one ray at a time | the thread's bit grid over the frame's box ([`dense::DenseBits`]) | `dense.rs` ([`dense::walk_rays`]) |
 //! | dense, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_dense`) / `avx512.rs` (`avx512::walk_dense`) |
-//! | sparse, one ray at a time | the frame's brick tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
+//! | sparse, one ray at a time | the frame's leaf tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
 //! | sparse, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_sparse`) / `avx512.rs` (`avx512::walk_sparse`) |
 //!
 //! `integrate::tests::dense_and_sparse_walks_agree` checks every walk of every kernel the CPU
@@ -15,8 +15,8 @@
 //! [`crate::kernel::Kernels`] table the integrator holds.
 
 use super::marks::FrameMarks;
-use super::prepare::{Ray, RAY_CHUNK};
-use super::{lock, Walk, MAX_RANGE_VOXELS};
+use super::ray::{Ray, RAY_CHUNK};
+use super::MAX_RANGE_VOXELS;
 use crate::coord::VoxelCoord;
 use crate::kernel::{DenseWalk, Kernels};
 use rayon::prelude::*;
@@ -54,7 +54,7 @@ pub(super) struct WalkInput<'a> {
     pub origin: [f64; 3],
     pub rays: &'a [Ray],
     /// Per chunk of `rays`: how many lie on either side of the sensor (dense walk only).
-    pub sides: &'a [[u32; 2]],
+    pub counts: &'a [[u32; 2]],
     /// About the voxel steps of the walk.
     pub steps: f64,
     /// Voxel bounds (inclusive) of the origin and every ray's end.
@@ -88,7 +88,7 @@ pub(super) fn run(
 /// (see `run_dense`).
 const STAGES: [usize; 3] = [32, 8, 2];
 
-/// The dense walk: rays laid out by `Sides` with counts `input.sides`, into the pool
+/// The dense walk: rays laid out by `Sides` with counts `input.counts`, into the pool
 /// threads' grids for frame `frame_no`; returns the voxels on the rays and, of those, the
 /// ones skipped in the covered box. The first tasks walk whole rays; the box is then found
 /// in their marks, and the other tasks' rays skip it (see [`STAGES`]).
@@ -101,7 +101,7 @@ fn run_dense(
     let &WalkInput {
         origin,
         rays,
-        sides,
+        counts,
         steps,
         bounds,
         range,
@@ -113,10 +113,10 @@ fn run_dense(
     // thread's rays mostly stay in its half of the box (work stealing evens out uneven
     // sides). Lane l of a task walks a chunk of the l-th eighth: in a sensor's scan order
     // (or sorted) these are far apart in direction (see `avx512::walk_dense`).
-    let per_lane = sides.len().div_ceil(8);
+    let per_lane = counts.len().div_ceil(8);
     let part = |back: bool, l: usize, c: usize| {
         let k = l * per_lane + c;
-        let Some(&[n_front, n_back]) = sides.get(k) else {
+        let Some(&[n_front, n_back]) = counts.get(k) else {
             return 0..0;
         };
         let start = k * RAY_CHUNK;
@@ -246,10 +246,10 @@ impl<const N: usize> Spill<N> {
 
 /// A voxel of a sparse walk packed in one `u64`, 21 bits per axis, relative to an origin
 /// near the rays' start: a step is one add of a stride, a field's low 3 bits are the
-/// voxel's offset in its brick, and a change above them is a new brick.
+/// voxel's offset in its leaf, and a change above them is a new leaf.
 #[derive(Clone, Copy)]
 pub(super) struct Packed {
-    /// The voxel that packs to 0: brick-aligned, `BIAS` below the start on every axis.
+    /// The voxel that packs to 0: leaf-aligned, `BIAS` below the start on every axis.
     o: VoxelCoord,
 }
 
@@ -259,7 +259,7 @@ impl Packed {
     /// Index change of one voxel step along x, y and z.
     const STRIDES: [i64; 3] = [1, 1 << Self::F, 1 << (2 * Self::F)];
     /// Bits of a field above its low 3.
-    const BRICK: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
+    const LEAF: u64 = !(7 | 7 << Self::F | 7 << (2 * Self::F));
     /// Bits of the z field (for the vector walks).
     #[cfg(target_arch = "x86_64")]
     const Z_FIELD: u64 = !0 << (2 * Self::F);
@@ -288,4 +288,28 @@ impl Packed {
         let (f, f2) = (Self::F, 2 * Self::F);
         self.o + VoxelCoord::new((p & m) as i32, (p >> f & m) as i32, (p >> f2) as i32)
     }
+}
+
+/// The walks an integrator can take; tests force each in turn.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(not(test), allow(dead_code))]
+pub(crate) enum Walk {
+    /// Dense when the frame's box fits the budget and its rays are many enough to pay for
+    /// the grids, sparse otherwise.
+    Auto,
+    /// Sparse.
+    Sparse,
+    /// Dense whenever the box fits the budget; the AVX2 kernel refills each lane as its
+    /// ray ends, whatever the rays' length (see `walk::avx2::walks_grouped`).
+    Dense,
+    /// Dense, testing each mark before writing it on every frame (see
+    /// `walk::avx512::walk_dense`; the other kernels walk `Dense`).
+    DenseTestFirst,
+    /// Dense, the AVX2 kernel walking its rays in groups on every frame (the other kernels
+    /// walk `Dense`).
+    DenseGrouped,
+}
+
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }

@@ -1,9 +1,9 @@
 //! The sparse walk one ray at a time: the exact DDA ([`Dda`]) over [`Packed`] voxels,
-//! marks gathered per brick and OR-ed into the frame's [`FrameMarks`] tables.
+//! marks gathered per leaf and OR-ed into the frame's [`FrameMarks`] tables.
 
 use super::Packed;
 use crate::integrate::marks::FrameMarks;
-use crate::integrate::prepare::Ray;
+use crate::integrate::ray::Ray;
 use crate::raycast::Dda;
 
 /// Walk a chunk of rays one at a time, OR-ing their marks into `marks`; returns voxels
@@ -18,15 +18,15 @@ pub(crate) fn walk_rays(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u
         let n = dda.steps();
         steps += u64::from(n) + 1;
         let mut local = [0u64; 8];
-        // The marks of the current z plane of the brick. A ray visits each plane of a brick
+        // The marks of the current z plane of the leaf. A ray visits each plane of a leaf
         // in one run, so the plane's word is only stored, never read back: a read-modify-
         // write of `local` would chain every step through store-to-load forwarding.
         let mut plane = 0u64;
-        let mut brick = dda.voxel().shr(3);
+        let mut leaf = dda.voxel().shr(3);
         if n > 2 {
-            // All steps but the last two: mark the current voxel, step, flush the brick's
+            // All steps but the last two: mark the current voxel, step, flush the leaf's
             // marks on leaving it. The voxel is [`Packed`]: a step is one add and "left the
-            // brick" one test, and the loop keeps more in registers. About 5% faster: 46
+            // leaf" one test, and the loop keeps more in registers. About 5% faster: 46
             // of 57 interleaved paired runs (6 m workloads, 1 and 2 threads) on a noisy VM.
             let start = dda.voxel();
             let packed = Packed::around(start);
@@ -53,11 +53,11 @@ pub(crate) fn walk_rays(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u
                 });
                 let moved = p ^ was;
                 plane &= ((moved >> (2 * F) != 0) as u64).wrapping_sub(1);
-                if moved & Packed::BRICK != 0 {
-                    cache.or_free(brick, &local);
+                if moved & Packed::LEAF != 0 {
+                    cache.or_free(leaf, &local);
                     local = [0; 8];
                     plane = 0;
-                    brick = packed.unpack(p).shr(3);
+                    leaf = packed.unpack(p).shr(3);
                 }
             }
             let v = packed.unpack(p);
@@ -71,16 +71,16 @@ pub(crate) fn walk_rays(marks: &FrameMarks, origin: [f64; 3], rays: &[Ray]) -> u
             dda.step();
             plane &= ((dda.z != z) as u64).wrapping_sub(1);
             if ((dda.x ^ x) | (dda.y ^ y) | (dda.z ^ z)) & !7 != 0 {
-                cache.or_free(brick, &local);
+                cache.or_free(leaf, &local);
                 local = [0; 8];
                 plane = 0;
-                brick = dda.voxel().shr(3);
+                leaf = dda.voxel().shr(3);
             }
         }
-        // A ray's last step may enter a brick only to end there: nothing free to mark, and
+        // A ray's last step may enter a leaf only to end there: nothing free to mark, and
         // a slot would give the map an empty leaf.
         if local != [0; 8] {
-            cache.or_free(brick, &local);
+            cache.or_free(leaf, &local);
         }
         if r.hit {
             cache.set_hit(dda.voxel());

@@ -1,9 +1,10 @@
 //! Cell keys and notes on AVX2: four rays at a time, bit for bit as [`CellKeys::key`] and
 //! [`CellBox::note_of`]; and the rays made and noted in one pass ([`make_noted`]).
 
-use super::{CellBox, CellKeys, Chooser, Ray, Sides, BEHIND};
-use crate::integrate::prepare::avx2::{load_ray, store4, transpose4, Acc, Maker4, Side4};
-use crate::integrate::prepare::ExtentSum;
+use super::{CellBox, Chooser, BEHIND};
+use crate::integrate::ray::avx2::{load_ray, store4, transpose4, ExtentSum4, RayMaker4, Sides4};
+use crate::integrate::ray::ExtentSum;
+use crate::integrate::ray::{CellKeys, Ray, Sides};
 use std::arch::x86_64::*;
 
 /// Four rays (`rays.len() == 4`) as lanes: their x, y and z, and the word of key (bits
@@ -52,14 +53,14 @@ struct Noter {
     last: [__m256d; 3],
     dx: __m256d,
     dy: __m256d,
-    side: Side4,
+    side: Sides4,
     hit_bit: __m256i,
     shift: __m128i,
 }
 
 impl Noter {
     #[target_feature(enable = "avx2")]
-    fn new(b: &CellBox, c: &CellKeys, halves: &Sides) -> Self {
+    fn new(b: &CellBox, c: &CellKeys, sides: &Sides) -> Self {
         let [dx, dy] = [0, 1].map(|a| _mm256_set1_pd(b.dims[a] as f64));
         Noter {
             f: _mm256_set1_pd(c.f),
@@ -67,7 +68,7 @@ impl Noter {
             last: b.dims.map(|d| _mm256_set1_pd((d - 1) as f64)),
             dx,
             dy,
-            side: Side4::new(halves),
+            side: Sides4::new(sides),
             hit_bit: _mm256_set1_epi64x(b.hit_bit as i64),
             shift: _mm_set_epi64x(0, b.hit_bit as i64),
         }
@@ -104,18 +105,18 @@ impl Noter {
     }
 }
 
-/// `out[i] = b.note_of(c, halves, &rays[i])` for four rays at a time; returns how many it
+/// `out[i] = b.note_of(c, sides, &rays[i])` for four rays at a time; returns how many it
 /// did, a multiple of four.
 #[target_feature(enable = "avx2")]
 pub(crate) fn notes(
     b: &CellBox,
     c: &CellKeys,
-    halves: &Sides,
+    sides: &Sides,
     rays: &[Ray],
     out: &mut [u64],
 ) -> usize {
     let n = rays.len().min(out.len()) / 4 * 4;
-    let noter = Noter::new(b, c, halves);
+    let noter = Noter::new(b, c, sides);
     for (o4, r4) in out[..n].chunks_exact_mut(4).zip(rays[..n].chunks_exact(4)) {
         let note = noter.note4(load4(r4));
         // SAFETY: `o4` is four writable u64s; the store has no alignment requirement.
@@ -141,10 +142,10 @@ pub(crate) fn make_noted(
         return None;
     }
     let m = how.maker;
-    let maker = Maker4::new(m);
-    let noter = Noter::new(how.cells_box, how.cells, how.halves);
-    let mut sums = [Acc::new(m.origin), Acc::new(m.origin)];
-    let ahead = super::firsts::prefetched(set);
+    let maker = RayMaker4::new(m);
+    let noter = Noter::new(how.cells_box, how.cells, how.sides);
+    let mut sums = [ExtentSum4::new(m.origin), ExtentSum4::new(m.origin)];
+    let ahead = super::as_made::worth_prefetching(set);
     for ((p4, o4), n4) in (pts.chunks_exact(4))
         .zip(made.chunks_exact_mut(4))
         .zip(notes.chunks_exact_mut(4))
@@ -156,7 +157,7 @@ pub(crate) fn make_noted(
         unsafe { _mm256_storeu_si256(n4.as_mut_ptr().cast(), note) };
         // The marking reads each cell's word of `set` after the chunk is made: ask for
         // them now.
-        super::firsts::ask_for_words(ahead, n4);
+        super::as_made::prefetch_set_words(ahead, n4);
         let rays = transpose4(lanes);
         store4(o4, rays);
         m4.sum_into(&mut sums, &rays);

@@ -1,14 +1,15 @@
-//! Phase 1, prepare: a frame's points become rays in voxel units (pose, face snap,
-//! max-range cut), laid out by the sides of the sensor ([`Sides`]) as they are made, with
-//! the frame's extent summed up in the same pass ([`ExtentSum`]); the trade-off modes
-//! choose in the same pass (subsample and unique-end in a box about the sensor) or from
-//! notes of it ([`super::thin`]) and drop the rest from the layout ([`compact`]); the
-//! sparse walk gets them sorted by direction ([`order_by_direction`]).
+//! Rays and their layout: a [`Ray`] from the sensor to a point's end in voxel units, made
+//! by [`RayMaker`] (eight at a time on AVX-512, four on AVX2: `avx512.rs`, `avx2.rs`); a
+//! frame's rays in chunks of [`RAY_CHUNK`], each laid out by the [`Sides`] of a plane
+//! through the sensor (where the layout put each ray: [`ChunkOrder`]); their extent summed
+//! as they are made ([`ExtentSum`] into [`Extent`]). The prepare phase makes them, the ray
+//! modes choose among them (`select`), the walks cast them.
 
-use super::thin::{cell_factor, make_firsts, thin_out, Buffers, CellBox, CellKeys, Chooser, Kept};
-use super::{Frame, RayMode};
 use crate::coord::{units_to_voxel, VoxelCoord};
 use crate::kernel::Kernels;
+use crate::mask::BitIter;
+use nalgebra::Isometry3;
+#[cfg(test)]
 use rayon::prelude::*;
 
 #[cfg(target_arch = "x86_64")]
@@ -16,8 +17,15 @@ pub(crate) mod avx2;
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx512;
 
+/// One frame: points in the sensor frame and the sensor's pose in the map frame.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame<'a> {
+    pub pose: Isometry3<f64>,
+    pub points: &'a [[f32; 3]],
+}
+
 /// Rays per parallel task of the walk, and per chunk of the layout by sides.
-pub(super) const RAY_CHUNK: usize = 512;
+pub(crate) const RAY_CHUNK: usize = 512;
 
 /// A ray from the frame's sensor origin. `repr(C)` with explicit padding, so that every
 /// byte is initialised and the dense walk can gather whole fields from a slice of rays:
@@ -48,7 +56,7 @@ impl Ray {
 
 /// Octahedral direction key, Morton-interleaved: rays with close directions get close keys.
 #[inline]
-pub(super) fn direction_key(d: [f64; 3]) -> u32 {
+pub(crate) fn direction_key(d: [f64; 3]) -> u32 {
     let s = d[0].abs() + d[1].abs() + d[2].abs();
     if s == 0.0 {
         return 0;
@@ -65,13 +73,8 @@ pub(super) fn direction_key(d: [f64; 3]) -> u32 {
     (spread16(qu) | spread16(qv) << 1).min(SKIPPED - 1)
 }
 
-pub(super) fn set_direction_keys(rays: &mut [Ray], origin: [f64; 3]) {
-    rays.par_iter_mut()
-        .for_each(|r| r.key = direction_key([0, 1, 2].map(|a| r.end[a] - origin[a])));
-}
-
 /// The key of a ray from a non-finite point, never a direction's key.
-pub(super) const SKIPPED: u32 = u32::MAX;
+pub(crate) const SKIPPED: u32 = u32::MAX;
 
 #[inline]
 pub(crate) fn spread16(x: u32) -> u32 {
@@ -82,192 +85,12 @@ pub(crate) fn spread16(x: u32) -> u32 {
     (x | x << 1) & 0x5555_5555
 }
 
-/// Put the rays in the sparse walk's order: gaps of skipped points and dropped rays
-/// closed, sorted by direction, so that neighbouring rays walk neighbouring memory.
-pub(super) fn order_by_direction(rays: &mut Vec<Ray>, sides: &[[u32; 2]], origin: [f64; 3]) {
-    let mut to = 0;
-    for (c, &[front, back]) in sides.iter().enumerate() {
-        let at = c * RAY_CHUNK;
-        let len = (rays.len() - at).min(RAY_CHUNK);
-        let (front, back) = (front as usize, back as usize);
-        rays.copy_within(at..at + front, to);
-        rays.copy_within(at + len - back..at + len, to + front);
-        to += front + back;
-    }
-    rays.truncate(to);
-    set_direction_keys(rays, origin);
-    rays.par_sort_unstable_by_key(|r| r.key);
-}
-
-/// Fill `rays` from the frame, laid out by `halves` with the counts per chunk in `sides`;
-/// returns the number of non-finite points skipped, the rays' extent, and the time a
-/// trade-off mode took to choose its rays and drop the others from the layout
-/// ([`compact`]).
-#[allow(clippy::too_many_arguments)]
-pub(super) fn prepare_rays(
-    rays: &mut Vec<Ray>,
-    sides: &mut Vec<[u32; 2]>,
-    halves: Sides,
-    frame: &Frame<'_>,
-    tf: &crate::coord::GridTransform,
-    origin: [f64; 3],
-    range_units: f64,
-    mode: RayMode,
-    kernels: &'static Kernels,
-    thin: &mut Buffers,
-) -> (u64, Extent, std::time::Duration) {
-    let maker = RayMaker::new(frame, tf, origin, range_units, kernels);
-    // One pass writes the rays, lays them out and sums up their extent: a frame's rays
-    // (16 MB for 500k points) outgrow the cache, and passes of their own to count the
-    // skipped points and take the bounds cost a third of the prepare phase (structured
-    // 500k 6 m: 7.8 ms, of which 1.4 ms bounds and 0.5 ms counting, 2 threads). `rays`
-    // keeps its length from frame to frame, so `resize` writes only where this frame has
-    // more points than the last.
-    let n = frame.points.len();
-    rays.truncate(n);
-    rays.resize(n, Ray::new([0.0; 3], SKIPPED, false));
-    sides.clear();
-    sides.resize(n.div_ceil(RAY_CHUNK), [0; 2]);
-    let cells = CellKeys::new(origin, cell_factor(mode));
-    let around = match mode {
-        RayMode::Subsample { .. } | RayMode::UniqueEnd => {
-            CellBox::around(origin, range_units, &cells)
-        }
-        RayMode::Exact | RayMode::Bundle { .. } => None,
-    };
-    if let Some(cells_box) = around {
-        // Every end the frame can have fits a bit set: the rays are chosen as they are
-        // made ([`make_firsts`]).
-        let how = Chooser {
-            maker: &maker,
-            halves: &halves,
-            cells: &cells,
-            cells_box: &cells_box,
-            centre: mode == RayMode::UniqueEnd,
-        };
-        let (sums, cut, took) = make_firsts(rays, sides, frame.points, how, &mut thin.firsts);
-        return (sums.skipped, kept_extent(&sums, n, sides, cut), took);
-    }
-    let chunks = rays
-        .par_chunks_mut(RAY_CHUNK)
-        .zip(frame.points.par_chunks(RAY_CHUNK))
-        .zip(sides.par_iter_mut());
-    let sums = if mode == RayMode::Exact {
-        chunks
-            .map_init(Vec::new, |made, ((out, pts), side)| {
-                let (counts, _, sum) = halves.make(&maker, pts, out, made, None);
-                *side = counts;
-                sum
-            })
-            .reduce(|| ExtentSum::new(origin), ExtentSum::join)
-    } else {
-        // The trade-off modes choose rays in scan order: the same pass notes each ray's
-        // cell, in scan order, and where the layout put it, so that choosing reads 8 bytes
-        // a ray instead of the ray, and dropping rays is a compaction of the layout.
-        let (keys, orders) = thin.notes(n);
-        chunks
-            .zip(keys.par_chunks_mut(RAY_CHUNK))
-            .zip(orders.par_iter_mut())
-            .map_init(Vec::new, |made, ((((out, pts), side), keys), order)| {
-                let note = Some((&cells, keys));
-                let (counts, o, sum) = halves.make(&maker, pts, out, made, note);
-                (*side, *order) = (counts, o);
-                sum
-            })
-            .reduce(|| ExtentSum::new(origin), ExtentSum::join)
-    };
-    let skipped = sums.skipped;
-    if mode == RayMode::Exact {
-        return (skipped, sums.extent(), std::time::Duration::ZERO);
-    }
-    let t = std::time::Instant::now();
-    let (kept, orders) = thin_out(rays, origin, mode, &sums.extent(), thin);
-    let cut = compact(rays, sides, orders, &kept);
-    let thinned = t.elapsed();
-    (skipped, kept_extent(&sums, n, sides, cut), thinned)
-}
-
-/// The extent of the rays a trade-off mode kept of a frame's `points` (laid out with the
-/// counts `sides`, `cut` of them cut at max range), from the sum over all rays made: the
-/// box of all rays holds those kept (a kept ray moves only within its end voxel), and the
-/// walk's length is taken as the share of rays kept.
-fn kept_extent(sums: &ExtentSum, points: usize, sides: &[[u32; 2]], cut: u64) -> Extent {
-    let mut extent = sums.extent();
-    let made = (points as u64 - sums.skipped).max(1) as f64;
-    extent.steps *= ray_count(sides) as f64 / made;
-    extent.cut_rays = cut;
-    extent
-}
-
-/// Drop from the layout of each chunk the rays `kept` does not keep (a bundle's mean is
-/// already in its first ray's place); `orders` says which ray of the scan lies where
-/// ([`ChunkOrder`]). `sides` gets the new counts (what lies between is left as it was,
-/// not rays); returns how many rays kept are cut at max range.
-pub(super) fn compact(
-    rays: &mut [Ray],
-    sides: &mut [[u32; 2]],
-    orders: &[ChunkOrder],
-    kept: &Kept<'_>,
-) -> u64 {
-    rays.par_chunks_mut(RAY_CHUNK)
-        .zip(sides.par_iter_mut())
-        .zip(orders.par_iter())
-        .enumerate()
-        .map(|(c, ((chunk, side), order))| {
-            let (places, cut) = kept.by_place(c * RAY_CHUNK, chunk.len(), order);
-            *side = places.map(|p| p.iter().map(|w| w.count_ones()).sum());
-            let len = chunk.len();
-            fill_holes(&places[0], |p| p, chunk);
-            fill_holes(&places[1], |p| len - 1 - p, chunk);
-            if kept.centres() {
-                let [front, back] = side.map(|n| n as usize);
-                let (ahead, behind) = chunk.split_at_mut(len - back);
-                for r in ahead[..front].iter_mut().chain(behind) {
-                    *r = kept.finish(r);
-                }
-            }
-            cut
-        })
-        .sum()
-}
-
-/// The rays a side of a chunk keeps, to the side's first places: `keep` has bit `p` for
-/// each ray kept at the side's place `p`, which is `at(p)` in the chunk. The kept rays
-/// past the first places fill the holes there, in order: the walk's result does not
-/// depend on the order of the rays, and a ray moves only if a hole is left for it.
-fn fill_holes(keep: &[u64; RAY_CHUNK / 64], at: impl Fn(usize) -> usize, chunk: &mut [Ray]) {
-    let n: usize = keep.iter().map(|w| w.count_ones() as usize).sum();
-    let first = |w: usize| first_bits(n, w);
-    let ones = |m: [u64; RAY_CHUNK / 64]| {
-        (0..RAY_CHUNK / 64).flat_map(move |w| Ones(m[w]).map(move |b| w * 64 + b))
-    };
-    let holes = ones(std::array::from_fn(|w| !keep[w] & first(w)));
-    let moved = ones(std::array::from_fn(|w| keep[w] & !first(w)));
-    for (h, m) in holes.zip(moved) {
-        chunk[at(h)] = chunk[at(m)];
-    }
-}
-
 /// Word `w` of a chunk's mask of its first `n` places.
-fn first_bits(n: usize, w: usize) -> u64 {
+pub(crate) fn first_bits(n: usize, w: usize) -> u64 {
     match n.saturating_sub(w * 64) {
         0 => 0,
         bits @ 1..64 => (1u64 << bits) - 1,
         _ => !0,
-    }
-}
-
-/// The places of a word's set bits, lowest first.
-pub(crate) struct Ones(pub(crate) u64);
-
-impl Iterator for Ones {
-    type Item = usize;
-
-    #[inline]
-    fn next(&mut self) -> Option<usize> {
-        let b = (self.0 != 0).then(|| self.0.trailing_zeros() as usize);
-        self.0 &= self.0.wrapping_sub(1);
-        b
     }
 }
 
@@ -277,7 +100,7 @@ impl Iterator for Ones {
 pub(crate) struct ChunkOrder {
     pub(crate) front: [u64; RAY_CHUNK / 64],
     pub(crate) back: [u64; RAY_CHUNK / 64],
-    /// The rays cut at max range (noted for the trade-off modes only).
+    /// The rays cut at max range (noted for the ray modes only).
     pub(crate) cut: [u64; RAY_CHUNK / 64],
 }
 
@@ -296,14 +119,14 @@ impl ChunkOrder {
         let len = out.len();
         let mut k = 0;
         for (w, &m) in self.front.iter().enumerate() {
-            for b in Ones(m) {
+            for b in BitIter(m) {
                 out[w * 64 + b] = k;
                 k += 1;
             }
         }
         let mut k = len as u16;
         for (w, &m) in self.back.iter().enumerate() {
-            for b in Ones(m) {
+            for b in BitIter(m) {
                 k -= 1;
                 out[w * 64 + b] = k;
             }
@@ -328,7 +151,7 @@ pub(crate) struct Sides {
     pub(crate) origin: [f64; 3],
     /// The plane's normal in the world frame, a sensor axis; none for a one-thread pool,
     /// where all rays count as in front. One thread has no second grid to share first marks
-    /// with, and in halves its lanes walk rays nearer in direction: laid out, its frames
+    /// with, and in sides its lanes walk rays nearer in direction: laid out, its frames
     /// took 3-9% longer (500k 6 m workloads, three alternated rounds).
     pub(crate) axis: Option<[f64; 3]>,
 }
@@ -338,7 +161,7 @@ impl Sides {
     pub(crate) const SAMPLES: usize = 1024;
 
     /// The sides for `frame` on a pool of `threads`: across the sensor axis whose plane
-    /// halves the rays' lengths best, in a sample of the points (a sensor looking along one
+    /// sides the rays' lengths best, in a sample of the points (a sensor looking along one
     /// of its axes, as a camera along z or a forward lidar along x, has no ray behind it).
     pub(crate) fn new(frame: &Frame<'_>, origin: [f64; 3], threads: usize) -> Self {
         if threads < 2 {
@@ -458,9 +281,9 @@ impl Sides {
     }
 }
 
-/// Rays in chunks laid out with counts `sides` (not their length: gaps are not rays).
-pub(crate) fn ray_count(sides: &[[u32; 2]]) -> u64 {
-    sides.iter().map(|&[f, b]| u64::from(f + b)).sum()
+/// Rays in chunks laid out with counts `counts` (not their length: gaps are not rays).
+pub(crate) fn ray_count(counts: &[[u32; 2]]) -> u64 {
+    counts.iter().map(|&[f, b]| u64::from(f + b)).sum()
 }
 
 /// Makes a frame's rays from its points: sensor frame to world by the pose, to voxel units
@@ -627,4 +450,49 @@ pub(crate) struct Extent {
     pub(crate) cut_rays: u64,
     /// About the voxel steps of the walk: the rays' lengths in voxels along each axis.
     pub(crate) steps: f64,
+}
+
+/// The key of a skipped point's ray: no cell's ([`CellKeys`] fields never are all ones).
+pub(crate) const NO_CELL: u64 = u64::MAX;
+
+/// A ray's cell (`factor` per voxel edge, `floor(end * factor)` on each axis) and hit flag
+/// in one `u64`: 21 bits an axis, relative to the origin's cell and biased by 2^20, and
+/// the hit flag on top. Rays end within max range (8192 voxels) of the origin and the
+/// factor is at most 64, so a field lies within 2^20 ± (2^19 + 1): never all ones.
+pub(crate) struct CellKeys {
+    pub(crate) f: f64,
+    /// The cell that keys to 0 on each axis, as a float (an integer).
+    pub(crate) base: [f64; 3],
+}
+
+impl CellKeys {
+    pub(crate) const BIAS: f64 = (1 << 20) as f64;
+    pub(crate) const FIELD: u64 = (1 << 21) - 1;
+
+    pub(crate) fn new(origin: [f64; 3], factor: u32) -> Self {
+        let f = f64::from(factor);
+        CellKeys {
+            f,
+            base: origin.map(|c| (c * f).floor() - Self::BIAS),
+        }
+    }
+
+    /// The key of `r`, [`NO_CELL`] for a skipped point's.
+    #[inline]
+    pub(crate) fn key(&self, r: &Ray) -> u64 {
+        if r.key == SKIPPED {
+            return NO_CELL;
+        }
+        let c =
+            [0, 1, 2].map(|a| ((r.end[a] * self.f).floor() - self.base[a]) as u64 & Self::FIELD);
+        c[0] | c[1] << 21 | c[2] << 42 | u64::from(r.hit) << 63
+    }
+
+    /// `out[i] = self.key(&rays[i])`, four at a time with the vector kernels.
+    pub(crate) fn keys(&self, kernels: &Kernels, rays: &[Ray], out: &mut [u64]) {
+        let done = (kernels.cell_keys)(self, rays, out);
+        for (k, r) in out.iter_mut().zip(rays).skip(done) {
+            *k = self.key(r);
+        }
+    }
 }

@@ -6,7 +6,7 @@ use super::{ChunkOrder, ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
 use std::arch::x86_64::*;
 
 /// The pose, grid and range of a [`RayMaker`] in vectors, to make four rays at a time.
-pub(crate) struct Maker4 {
+pub(crate) struct RayMaker4 {
     res: __m256d,
     snap: __m256d,
     range: __m256d,
@@ -18,7 +18,7 @@ pub(crate) struct Maker4 {
 
 /// Four rays made: their ends per axis (lanes of a skipped point's are not ends), which
 /// are finite points and which hit (bit `j` for lane `j`).
-pub(crate) struct Made4 {
+pub(crate) struct Rays4 {
     e: [__m256d; 3],
     finite: u32,
     hit: u32,
@@ -30,10 +30,10 @@ fn mask(v: __m256d) -> u32 {
     _mm256_movemask_pd(v) as u32
 }
 
-impl Maker4 {
+impl RayMaker4 {
     #[target_feature(enable = "avx2")]
     pub(crate) fn new(m: &RayMaker) -> Self {
-        Maker4 {
+        RayMaker4 {
             res: _mm256_set1_pd(m.tf.resolution()),
             snap: _mm256_set1_pd(crate::coord::FACE_SNAP),
             range: _mm256_set1_pd(m.range_units),
@@ -48,7 +48,7 @@ impl Maker4 {
     /// the same rays; no FMA, which would round differently).
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(crate) fn make(&self, p4: &[[f32; 3]]) -> Made4 {
+    pub(crate) fn make(&self, p4: &[[f32; 3]]) -> Rays4 {
         let zero = _mm256_setzero_pd();
         let sign = _mm256_set1_pd(-0.0);
         let [x, y, z] = deinterleave(p4).map(|c| _mm256_cvtps_pd(c));
@@ -81,7 +81,7 @@ impl Maker4 {
         // The square root only where a lane may end beyond max range: in most frames
         // rarely, and it is the slowest instruction here.
         if surely == 0b1111 {
-            return Made4 {
+            return Rays4 {
                 e,
                 finite,
                 hit: surely,
@@ -98,7 +98,7 @@ impl Maker4 {
                 e[a] = _mm256_blendv_pd(e[a], c, cut_v);
             }
         }
-        Made4 { e, finite, hit }
+        Rays4 { e, finite, hit }
     }
 }
 
@@ -115,14 +115,14 @@ fn lanes(bits: u32) -> __m256i {
 #[target_feature(enable = "avx2")]
 pub(crate) fn make_rays(m: &RayMaker, out: &mut [Ray], pts: &[[f32; 3]]) -> usize {
     let n = out.len().min(pts.len()) / 4 * 4;
-    let maker = Maker4::new(m);
+    let maker = RayMaker4::new(m);
     for (o4, p4) in out[..n].chunks_exact_mut(4).zip(pts[..n].chunks_exact(4)) {
         store4(o4, maker.make(p4).rays());
     }
     n
 }
 
-/// Four rays whole (as [`Made4::rays`] gives them) into `o4`, one store each.
+/// Four rays whole (as [`Rays4::rays`] gives them) into `o4`, one store each.
 #[inline]
 #[target_feature(enable = "avx2")]
 pub(crate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
@@ -130,12 +130,12 @@ pub(crate) fn store4(o4: &mut [Ray], rays: [__m256d; 4]) {
     let p = o4.as_mut_ptr().cast::<f64>();
     for (j, r) in rays.into_iter().enumerate() {
         // SAFETY: `o4` is four `repr(C)` rays of 32 bytes, end first: store `j` writes ray
-        // `j` whole, all of its fields valid values (`Made4::rays`).
+        // `j` whole, all of its fields valid values (`Rays4::rays`).
         unsafe { _mm256_store_pd(p.add(4 * j), r) };
     }
 }
 
-impl Made4 {
+impl Rays4 {
     /// The four rays whole, as `Ray::new` lays them out, a vector each: lane `j`'s end
     /// with key 0 and its hit flag, or a skipped point's ray (end 0, key `SKIPPED`, no
     /// hit).
@@ -168,7 +168,7 @@ impl Made4 {
     /// `j % 2`, as [`extent_of`] adds rays in scan order to its two sums.
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(crate) fn sum_into(&self, sums: &mut [Acc; 2], rays: &[__m256d; 4]) {
+    pub(crate) fn sum_into(&self, sums: &mut [ExtentSum4; 2], rays: &[__m256d; 4]) {
         for (j, &r) in rays.iter().enumerate() {
             let sum = &mut sums[j % 2];
             if self.finite >> j & 1 == 0 {
@@ -182,17 +182,17 @@ impl Made4 {
 
 /// The plane of a [`Sides`] in vectors, to tell for four ends at a time which lie behind
 /// it.
-pub(crate) struct Side4 {
+pub(crate) struct Sides4 {
     o: [__m256d; 3],
     axis: [__m256d; 3],
 }
 
-impl Side4 {
+impl Sides4 {
     #[target_feature(enable = "avx2")]
-    pub(crate) fn new(halves: &Sides) -> Self {
-        Side4 {
-            o: halves.origin.map(|c| _mm256_set1_pd(c)),
-            axis: halves.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c)),
+    pub(crate) fn new(sides: &Sides) -> Self {
+        Sides4 {
+            o: sides.origin.map(|c| _mm256_set1_pd(c)),
+            axis: sides.axis.unwrap_or([0.0; 3]).map(|c| _mm256_set1_pd(c)),
         }
     }
 
@@ -248,16 +248,16 @@ pub(crate) fn transpose4(rows: [__m256d; 4]) -> [__m256d; 4] {
 #[target_feature(enable = "avx2")]
 pub(crate) fn make_laid_out(
     m: &RayMaker,
-    halves: &Sides,
+    sides: &Sides,
     pts: &[[f32; 3]],
     out: &mut [Ray],
 ) -> Option<([u32; 2], ChunkOrder, ExtentSum)> {
     if !pts.len().is_multiple_of(4) || pts.len() != out.len() || out.len() > RAY_CHUNK {
         return None;
     }
-    let maker = Maker4::new(m);
-    let side = Side4::new(halves);
-    let mut sums = [Acc::new(halves.origin), Acc::new(halves.origin)];
+    let maker = RayMaker4::new(m);
+    let side = Sides4::new(sides);
+    let mut sums = [ExtentSum4::new(sides.origin), ExtentSum4::new(sides.origin)];
     let (mut front, mut back) = (0, out.len());
     let mut order = ChunkOrder::default();
     for (q, p4) in pts.chunks_exact(4).enumerate() {
@@ -279,7 +279,7 @@ pub(crate) fn make_laid_out(
             back -= usize::from(behind);
             // SAFETY: `place` is below `out.len()` (each ray made takes one place between
             // `front` and `back`); a ray is 32 bytes, `repr(C)`, end first, and `r` holds
-            // one whole with valid fields (`Made4::rays`).
+            // one whole with valid fields (`Rays4::rays`).
             unsafe { _mm256_store_pd(out.as_mut_ptr().add(place).cast::<f64>(), r) };
         }
     }
@@ -316,11 +316,11 @@ fn deinterleave(p4: &[[f32; 3]]) -> [__m128; 3] {
 }
 
 /// [`ExtentSum::of_scalar`] on AVX2, bit for bit: the same two sums over alternate rays
-/// ([`Acc`]).
+/// ([`ExtentSum4`]).
 #[target_feature(enable = "avx2")]
 pub(crate) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
-    let (mut even, mut odd) = (Acc::new(origin), Acc::new(origin));
-    let add = |s: &mut Acc, r: &Ray| {
+    let (mut even, mut odd) = (ExtentSum4::new(origin), ExtentSum4::new(origin));
+    let add = |s: &mut ExtentSum4, r: &Ray| {
         if r.key == SKIPPED {
             s.skipped += 1;
             return;
@@ -338,7 +338,7 @@ pub(crate) fn extent_of(origin: [f64; 3], rays: &[Ray]) -> ExtentSum {
 
 /// An [`ExtentSum`] being summed with a ray's three axes in the lanes of one vector (the
 /// fourth lane, the key and hit flag read as a float, is ignored).
-pub(crate) struct Acc {
+pub(crate) struct ExtentSum4 {
     origin: [f64; 3],
     o: __m256d,
     lo: __m256d,
@@ -348,11 +348,11 @@ pub(crate) struct Acc {
     skipped: u64,
 }
 
-impl Acc {
+impl ExtentSum4 {
     #[target_feature(enable = "avx2")]
     pub(crate) fn new(origin: [f64; 3]) -> Self {
         let o = _mm256_setr_pd(origin[0], origin[1], origin[2], 0.0);
-        Acc {
+        ExtentSum4 {
             origin,
             o,
             lo: o,

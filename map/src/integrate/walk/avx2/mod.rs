@@ -8,9 +8,9 @@
 //!   [`DenseBits`], so a step is one add and a mark one OR into memory that stays in
 //!   cache. Short rays walk in groups, long ones lane by lane ([`walks_grouped`]);
 //! - sparse ([`walk_sparse`], lane by lane): a voxel is [`Packed`]; each lane stores its
-//!   current plane's marks, and the voxel, to its current brick's entry on every step,
-//!   and moves to its next entry when it leaves the brick, so a step has no branch
-//!   ([`SparseMarks`]); after each burst of steps the bricks are OR-ed into the frame's
+//!   current plane's marks, and the voxel, to its current leaf's entry on every step,
+//!   and moves to its next entry when it leaves the leaf, so a step has no branch
+//!   ([`sparse::SparseMarks`]); after each burst of steps the leaves are OR-ed into the frame's
 //!   tables.
 //!
 //! AVX2 has no mask registers, no unsigned 64-bit compares, no scatters, no compress and
@@ -31,13 +31,19 @@ use super::covered::Covered;
 use super::dense::{or_bit, set_bit, DenseBits, DenseBox};
 use super::{Packed, Spill};
 use crate::coord::VoxelCoord;
-use crate::integrate::marks::{BrickCache, Slot};
-use crate::integrate::prepare::avx2::{load_ray, transpose4};
-use crate::integrate::prepare::Ray;
+use crate::integrate::marks::{LeafCache, Slot};
+use crate::integrate::ray::avx2::{load_ray, transpose4};
+use crate::integrate::ray::Ray;
 use crate::mask::BitIter;
 use crate::raycast::T_ONE;
 use std::arch::x86_64::*;
 use std::ops::Range;
+
+mod sparse;
+#[cfg(test)]
+mod tests;
+
+pub(crate) use sparse::walk_sparse;
 
 /// A finished axis's next crossing: above every real one, so never first again.
 const NEVER: i64 = i64::MAX;
@@ -513,40 +519,6 @@ pub(crate) fn walk_dense(
     }
 }
 
-/// Walk `rays` from `origin` four at a time, OR-ing their marks into the frame's tables
-/// through `cache`; returns voxels visited. The same marks and count as
-/// `super::sparse::walk_rays`. The rays are sorted by direction and the lanes take the
-/// next ones in turn, so they walk side by side and find the bricks they flush in `cache`
-/// and in the CPU's caches. See [`SparseMarks`] for how marks are kept.
-#[target_feature(enable = "avx2,bmi1,bmi2")]
-pub(crate) fn walk_sparse(cache: &mut BrickCache<'_>, origin: [f64; 3], rays: &[Ray]) -> u64 {
-    let v = crate::coord::units_to_voxel(origin).expect("origin checked");
-    let packed = Packed::around(v);
-    // No box: a ray's fields stay inside `Packed`'s (`Packed::around`), so every end is
-    // "inside" bounds no coordinate reaches.
-    let axes: [Axis; 3] =
-        std::array::from_fn(|a| Axis::new(origin[a], Packed::STRIDES[a], i32::MIN, 1 << 33));
-    let feed = Feed::all(rays);
-    let start = packed.pack(v);
-    let mut marks = SparseMarks {
-        cache,
-        packed,
-        start: v,
-        words: vec![Entry::default(); 4 * RING].into_boxed_slice(),
-        keys: vec![0; 4 * RING].into_boxed_slice(),
-        entry: _mm256_setr_epi64x(0, RING as i64, 2 * RING as i64, 3 * RING as i64),
-        plane: _mm256_setzero_si256(),
-        flush: Vec::with_capacity(4 * RING),
-    };
-    let from = Start {
-        axes: &axes,
-        origin,
-        start,
-        covered: None,
-    };
-    walk(&mut marks, &from, feed).0
-}
-
 /// Where a lane walk keeps the marks of the voxels its lanes visit. Voxels are `u64`
 /// indices with fixed strides per axis (see [`Axis::new`]): bit indices into a dense box,
 /// or [`Packed`] voxels.
@@ -617,124 +589,6 @@ impl Marks for DenseMarks<'_> {
 
     fn hit_at(&mut self, p: u64) {
         set_bit(self.hits, p);
-    }
-}
-
-/// Brick entries per lane of [`SparseMarks`]: a burst crosses at most one brick a step.
-const RING: usize = 128;
-
-/// A brick's marks in [`SparseMarks`]: word z holds plane z, bit `x | y << 3`.
-#[derive(Clone, Default)]
-#[repr(C, align(64))]
-struct Entry([u64; 8]);
-
-/// The sparse walk's marks. Each lane keeps the marks of its current z plane in a vector
-/// lane, and stores it on every step, with the voxel, to the plane's word of its current
-/// brick entry; when it leaves a brick it moves on to its next entry. So a step has no
-/// branch for the lanes that changed plane or brick, the one-ray walk's costliest
-/// (mispredicted) branch besides the axis choice. After each burst of steps, the
-/// bricks each lane finished are OR-ed into the frame's tables.
-struct SparseMarks<'c, 'a> {
-    cache: &'c mut BrickCache<'a>,
-    packed: Packed,
-    start: VoxelCoord,
-    /// Lane `l`'s entries are `l * RING..(l + 1) * RING`: 8 words (z planes) of a brick,
-    /// and a voxel of the brick (packed).
-    words: Box<[Entry]>,
-    keys: Box<[u64]>,
-    /// Per lane its current entry, and its current plane's marks, bit `x | y << 3`.
-    entry: __m256i,
-    plane: __m256i,
-    /// The bricks a burst finished: their slots and entries.
-    flush: Vec<(&'a Slot, usize)>,
-}
-
-impl Marks for SparseMarks<'_, '_> {
-    const BURST: i64 = RING as i64 - 1;
-
-    fn idle(&self) -> u64 {
-        self.packed.pack(self.start)
-    }
-
-    #[inline(never)]
-    unsafe fn steps(
-        &mut self,
-        k: i64,
-        t: &mut [__m256i; 3],
-        p: &mut __m256i,
-        fixed: &Fixed,
-        live: __m256i,
-    ) {
-        // Checked, not assumed: the writes below rely on it (once a burst, not a step).
-        assert!(k <= Self::BURST, "a burst longer than the ring");
-        let at = (self.words.as_mut_ptr().cast(), self.keys.as_mut_ptr());
-        // SAFETY: a lane starts a burst at its first entry (`burst_done`) and moves to the
-        // next at most once a step, so in `k < RING` steps (checked above) it stays in its
-        // `RING` entries; the CPU has AVX2 (the caller's promise).
-        unsafe { sparse_steps(k, t, p, fixed, live, &mut self.entry, &mut self.plane, at) };
-    }
-
-    #[target_feature(enable = "avx2,bmi1,bmi2")]
-    unsafe fn burst_done(&mut self, p: [i64; 4], ended: u32, hit: u32) {
-        let entry = to_array(self.entry);
-        let mut plane = to_array(self.plane);
-        // Look up every finished brick's slot and prefetch it, then OR them all, so that
-        // their cache misses overlap.
-        let mut flush = std::mem::take(&mut self.flush);
-        for (l, &e) in entry.iter().enumerate() {
-            let (first, cur) = (l * RING, e as usize);
-            // The bricks the lane left, and its current one if its ray ended. A ray's last
-            // step may enter a brick only to end there: nothing free to mark, and a slot
-            // would give the map an empty leaf.
-            for j in first..cur + usize::from(ended >> l & 1 != 0) {
-                let words = &self.words[j].0;
-                if words.iter().fold(0, |a, &w| a | w) != 0 {
-                    let slot = self.cache.slot_for(self.packed.unpack(self.keys[j]).shr(3));
-                    crate::prefetch::prefetch(std::slice::from_ref(&slot.free), 0);
-                    flush.push((slot, j));
-                }
-            }
-        }
-        for &(slot, j) in &flush {
-            let at = self.words[j].0.as_mut_ptr().cast::<__m256i>();
-            let to = slot.free.as_ptr().cast::<__m256i>().cast_mut();
-            // SAFETY: an `Entry` is 8 u64, two 32-byte vectors, aligned to 64. `free` is
-            // eight AtomicU64 of the same layout, at the start of a `Slot`, which is
-            // aligned to 64. Only the task holding this cache's table accesses the table's
-            // slots until it is released (see `FrameMarks`), so this plain
-            // read-modify-write races with nothing, as `Slot::or_free`'s does not.
-            unsafe {
-                for k in 0..2 {
-                    let (at, to) = (at.add(k), to.add(k));
-                    _mm256_store_si256(
-                        to,
-                        _mm256_or_si256(_mm256_load_si256(to), _mm256_load_si256(at)),
-                    );
-                    _mm256_store_si256(at, _mm256_setzero_si256());
-                }
-            }
-        }
-        flush.clear();
-        self.flush = flush;
-        for (l, &e) in entry.iter().enumerate() {
-            let (first, cur) = (l * RING, e as usize);
-            if ended >> l & 1 != 0 {
-                plane[l] = 0;
-            } else if cur != first {
-                // Its current brick goes on in its first entry. (Its key needs no copy:
-                // the next burst's first step stores it again.)
-                self.words[first] = std::mem::take(&mut self.words[cur]);
-            }
-        }
-        for l in BitIter(u64::from(hit)) {
-            self.cache.set_hit(self.packed.unpack(p[l] as u64));
-        }
-        self.entry = from_array(std::array::from_fn(|l| (l * RING) as i64));
-        self.plane = from_array(plane);
-    }
-
-    fn hit_at(&mut self, p: u64) {
-        self.cache.set_hit(self.packed.unpack(p));
     }
 }
 
@@ -1024,300 +878,9 @@ unsafe fn mark(free: &mut [u64], p: __m256i) {
     }
 }
 
-/// The sparse walk's `k` steps from crossings `t` and [`Packed`] voxels `p`, for
-/// [`SparseMarks`]: each step ORs the lane's voxel into its `plane` (live lanes only),
-/// stores the plane and the voxel in the lane's `entry` of `at` (words, keys), and moves
-/// the lane to its next entry when the step leaves the brick. Not inlined, as `walk_steps`.
-///
-/// # Safety
-/// Every lane's `entry` must stay inside `at`'s entries for `k` steps: a live lane moves
-/// to its next at most once a step, an idle lane (increments 0) not at all. The CPU must
-/// have AVX2.
-#[inline(never)]
-#[target_feature(enable = "avx2,bmi1,bmi2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn sparse_steps(
-    k: i64,
-    t: &mut [__m256i; 3],
-    p: &mut __m256i,
-    fixed: &Fixed,
-    live: __m256i,
-    entry: &mut __m256i,
-    plane: &mut __m256i,
-    (words, keys): (*mut u64, *mut u64),
-) {
-    const _: () = assert!(Packed::F == 21);
-    let seven = _mm256_set1_epi64x(7);
-    let row = _mm256_set1_epi64x(7 << 3);
-    let brick = _mm256_set1_epi64x(Packed::BRICK as i64);
-    let z_field = _mm256_set1_epi64x(Packed::Z_FIELD as i64);
-    let one = _mm256_and_si256(live, _mm256_set1_epi64x(1));
-    let zero = _mm256_setzero_si256();
-    let (mut tv, mut pv, mut e, mut pl) = (*t, *p, *entry, *plane);
-    for _ in 0..k {
-        let xy = _mm256_or_si256(
-            _mm256_and_si256(pv, seven),
-            _mm256_and_si256(_mm256_srli_epi64::<18>(pv), row),
-        );
-        pl = _mm256_or_si256(pl, _mm256_sllv_epi64(one, xy));
-        let word = _mm256_add_epi64(
-            _mm256_slli_epi64::<3>(e),
-            _mm256_and_si256(_mm256_srli_epi64::<42>(pv), seven),
-        );
-        let (wa, pa, va) = (to_array(word), to_array(pl), to_array(pv));
-        for l in 0..4 {
-            // SAFETY: the lane's entry is inside `at` (the caller's promise), and `word`
-            // is 8 entry + z with z < 8.
-            unsafe {
-                *words.add(wa[l] as usize) = pa[l] as u64;
-                *keys.add((wa[l] >> 3) as usize) = va[l] as u64;
-            }
-        }
-        let (next, inc) = step(tv, fixed);
-        tv = next;
-        let was = pv;
-        pv = _mm256_add_epi64(pv, inc);
-        let moved = _mm256_xor_si256(was, pv);
-        let same_brick = _mm256_cmpeq_epi64(_mm256_and_si256(moved, brick), zero);
-        let same_plane = _mm256_cmpeq_epi64(_mm256_and_si256(moved, z_field), zero);
-        pl = _mm256_and_si256(pl, _mm256_and_si256(same_brick, same_plane));
-        // Lanes that left their brick (all ones, -1) move to their next entry.
-        e = _mm256_sub_epi64(e, _mm256_xor_si256(same_brick, _mm256_set1_epi64x(-1)));
-    }
-    (*t, *p, *entry, *plane) = (tv, pv, e, pl);
-}
-
 /// A walk stepped outside its box: a bug, stopped before any read outside the marks.
 #[cold]
 #[inline(never)]
 fn outside_the_box() -> ! {
     panic!("dense walk left its box");
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::raycast::{self, Dda};
-    use crate::test_rng::Rng;
-
-    /// One axis of one ray as `raycast::axis` sets it up, in lane form.
-    fn scalar(o: f64, e: f64, stride: i64) -> [i64; 5] {
-        let (_, dir, t0, d, last, n) = raycast::axis(o, e);
-        if n == 0 {
-            return [NEVER, 0, 0, 0, 0];
-        }
-        [
-            t0.min(T_CAP) as i64,
-            d.min(T_CAP) as i64,
-            last.min(T_CAP) as i64,
-            i64::from(dir) * stride,
-            i64::from(n),
-        ]
-    }
-
-    /// The four-lane skip of the covered box (`Queue::skip_covered`) makes, ray by ray, the
-    /// crossings `Covered::skip` makes: the same next crossings, steps left and first voxel,
-    /// rays from a voxel centre to lattice points (ties) among them.
-    #[test]
-    fn four_lane_skip_equals_the_scalar_one() {
-        if !is_x86_feature_detected!("avx2") {
-            crate::kernel::skip_notice(format_args!(
-                "this CPU has no AVX2; the AVX2 skip is not tested here"
-            ));
-            return;
-        }
-        let mut rng = Rng(5);
-        let dbox = DenseBox::new(VoxelCoord::new(-64, -64, -64), VoxelCoord::new(63, 63, 63))
-            .expect("a small box");
-        let strides = dbox.strides();
-        let mut checked = 0;
-        for round in 0..400 {
-            let origin: [f64; 3] = if round % 2 == 0 {
-                std::array::from_fn(|_| (rng.f() - 0.5) * 8.0)
-            } else {
-                std::array::from_fn(|_| (rng.f() * 8.0).floor() - 3.5)
-            };
-            let s = crate::coord::units_to_voxel(origin).unwrap();
-            let mut r = || VoxelCoord::from_array(std::array::from_fn(|_| (rng.f() * 20.0) as i32));
-            let lo = s - r();
-            let hi = s + r();
-            let c = Covered::new(s, lo, hi);
-            let rays: Vec<Ray> = (0..37)
-                .map(|i| {
-                    let e: [f64; 3] = if i % 3 == 0 {
-                        std::array::from_fn(|a| origin[a] + ((rng.f() - 0.5) * 80.0).round())
-                    } else {
-                        std::array::from_fn(|a| origin[a] + (rng.f() - 0.5) * 100.0)
-                    };
-                    Ray::new(e, 0, true)
-                })
-                .collect();
-            // SAFETY: AVX2 was detected above.
-            let axes = std::array::from_fn(|a| unsafe {
-                Axis::new(origin[a], strides[a], dbox.lo.to_array()[a], dbox.n[a])
-            });
-            let start = dbox.index(s);
-            let from = Start {
-                axes: &axes,
-                origin,
-                start,
-                covered: Some(&c),
-            };
-            let mut feed = Feed::all(&rays);
-            // SAFETY: AVX2 was detected above.
-            let mut q = unsafe { Queue::new() };
-            let mut at = 0;
-            // SAFETY: AVX2 was detected above.
-            while unsafe { q.fill(&mut feed, &from) } {
-                for j in 0..q.len {
-                    let dda = Dda::new(origin, rays[at + j].end);
-                    let (t, d, last, dir) = dda.axes();
-                    let made = c.skip(t, d, last, dir);
-                    let want = dda.after(made);
-                    let (t, ..) = want.axes();
-                    let lane = |v: &[__m256i; 3], a: usize| to_array(v[a])[j % 4];
-                    let got_t = [0, 1, 2].map(|a| lane(&q.t[j / 4], a));
-                    let want_t = t.map(|t| {
-                        if t == u64::MAX {
-                            NEVER
-                        } else {
-                            t.min(T_CAP) as i64
-                        }
-                    });
-                    assert_eq!(got_t, want_t, "ray {} from {origin:?}", at + j);
-                    assert_eq!(q.n[j], i64::from(want.steps()));
-                    assert_eq!(q.p0[j] as u64, dbox.index(want.voxel()));
-                    checked += usize::from(made != [0; 3]);
-                }
-                at += q.len;
-            }
-            assert_eq!(at, rays.len());
-        }
-        assert!(checked > 5000, "{checked}");
-    }
-
-    #[test]
-    fn four_lane_setup_equals_the_scalar_one_bit_for_bit() {
-        if !is_x86_feature_detected!("avx2") {
-            crate::kernel::skip_notice(format_args!(
-                "this CPU has no AVX2; the AVX2 set-up is not tested here"
-            ));
-            return;
-        }
-        let mut rng = Rng(7);
-        let mut cases: Vec<(f64, f64)> = Vec::new();
-        // On faces, just off them, tiny and long crossings, both directions.
-        for o in [
-            0.0,
-            0.5,
-            1.0,
-            1.0 - 1e-16,
-            3.999_999_999,
-            -2.0,
-            -0.25,
-            100.125,
-        ] {
-            for de in [0.0, 1e-300, 1e-16, 0.5, 1.0, 1.5, 2.0, 63.0, 64.75, 8191.5] {
-                cases.push((o, o + de));
-                cases.push((o, o - de));
-            }
-        }
-        for _ in 0..200_000 {
-            let o = (rng.f() - 0.5) * 200.0;
-            let len = if rng.f() < 0.5 {
-                rng.f() * 4.0
-            } else {
-                rng.f() * 2000.0
-            };
-            cases.push((o, o + (rng.f() - 0.5) * len));
-        }
-        let stride = 1 << 12;
-        for (o, group) in cases
-            .chunks(4)
-            .flat_map(|g| [g[0].0, 1.0, -3.5].map(|o| (o, g)))
-        {
-            // Every ray of a group from one origin, as in a frame.
-            let ends: Vec<f64> = group.iter().map(|&(go, e)| o + (e - go)).collect();
-            let mut e4 = [o; 4];
-            e4[..ends.len()].copy_from_slice(&ends);
-            // SAFETY: AVX2 was detected above.
-            let got = unsafe {
-                let axis = Axis::new(o, stride, -100_000, 200_000);
-                axis.setup(_mm256_set_pd(e4[3], e4[2], e4[1], e4[0]))
-            };
-            for (l, &e) in e4.iter().enumerate() {
-                let want = scalar(o, e, stride);
-                let lane: [i64; 5] = std::array::from_fn(|k| to_array(got[k])[l]);
-                assert_eq!(lane, want, "origin {o:e}, end {e:e}");
-                assert_eq!(
-                    to_array(got[5])[l],
-                    -1,
-                    "origin {o:e}, end {e:e} is in the box"
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn a_walk_marks_within_its_box_and_stops_at_an_end_outside_it() {
-        if !is_x86_feature_detected!("avx2") {
-            crate::kernel::skip_notice(format_args!(
-                "this CPU has no AVX2; the AVX2 walk is not tested here"
-            ));
-            return;
-        }
-        use crate::coord::VoxelCoord;
-        // Box voxels 0..64 x 0..8 x 0..8, origin in voxel (2, 2, 2).
-        let dbox = DenseBox::new(VoxelCoord::new(0, 0, 0), VoxelCoord::new(63, 7, 7)).unwrap();
-        let origin = [2.5, 2.5, 2.5];
-        // Both dense walks: in groups and lane by lane.
-        for grouped in [false, true] {
-            let walk = |ends: &[[f64; 3]]| {
-                let rays: Vec<Ray> = ends.iter().map(|&e| Ray::new(e, 0, true)).collect();
-                let mut ranges: [Range<usize>; 8] = Default::default();
-                ranges[0] = 0..rays.len();
-                let mut bits = DenseBits::default();
-                bits.begin(1, dbox.words());
-                // SAFETY: AVX2 was detected above.
-                let (steps, _) =
-                    unsafe { walk_dense(&mut bits, &dbox, origin, &rays, ranges, None, grouped) };
-                (steps, bits)
-            };
-            // Inside: a ray along x to voxel (60, 2, 2) marks voxels 2..60 free and 60 hit.
-            let (steps, bits) = walk(&[[60.5, 2.5, 2.5]]);
-            assert_eq!(steps, 59);
-            let row = bits.free[(dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize];
-            assert_eq!(row, ((1u64 << 60) - 1) & !0b11);
-            let word = (dbox.index(VoxelCoord::new(0, 2, 2)) / 64) as usize;
-            assert_eq!(bits.hit[word], 1 << 60);
-            // Nothing else in the box (idle lanes mark the sinks, past it).
-            let marked: u32 = bits.free[..dbox.words()]
-                .iter()
-                .map(|w| w.count_ones())
-                .sum();
-            assert_eq!(marked, 58);
-            // An end outside the box stops the walk before it reads or writes outside it.
-            for end in [[64.5, 2.5, 2.5], [2.5, 8.5, 2.5], [2.5, 2.5, -0.5]] {
-                let outcome = std::panic::catch_unwind(|| walk(&[[3.5, 3.5, 3.5], end]));
-                assert!(outcome.is_err(), "end {end:?} outside the box");
-            }
-        }
-    }
-
-    #[test]
-    fn ends_outside_the_box_are_found() {
-        if !is_x86_feature_detected!("avx2") {
-            crate::kernel::skip_notice(format_args!(
-                "this CPU has no AVX2; the AVX2 set-up is not tested here"
-            ));
-            return;
-        }
-        // Box voxels -4..12 along the axis.
-        // SAFETY: AVX2 was detected above.
-        let inside = unsafe {
-            let axis = Axis::new(0.5, 1, -4, 16);
-            to_array(axis.setup(_mm256_set_pd(12.0, 11.999, -4.0, -4.001))[5])
-        };
-        assert_eq!(inside, [0, -1, -1, 0]);
-    }
 }

@@ -1,4 +1,4 @@
-//! Subsample and unique-end chosen as the rays are made ([`make_firsts`]), where a box of
+//! Subsample and unique-end chosen as the rays are made ([`choose_as_made`]), where a box of
 //! cells about the sensor holds every end a ray can have (max range each way) in
 //! [`DENSE_CELL_BITS`](super::DENSE_CELL_BITS).
 //!
@@ -8,18 +8,20 @@
 //! at all, so nothing moves it or drops it later. The
 //! runs after the first then drop from their layout the rays whose cell an earlier run
 //! marked. That keeps the first ray of each cell in scan order, as the other paths of
-//! [`super::thin_out`] do, on any thread count.
+//! [`super::choose`] do, on any thread count.
 
-use super::{scan_runs, sized, to_centre, zero, CellBox, CellKeys, BEHIND, NONE};
-use crate::integrate::prepare::{ExtentSum, Ray, RayMaker, Sides, RAY_CHUNK, SKIPPED};
+use super::{scan_runs, sized, to_centre, zero, CellBox, BEHIND};
+use crate::integrate::ray::{
+    CellKeys, ExtentSum, Ray, RayMaker, Sides, NO_CELL, RAY_CHUNK, SKIPPED,
+};
 use crate::prefetch::own_lines;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
 
-/// What [`make_firsts`] keeps from frame to frame: in fresh memory a frame's sets and
+/// What [`choose_as_made`] keeps from frame to frame: in fresh memory a frame's sets and
 /// notes would cost a page fault every 4 KiB, every frame.
 #[derive(Default)]
-pub(crate) struct Firsts {
+pub(crate) struct AsMade {
     /// Per run, its bit set over the box.
     runs: Vec<RunSet>,
     /// Each laid-out ray's cell bit, in the ray's place.
@@ -55,7 +57,7 @@ impl RunSet {
 #[derive(Clone, Copy)]
 pub(crate) struct Chooser<'a> {
     pub(crate) maker: &'a RayMaker,
-    pub(crate) halves: &'a Sides,
+    pub(crate) sides: &'a Sides,
     pub(crate) cells: &'a CellKeys,
     pub(crate) cells_box: &'a CellBox,
     /// Unique-end: each ray kept goes to the centre of its end voxel.
@@ -63,16 +65,16 @@ pub(crate) struct Chooser<'a> {
 }
 
 /// Make the rays to `points` into `rays` (as long), laid out by sides in chunks with the
-/// counts in `sides` as the exact mode's are, but only the first ray of each cell in scan
+/// counts in `counts` as the exact mode's are, but only the first ray of each cell in scan
 /// order. Returns the sum over all rays made, how many rays kept are cut at max range,
 /// and the time spent choosing (keying, marking and laying out, then dropping what an
 /// earlier run saw).
-pub(crate) fn make_firsts(
+pub(crate) fn choose_as_made(
     rays: &mut [Ray],
-    sides: &mut [[u32; 2]],
+    counts: &mut [[u32; 2]],
     points: &[[f32; 3]],
     how: Chooser<'_>,
-    bufs: &mut Firsts,
+    bufs: &mut AsMade,
 ) -> (ExtentSum, u64, Duration) {
     let n = rays.len();
     let (runs, per) = scan_runs(n);
@@ -80,18 +82,18 @@ pub(crate) fn make_firsts(
     bufs.runs
         .resize_with(runs.max(bufs.runs.len()), RunSet::default);
     sized(&mut bufs.placed, n, || 0);
-    let Firsts { runs: sets, placed } = bufs;
+    let AsMade { runs: sets, placed } = bufs;
     let made: Vec<(ExtentSum, u64, Duration)> = (rays.par_chunks_mut(per))
         .zip(points.par_chunks(per))
         .zip(placed.par_chunks_mut(per))
-        .zip(sides.par_chunks_mut(per / RAY_CHUNK))
+        .zip(counts.par_chunks_mut(per / RAY_CHUNK))
         .zip(sets[..runs].par_iter_mut())
-        .map(|((((out, pts), placed), sides), run)| {
+        .map(|((((out, pts), placed), counts), run)| {
             let t = Instant::now();
             run.clear(words);
             sized(&mut run.marked, out.len(), || 0);
             let mut took = t.elapsed();
-            let (sum, cut, choosing) = make_run(how, pts, out, placed, sides, run);
+            let (sum, cut, choosing) = make_run(how, pts, out, placed, counts, run);
             took += choosing;
             (sum, cut, took)
         })
@@ -109,7 +111,7 @@ pub(crate) fn make_firsts(
     let sets = &sets[..runs];
     let dropped: u64 = (rays.par_chunks_mut(RAY_CHUNK))
         .zip(placed.par_chunks_mut(RAY_CHUNK))
-        .zip(sides.par_iter_mut())
+        .zip(counts.par_iter_mut())
         .enumerate()
         .skip(chunks)
         .map(|(c, ((out, placed), side))| drop_seen(out, placed, side, &sets[..c / chunks]))
@@ -126,19 +128,19 @@ fn make_run(
     pts: &[[f32; 3]],
     out: &mut [Ray],
     placed: &mut [u32],
-    sides: &mut [[u32; 2]],
+    counts: &mut [[u32; 2]],
     run: &mut RunSet,
 ) -> (ExtentSum, u64, Duration) {
     let (maker, origin) = (how.maker, how.maker.origin);
     let mut sum = ExtentSum::new(origin);
     let (mut cut, mut took) = (0, Duration::ZERO);
     let mut made = vec![Ray::new([0.0; 3], SKIPPED, false); RAY_CHUNK];
-    let mut notes = [NONE; RAY_CHUNK];
+    let mut notes = [NO_CELL; RAY_CHUNK];
     let RunSet { set, marked, count } = run;
     for (((pts, out), placed), side) in (pts.chunks(RAY_CHUNK))
         .zip(out.chunks_mut(RAY_CHUNK))
         .zip(placed.chunks_mut(RAY_CHUNK))
-        .zip(sides.iter_mut())
+        .zip(counts.iter_mut())
     {
         let (made, notes) = (&mut made[..pts.len()], &mut notes[..pts.len()]);
         // The layout's stores find their lines here, not on the core that read the rays
@@ -159,8 +161,8 @@ fn make_run(
                 maker.make_all(made, pts);
                 let t = Instant::now();
                 how.cells_box
-                    .notes_of(how.cells, how.halves, maker.kernels, made, notes);
-                ask_for_words(prefetched(set), notes);
+                    .notes_of(how.cells, how.sides, maker.kernels, made, notes);
+                prefetch_set_words(worth_prefetching(set), notes);
                 // (The choosing's time takes in the sum: a pass over the chunk in cache.)
                 let s = (maker.kernels.extent_of)(origin, made);
                 (s, t)
@@ -185,7 +187,7 @@ fn make_run(
 /// `set` if its words are to be asked for before they are marked, else nothing: a set
 /// that fits the core's level 2 cache (0.5-2 MiB; unique-end's at 6 m is 0.5 MB) stays
 /// there.
-pub(super) fn prefetched(set: &[u64]) -> &[u64] {
+pub(super) fn worth_prefetching(set: &[u64]) -> &[u64] {
     if std::mem::size_of_val(set) > 1 << 20 {
         set
     } else {
@@ -193,23 +195,23 @@ pub(super) fn prefetched(set: &[u64]) -> &[u64] {
     }
 }
 
-/// Ask for the words of `ahead` (a set as [`prefetched`] gives it) that hold the cells of
-/// `notes`, which [`mark`] reads next. A skipped point's note ([`NONE`]) lies past the set
+/// Ask for the words of `ahead` (a set as [`worth_prefetching`] gives it) that hold the cells of
+/// `notes`, which [`mark`] reads next. A skipped point's note ([`NO_CELL`]) lies past the set
 /// and asks for nothing.
 #[inline(always)]
-pub(super) fn ask_for_words(ahead: &[u64], notes: &[u64]) {
+pub(super) fn prefetch_set_words(ahead: &[u64], notes: &[u64]) {
     for &k in notes {
         crate::prefetch::prefetch(ahead, k as u32 as usize / 64);
     }
 }
 
-/// Mark the cell bit of each note ([`CellBox::note_of`], but [`NONE`]) in `set`, adding
+/// Mark the cell bit of each note ([`CellBox::note_of`], but [`NO_CELL`]) in `set`, adding
 /// 1 << 32 to the note if `set` did not have it. This and [`lay_out`] are functions of
 /// their own: inlined into the run's loop, their counters lived on the stack, and the
 /// layout took half again as long.
 #[inline(never)]
 fn mark(notes: &mut [u64], set: &mut [u64]) {
-    for k in notes.iter_mut().filter(|k| **k != NONE) {
+    for k in notes.iter_mut().filter(|k| **k != NO_CELL) {
         let b = *k as u32 as usize;
         let (w, m) = (b / 64, 1u64 << (b % 64));
         let first = set[w] & m == 0;
@@ -234,7 +236,7 @@ fn lay_out(
     let (mut front, mut back, mut count, mut cut) = (0, n, 0, 0);
     let (o, pl, mk) = (out.as_mut_ptr(), placed.as_mut_ptr(), marked.as_mut_ptr());
     for (r, &k) in made.iter().zip(notes) {
-        if k == NONE {
+        if k == NO_CELL {
             continue;
         }
         let (b, first, behind) = (k as u32, k >> 32 & 1 == 1, k & BEHIND != 0);
