@@ -7,20 +7,24 @@
 //! rounding can never carry the walk past the end voxel. [`LeafWalk`] follows the same walk
 //! leaf by leaf (8x8x8 voxels) for walks that can pass whole leaves.
 //!
-//! Every DDA walk in the crate is this one, stepped in its own way:
+//! Every DDA walk of voxmap is this one, stepped in its own way (the integration walks are
+//! in `voxmap-map`'s `integrate::walk`):
 //!
 //! | walk | where | what for |
 //! |---|---|---|
 //! | [`Dda::step`], [`for_each_voxel`] | here | the reference; tests' slow paths |
-//! | sparse, one ray at a time | `integrate::walk::sparse::walk_rays` | integration, frames with a large box |
-//! | sparse, eight rays per vector | `integrate::walk::avx512::walk_sparse` | the same, on AVX-512 |
-//! | dense, one ray at a time | `integrate::walk::dense::walk_rays` | integration, frames with a small box |
-//! | dense, eight rays per vector | `integrate::walk::avx512::walk_dense` | the same, on AVX-512 |
+//! | sparse, one ray at a time | `walk::sparse::walk_rays` | integration, frames with a large box |
+//! | sparse, four rays per vector | `walk::avx2::walk_sparse` | the same, on AVX2 |
+//! | sparse, eight rays per vector | `walk::avx512::walk_sparse` | the same, on AVX-512 |
+//! | dense, one ray at a time | `walk::dense::walk_rays` | integration, frames with a small box |
+//! | dense, four rays per vector | `walk::avx2::walk_dense` | the same, on AVX2 |
+//! | dense, eight rays per vector | `walk::avx512::walk_dense` | the same, on AVX-512 |
 //! | [`LeafWalk`] (whole leaves) and [`Dda::after_crossing`] | `snapshot::view` (`first_hit`) | line of sight on a snapshot |
 //!
-//! `integrate::tests::dense_and_sparse_walks_agree` ties the integration walks together
-//! (map and step counts); the tests here pin [`Dda`] against a brute-force walk, and
-//! `snapshot::tests::first_hit_agrees_on_long_and_lattice_segments` the snapshot's.
+//! `voxmap-map`'s `integrate::tests::walks::dense_and_sparse_walks_agree` ties the
+//! integration walks together (map and step counts); the tests here pin [`Dda`] against a
+//! brute-force walk, and `snapshot::tests::queries::first_hit_agrees_on_long_and_lattice_segments`
+//! the snapshot's.
 
 use crate::coord::VoxelCoord;
 

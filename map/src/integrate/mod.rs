@@ -5,7 +5,7 @@
 //!
 //! | phase | what it does | file | test that pins it down |
 //! |---|---|---|---|
-//! | prepare | points → rays in voxel units (pose, max-range cut, ray modes), laid out by the sensor's sides; sorted by direction for the sparse walk | `prepare.rs`, `ray/` (`select/` for the modes) | `rays_made_in_bulk_equal_rays_made_one_by_one`, `sides_cut_across_the_axis_that_halves_the_frame`, `trade_off_modes_cast_fewer_rays_and_stay_close` |
+//! | prepare | points → rays in voxel units (pose, max-range cut, ray modes), laid out by the sensor's sides; sorted by direction for the sparse walk | `prepare.rs`, `ray/` (`select/` for the modes) | `rays_made_in_bulk_equal_rays_made_one_by_one`, `sides_cut_across_the_axis_that_halves_the_frame`, `ray_modes_cast_fewer_rays_and_stay_close` |
 //! | walk | exact DDA through every ray's voxels, marks into per-thread grids (dense) or per-frame leaf tables (sparse) | `walk/` (one dispatch point, `walk::run`) | `dense_and_sparse_walks_agree` |
 //! | merge | dense grids folded into the mark tables; every touched leaf's marks paired with its map leaf | `merge.rs`, `walk/dense.rs` (`fold_into`) | `tables_are_held_one_cache_each_and_merge_their_marks` |
 //! | update | one log-odds observation per touched voxel, hit beating free | `update/` | `matches_the_reference_update_over_several_frames`, `observing_a_word_at_once_equals_bit_by_bit` |

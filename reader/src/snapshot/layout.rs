@@ -1,4 +1,4 @@
-//! The byte layout of a snapshot, version 4. All integers little-endian; every section
+//! The byte layout of a snapshot, version 5 ([`FORMAT_VERSION`]). All integers little-endian; every section
 //! starts on an 8-byte boundary.
 //!
 //! ```text

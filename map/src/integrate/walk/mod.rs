@@ -6,12 +6,12 @@
 //! | walk | marks kept in | file |
 //! |---|---|---|
 //! | dense, one ray at a time | the thread's bit grid over the frame's box ([`dense::DenseBits`]) | `dense.rs` ([`dense::walk_rays`]) |
-//! | dense, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_dense`) / `avx512.rs` (`avx512::walk_dense`) |
-//! | sparse, one ray at a time | the frame's leaf tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
-//! | sparse, four / eight rays at a time | the same | `avx2.rs` (`avx2::walk_sparse`) / `avx512.rs` (`avx512::walk_sparse`) |
+//! | dense, four / eight rays at a time | the same | `avx2/mod.rs` (`avx2::walk_dense`) / `avx512.rs` (`avx512::walk_dense`) |
+//! | sparse, one ray at a time | the frame's mark tables ([`FrameMarks`]) | `sparse.rs` ([`sparse::walk_rays`]) |
+//! | sparse, four / eight rays at a time | the same | `avx2/sparse.rs` (`avx2::walk_sparse`) / `avx512.rs` (`avx512::walk_sparse`) |
 //!
-//! `integrate::tests::dense_and_sparse_walks_agree` checks every walk of every kernel the CPU
-//! has against the others, map and counts. Each walk is an entry of the
+//! `integrate::tests::walks::dense_and_sparse_walks_agree` checks every walk of every kernel
+//! the CPU has against the others, map and counts. Each walk is an entry of the
 //! [`crate::kernel::Kernels`] table the integrator holds.
 
 use super::marks::FrameMarks;
