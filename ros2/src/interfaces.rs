@@ -1,7 +1,7 @@
 //! The services the bridge offers under `/voxmap/`, and their request and response types
 //! in CDR field order. `reset_map` is `std_srvs/srv/Trigger`; the others are
 //! `voxmap_msgs/srv/*`, whose `.srv` files (an ament package) are in
-//! `bridge/voxmap_msgs/` for a ROS workspace to build, so that `ros2 service call` knows them.
+//! `ros2/voxmap_msgs/` for a ROS workspace to build, so that `ros2 service call` knows them.
 
 use ros2_client::Message;
 use serde::{Deserialize, Serialize};
