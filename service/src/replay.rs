@@ -204,12 +204,16 @@ struct Offline {
     out: PathBuf,
     /// The distance field's update times (ms).
     field_ms: Vec<f64>,
+    /// Integration time, seconds.
+    integrate_s: f64,
 }
 
 struct Online {
     publisher: FramePublisher,
     snapshots: SnapshotSubscriber,
     control: MapControl,
+    /// With `--rate fast`: wait for each frame's snapshot before sending the next.
+    wait: bool,
 }
 
 /// Where scans come from.
@@ -218,75 +222,125 @@ enum Source {
     Bag(Box<BagPlan>),
 }
 
-pub fn run(a: ReplayArgs) -> Result<()> {
-    let source = match a.inputs.as_slice() {
-        [one] if voxmap_ros::bag::is_bag(one) => Source::Bag(Box::new(BagPlan::new(one, &a.bag)?)),
-        many => {
-            if let Some(b) = many.iter().find(|p| voxmap_ros::bag::is_bag(p)) {
-                bail!(
-                    "{}: a ROS 2 bag is replayed on its own, not with other inputs",
-                    b.display()
-                );
-            }
-            Source::Files(list_inputs(many)?)
-        }
-    };
-    let total = match &source {
-        Source::Files(f) => Some(f.len() as u64),
-        Source::Bag(b) => b.cloud_count,
-    };
-    let poses = match &a.poses {
-        Some(p) => {
-            let text =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            let mut v = scans::parse_poses(&text).with_context(|| p.display().to_string())?;
-            if v.iter().all(|p| p.stamp.is_some()) {
-                v.sort_by(|x, y| x.stamp.unwrap_or(0.0).total_cmp(&y.stamp.unwrap_or(0.0)));
-            }
-            Some(v)
-        }
-        None => None,
-    };
-    let rate = match a.rate.as_str() {
-        "fast" => None,
-        "recorded" => Some(0.0),
-        hz => Some(
-            hz.parse::<f64>()
-                .ok()
-                .filter(|h| (0.001..=1e6).contains(h))
-                .ok_or_else(|| {
-                    anyhow!(
-                        "--rate must be fast, recorded or a rate in Hz in [0.001, 1e6], not '{hz}'"
-                    )
-                })?,
-        ),
-    };
-    let mut sink = if a.dry_run {
-        Sink::DryRun
-    } else if a.offline {
-        let cfg = a.mapping.resolve()?;
-        Sink::Offline(Box::new(Offline {
-            mapper: cfg.mapper()?,
-            out: a.out.clone().context("--offline needs --out MAP")?,
-            field_ms: Vec::new(),
-        }))
-    } else {
-        let control = MapControl::connect(&a.prefix, &a.map)
-            .map_err(|e| anyhow!("no voxmap service under prefix '{}': {e}", a.prefix))?;
-        let mut snapshots = SnapshotSubscriber::connect(&a.prefix, &a.map)?;
-        wait_for_service(&mut snapshots, &a.prefix)?;
-        Sink::Service(Box::new(Online {
-            publisher: FramePublisher::connect(&a.prefix, &a.map)?,
-            snapshots,
-            control,
-        }))
-    };
+/// What the replay counted on the way.
+#[derive(Default)]
+struct Tally {
+    frames: u64,
+    points: u64,
+    non_finite: u64,
+    skipped: Skipped,
+}
 
+pub fn run(a: ReplayArgs) -> Result<()> {
+    let source = Source::open(&a)?;
+    let total = source.len();
+    let poses = read_poses(a.poses.as_deref())?;
+    let mut pacer = Pacer::new(&a.rate)?;
+    let mut sink = Sink::open(&a, pacer.rate.is_none())?;
+    // The clock starts once the sink is ready (a service has answered).
+    pacer.started = Instant::now();
     // Read ahead on a second thread so reading overlaps integration.
-    let (tx, rx) = std::sync::mpsc::sync_channel::<Read>(2);
-    let reader = {
-        let poses = poses.clone();
-        std::thread::spawn(move || match source {
+    let (rx, reader) = source.spawn(poses);
+    let bar = ProgressBar::with_draw_target(total, ProgressDrawTarget::stderr());
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let plain = !std::io::stderr().is_terminal();
+    let mut last_line = Instant::now();
+    let mut tally = Tally::default();
+    for item in rx {
+        let Some(scan) = tally.take(item, a.on_error, &bar)? else {
+            continue;
+        };
+        pacer.wait(&scan, tally.frames)?;
+        if !sink.take(&scan, tally.frames, a.on_error, &bar, &mut tally.skipped)? {
+            continue;
+        }
+        tally.frames += 1;
+        tally.points += scan.points.len() as u64;
+        tally.non_finite += scan.non_finite;
+        bar.inc(1);
+        let secs = pacer.started.elapsed().as_secs_f64().max(1e-9);
+        let msg = format!(
+            "{:.1} frames/s, {:.2} Mpoints/s",
+            tally.frames as f64 / secs,
+            tally.points as f64 / secs / 1e6
+        );
+        if plain && last_line.elapsed() >= Duration::from_secs(2) {
+            let of = total.map_or(String::new(), |t| format!("/{t}"));
+            eprintln!("voxmap replay: {}{of} frames, {msg}", tally.frames);
+            last_line = Instant::now();
+        }
+        bar.set_message(msg);
+    }
+    bar.finish_and_clear();
+    reader
+        .join()
+        .map_err(|_| anyhow!("reader thread panicked"))?;
+    let secs = pacer.started.elapsed().as_secs_f64();
+    let Tally {
+        frames,
+        points,
+        non_finite,
+        skipped,
+    } = &tally;
+    println!(
+        "replayed {frames} frames ({points} points) in {secs:.2} s: {:.1} frames/s, {:.2} Mpoints/s{}{}",
+        *frames as f64 / secs.max(1e-9),
+        *points as f64 / secs.max(1e-9) / 1e6,
+        if *non_finite > 0 { format!("; {non_finite} non-finite points skipped") } else { String::new() },
+        skipped.summary()
+    );
+    sink.finish(*points, a.save.as_deref())
+}
+
+/// The pose file, sorted by stamp when every line has one.
+fn read_poses(path: Option<&Path>) -> Result<Option<Vec<StampedPose>>> {
+    let Some(p) = path else {
+        return Ok(None);
+    };
+    let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+    let mut v = scans::parse_poses(&text).with_context(|| p.display().to_string())?;
+    if v.iter().all(|p| p.stamp.is_some()) {
+        v.sort_by(|x, y| x.stamp.unwrap_or(0.0).total_cmp(&y.stamp.unwrap_or(0.0)));
+    }
+    Ok(Some(v))
+}
+
+impl Source {
+    fn open(a: &ReplayArgs) -> Result<Self> {
+        Ok(match a.inputs.as_slice() {
+            [one] if voxmap_ros::bag::is_bag(one) => {
+                Source::Bag(Box::new(BagPlan::new(one, &a.bag)?))
+            }
+            many => {
+                if let Some(b) = many.iter().find(|p| voxmap_ros::bag::is_bag(p)) {
+                    bail!(
+                        "{}: a ROS 2 bag is replayed on its own, not with other inputs",
+                        b.display()
+                    );
+                }
+                Source::Files(list_inputs(many)?)
+            }
+        })
+    }
+
+    /// How many scans it holds, where known.
+    fn len(&self) -> Option<u64> {
+        match self {
+            Source::Files(f) => Some(f.len() as u64),
+            Source::Bag(b) => b.cloud_count,
+        }
+    }
+
+    /// Read the scans in order on a thread of their own, two ahead of the replay.
+    fn spawn(
+        self,
+        poses: Option<Vec<StampedPose>>,
+    ) -> (std::sync::mpsc::Receiver<Read>, std::thread::JoinHandle<()>) {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Read>(2);
+        let reader = std::thread::spawn(move || match self {
             Source::Files(files) => {
                 for (i, f) in files.iter().enumerate() {
                     let r = match read_scan(f, i, poses.as_deref()) {
@@ -302,46 +356,75 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                 }
             }
             Source::Bag(plan) => plan.read(&mut |r| tx.send(r).is_ok()),
-        })
-    };
+        });
+        (rx, reader)
+    }
+}
 
-    let bar = ProgressBar::with_draw_target(total, ProgressDrawTarget::stderr());
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let plain = !std::io::stderr().is_terminal();
-    let started = Instant::now();
-    let (mut frames, mut points, mut non_finite) = (0u64, 0u64, 0u64);
-    let mut skipped = Skipped::default();
-    let mut integrate_s = 0.0;
-    let mut last_line = Instant::now();
-    let mut first_stamp: Option<(f64, Instant)> = None;
-    for item in rx {
-        let scan = match item {
-            Read::Scan(s) => s,
-            Read::Skip { kind, error } if a.on_error == OnError::Skip => {
+impl Tally {
+    /// The scan of `item`, or `None` for what is skipped and counted (under `--on-error
+    /// skip`), or the error that ends the replay.
+    fn take(&mut self, item: Read, on_error: OnError, bar: &ProgressBar) -> Result<Option<Scan>> {
+        match item {
+            Read::Scan(s) => Ok(Some(s)),
+            Read::Skip { kind, error } if on_error == OnError::Skip => {
                 bar.suspend(|| eprintln!("voxmap replay: skipping: {error:#}"));
-                skipped.add(kind);
+                self.skipped.add(kind);
                 bar.inc(1);
-                continue;
+                Ok(None)
             }
-            Read::Damaged(e) if a.on_error == OnError::Skip => {
+            Read::Damaged(e) if on_error == OnError::Skip => {
                 bar.suspend(|| eprintln!("voxmap replay: {e:#}; going on with what follows"));
-                skipped.add("damaged bag file".into());
-                continue;
+                self.skipped.add("damaged bag file".into());
+                Ok(None)
             }
-            Read::Skip { error, .. } | Read::Damaged(error) => return Err(error),
+            Read::Skip { error, .. } | Read::Damaged(error) => Err(error),
             Read::TfRejected(why) => {
-                if skipped.transforms == 0 {
+                if self.skipped.transforms == 0 {
                     bar.suspend(|| eprintln!("voxmap replay: transform ignored: {why}"));
                 }
-                skipped.transforms += 1;
-                continue;
+                self.skipped.transforms += 1;
+                Ok(None)
             }
+        }
+    }
+}
+
+/// Paces the scans: as fast as they go, at their stamps' pace, or at a rate.
+struct Pacer {
+    /// `None`: fast; `Some(0.0)`: recorded; else Hz.
+    rate: Option<f64>,
+    started: Instant,
+    first_stamp: Option<(f64, Instant)>,
+}
+
+impl Pacer {
+    fn new(rate: &str) -> Result<Self> {
+        let rate = match rate {
+            "fast" => None,
+            "recorded" => Some(0.0),
+            hz => Some(
+                hz.parse::<f64>()
+                    .ok()
+                    .filter(|h| (0.001..=1e6).contains(h))
+                    .ok_or_else(|| {
+                        anyhow!(
+                            "--rate must be fast, recorded or a rate in Hz in [0.001, 1e6], not '{hz}'"
+                        )
+                    })?,
+            ),
         };
-        // Pace.
-        match rate {
+        Ok(Pacer {
+            rate,
+            started: Instant::now(),
+            first_stamp: None,
+        })
+    }
+
+    /// Sleep until `scan`, the `frames`-th, is due.
+    fn wait(&mut self, scan: &Scan, frames: u64) -> Result<()> {
+        let due = match self.rate {
+            None => return Ok(()),
             Some(0.0) => {
                 let t = scan.stamp.ok_or_else(|| {
                     anyhow!(
@@ -349,7 +432,7 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                         scan.name
                     )
                 })?;
-                let (t0, w0) = *first_stamp.get_or_insert((t, Instant::now()));
+                let (t0, w0) = *self.first_stamp.get_or_insert((t, Instant::now()));
                 // Stamps in seconds: a day between scans means they are in another unit.
                 let gap = Duration::try_from_secs_f64((t - t0).max(0.0))
                     .ok()
@@ -361,21 +444,56 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                             scan.name
                         )
                     })?;
-                let due = w0 + gap;
-                std::thread::sleep(due.saturating_duration_since(Instant::now()));
+                w0 + gap
             }
-            Some(hz) => {
-                let due = started + Duration::from_secs_f64(frames as f64 / hz);
-                std::thread::sleep(due.saturating_duration_since(Instant::now()));
-            }
-            None => {}
+            Some(hz) => self.started + Duration::from_secs_f64(frames as f64 / hz),
+        };
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        Ok(())
+    }
+}
+
+impl Sink {
+    /// The sink the arguments ask for; `wait`: a service's frames are sent one at a time,
+    /// each once the last is integrated.
+    fn open(a: &ReplayArgs, wait: bool) -> Result<Self> {
+        if a.dry_run {
+            return Ok(Sink::DryRun);
         }
-        match &mut sink {
+        if a.offline {
+            let cfg = a.mapping.resolve()?;
+            return Ok(Sink::Offline(Box::new(Offline {
+                mapper: cfg.mapper()?,
+                out: a.out.clone().context("--offline needs --out MAP")?,
+                field_ms: Vec::new(),
+                integrate_s: 0.0,
+            })));
+        }
+        let control = MapControl::connect(&a.prefix, &a.map)
+            .map_err(|e| anyhow!("no voxmap service under prefix '{}': {e}", a.prefix))?;
+        let mut snapshots = SnapshotSubscriber::connect(&a.prefix, &a.map)?;
+        wait_for_service(&mut snapshots, &a.prefix)?;
+        Ok(Sink::Service(Box::new(Online {
+            publisher: FramePublisher::connect(&a.prefix, &a.map)?,
+            snapshots,
+            control,
+            wait,
+        })))
+    }
+
+    /// Map or send `scan`, the `frames`-th; returns false where it was skipped (and
+    /// counted) under `--on-error skip`.
+    fn take(
+        &mut self,
+        scan: &Scan,
+        frames: u64,
+        on_error: OnError,
+        bar: &ProgressBar,
+        skipped: &mut Skipped,
+    ) -> Result<bool> {
+        match self {
             Sink::DryRun => {}
             Sink::Offline(off) => {
-                let Offline {
-                    mapper, field_ms, ..
-                } = &mut **off;
                 let frame = Frame {
                     pose: scan.pose,
                     points: &scan.points,
@@ -384,124 +502,100 @@ pub fn run(a: ReplayArgs) -> Result<()> {
                     sequence: frames + 1,
                     stamp_ns: scan.stamp.map_or(0, |s| (s * 1e9) as u64),
                 };
-                let r = mapper.insert(&frame, stamp);
-                if let Ok(rep) = &r {
-                    integrate_s += rep.integrate.times.total().as_secs_f64();
-                    if let Some(f) = &rep.field {
-                        field_ms.push(f.time.as_secs_f64() * 1e3);
+                match off.mapper.insert(&frame, stamp) {
+                    Ok(rep) => {
+                        off.integrate_s += rep.integrate.times.total().as_secs_f64();
+                        if let Some(f) = &rep.field {
+                            off.field_ms.push(f.time.as_secs_f64() * 1e3);
+                        }
                     }
-                }
-                if let Err(e) = r {
-                    if a.on_error == OnError::Abort {
-                        bail!("{}: {e}", scan.name);
+                    Err(e) if on_error == OnError::Abort => bail!("{}: {e}", scan.name),
+                    Err(e) => {
+                        bar.suspend(|| eprintln!("voxmap replay: skipping {}: {e}", scan.name));
+                        skipped.add("rejected by the integrator".into());
+                        bar.inc(1);
+                        return Ok(false);
                     }
-                    bar.suspend(|| eprintln!("voxmap replay: skipping {}: {e}", scan.name));
-                    skipped.add("rejected by the integrator".into());
-                    bar.inc(1);
-                    continue;
                 }
             }
             Sink::Service(online) => {
-                let Online {
-                    publisher,
-                    snapshots,
-                    control,
-                } = &mut **online;
                 if let Err(e) = FrameHeader::with_pose(&scan.pose).validate(0) {
                     bail!("{}: {e}", scan.name);
                 }
                 let stamp_ns = crate::os::now_ns();
-                let seq = publisher.publish(&scan.pose, stamp_ns, &scan.points)?;
-                if rate.is_none() {
-                    wait_integrated(snapshots, control, seq).with_context(|| scan.name.clone())?;
+                let seq = online
+                    .publisher
+                    .publish(&scan.pose, stamp_ns, &scan.points)?;
+                if online.wait {
+                    wait_integrated(&mut online.snapshots, &online.control, seq)
+                        .with_context(|| scan.name.clone())?;
                 }
             }
         }
-        frames += 1;
-        points += scan.points.len() as u64;
-        non_finite += scan.non_finite;
-        bar.inc(1);
-        let secs = started.elapsed().as_secs_f64().max(1e-9);
-        let msg = format!(
-            "{:.1} frames/s, {:.2} Mpoints/s",
-            frames as f64 / secs,
-            points as f64 / secs / 1e6
-        );
-        if plain && last_line.elapsed() >= Duration::from_secs(2) {
-            let of = total.map_or(String::new(), |t| format!("/{t}"));
-            eprintln!("voxmap replay: {frames}{of} frames, {msg}");
-            last_line = Instant::now();
-        }
-        bar.set_message(msg);
+        Ok(true)
     }
-    bar.finish_and_clear();
-    reader
-        .join()
-        .map_err(|_| anyhow!("reader thread panicked"))?;
-    let secs = started.elapsed().as_secs_f64();
-    println!(
-        "replayed {frames} frames ({points} points) in {secs:.2} s: {:.1} frames/s, {:.2} Mpoints/s{}{}",
-        frames as f64 / secs.max(1e-9),
-        points as f64 / secs.max(1e-9) / 1e6,
-        if non_finite > 0 { format!("; {non_finite} non-finite points skipped") } else { String::new() },
-        skipped.summary()
-    );
-    match sink {
-        Sink::DryRun => {}
-        Sink::Offline(off) => {
-            let Offline {
-                mapper,
-                out,
-                mut field_ms,
-            } = *off;
-            let (map, field) = mapper.into_parts();
-            let c = map.counts();
-            println!(
-                "integration {integrate_s:.2} s ({:.2} Mpoints/s); map: {} occupied, {} free voxels, {} leaves, {} bytes",
-                points as f64 / integrate_s.max(1e-9) / 1e6,
-                c.occupied,
-                c.free,
-                c.leaves,
-                map.memory_bytes()
-            );
-            if let Some(f) = &field {
-                let total: f64 = field_ms.iter().sum();
-                field_ms.sort_by(f64::total_cmp);
+
+    /// After the last scan: write the map file (offline), or report the service's counts
+    /// and ask it to save to `save`.
+    fn finish(self, points: u64, save: Option<&Path>) -> Result<()> {
+        match self {
+            Sink::DryRun => {}
+            Sink::Offline(off) => {
+                let Offline {
+                    mapper,
+                    out,
+                    mut field_ms,
+                    integrate_s,
+                } = *off;
+                let (map, field) = mapper.into_parts();
+                let c = map.counts();
                 println!(
-                    "distance field: {} updates, {total:.1} ms in all, median {:.2} ms, max {:.2} ms; {} voxels in the band, {} bytes",
-                    field_ms.len(),
-                    crate::quantile::percentile(&field_ms, 0.5),
-                    field_ms.last().copied().unwrap_or(0.0),
-                    f.band_voxels(),
-                    f.memory_bytes()
+                    "integration {integrate_s:.2} s ({:.2} Mpoints/s); map: {} occupied, {} free voxels, {} leaves, {} bytes",
+                    points as f64 / integrate_s.max(1e-9) / 1e6,
+                    c.occupied,
+                    c.free,
+                    c.leaves,
+                    map.memory_bytes()
+                );
+                if let Some(f) = &field {
+                    let total: f64 = field_ms.iter().sum();
+                    field_ms.sort_by(f64::total_cmp);
+                    println!(
+                        "distance field: {} updates, {total:.1} ms in all, median {:.2} ms, max {:.2} ms; {} voxels in the band, {} bytes",
+                        field_ms.len(),
+                        crate::quantile::percentile(&field_ms, 0.5),
+                        field_ms.last().copied().unwrap_or(0.0),
+                        f.band_voxels(),
+                        f.memory_bytes()
+                    );
+                }
+                mapfile::save_map_with_field(&map, field.as_ref(), &out)?;
+                println!(
+                    "wrote {}{}",
+                    out.display(),
+                    if field.is_some() {
+                        " (with its distance field)"
+                    } else {
+                        ""
+                    }
                 );
             }
-            mapfile::save_map_with_field(&map, field.as_ref(), &out)?;
-            println!(
-                "wrote {}{}",
-                out.display(),
-                if field.is_some() {
-                    " (with its distance field)"
-                } else {
-                    ""
+            Sink::Service(online) => {
+                let control = &online.control;
+                let s = control.stats()?;
+                println!(
+                    "service: {} frames integrated, {} dropped, {} rejected; map {} leaves, {} bytes; snapshot {} bytes",
+                    s.frames_integrated, s.frames_dropped, s.frames_rejected, s.map_leaves, s.map_memory_bytes, s.snapshot_bytes
+                );
+                if let Some(p) = save {
+                    let abs = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+                    control.save(&abs.to_string_lossy())?;
+                    println!("service saved its map to {}", abs.display());
                 }
-            );
-        }
-        Sink::Service(online) => {
-            let control = &online.control;
-            let s = control.stats()?;
-            println!(
-                "service: {} frames integrated, {} dropped, {} rejected; map {} leaves, {} bytes; snapshot {} bytes",
-                s.frames_integrated, s.frames_dropped, s.frames_rejected, s.map_leaves, s.map_memory_bytes, s.snapshot_bytes
-            );
-            if let Some(p) = &a.save {
-                let abs = std::path::absolute(p).unwrap_or_else(|_| p.clone());
-                control.save(&abs.to_string_lossy())?;
-                println!("service saved its map to {}", abs.display());
             }
         }
+        Ok(())
     }
-    Ok(())
 }
 
 /// Scans and transforms left out, by reason.

@@ -22,9 +22,43 @@ pub fn read(path: &Path) -> Result<PointCloud, ReadError> {
     parse(&bytes).map_err(|e| fail(ReadErrorKind::Parse(e)))
 }
 
-/// Parse PCD bytes.
+/// Parse PCD bytes: the header, then the points it describes.
 pub fn parse(bytes: &[u8]) -> Result<PointCloud, ParseError> {
-    parse_pcd(bytes).map_err(ParseError::new(Format::Pcd))
+    let (header, data_at) = Header::parse(bytes)?;
+    let layout = header.layout()?;
+    let pose = header.pose()?;
+    let data = &bytes[data_at..];
+    let points = match header.data.as_str() {
+        "binary" => read_binary(data, header.points, &layout)?,
+        "ascii" => read_ascii(data, header.points, &header.counts, &layout)?,
+        "binary_compressed" => return Err(bad(
+            "DATA binary_compressed is not supported (convert with pcl_convert_pcd_ascii_binary)",
+        )),
+        other => return Err(bad(format!("unknown DATA kind '{other}'"))),
+    };
+    Ok(PointCloud { points, pose })
+}
+
+/// A PCD problem.
+fn bad(problem: impl Into<String>) -> ParseError {
+    ParseError {
+        format: Format::Pcd,
+        problem: problem.into(),
+    }
+}
+
+/// A PCD header, its fields checked against each other.
+struct Header {
+    fields: Vec<String>,
+    sizes: Vec<usize>,
+    types: Vec<String>,
+    counts: Vec<usize>,
+    /// Points in the data.
+    points: usize,
+    /// tx ty tz qw qx qy qz.
+    viewpoint: [f64; 7],
+    /// `binary`, `ascii`, ... (lower case).
+    data: String,
 }
 
 #[derive(Clone, Copy)]
@@ -34,221 +68,247 @@ struct Field {
     float: bool,
 }
 
-fn parse_pcd(bytes: &[u8]) -> Result<PointCloud, String> {
-    let mut pos = 0;
-    let mut fields: Vec<String> = Vec::new();
-    let (mut sizes, mut types, mut counts) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut width, mut height, mut points): (Option<usize>, Option<usize>, Option<usize>) =
-        (None, None, None);
-    let mut viewpoint = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0];
-    let data_kind = loop {
-        if pos >= bytes.len() {
-            return Err("header ends without a DATA line".into());
-        }
-        let end = bytes[pos..]
-            .iter()
-            .position(|&b| b == b'\n')
-            .map_or(bytes.len(), |i| pos + i);
-        let line =
-            std::str::from_utf8(&bytes[pos..end]).map_err(|_| "header is not text".to_string())?;
-        pos = (end + 1).min(bytes.len());
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let mut it = line.split_whitespace();
-        let key = it.next().unwrap_or("").to_ascii_uppercase();
-        let rest: Vec<&str> = it.collect();
-        let num = |s: &str| {
-            s.parse::<usize>()
-                .map_err(|_| format!("{key}: '{s}' is not a count"))
+/// Where a point's fields lie in a binary record, and the x, y and z fields.
+struct Layout {
+    /// Bytes per point.
+    record: usize,
+    /// x, y and z: each field's index and place.
+    xyz: [(usize, Field); 3],
+}
+
+impl Header {
+    /// The header at the start of `bytes`, and where its data starts.
+    fn parse(bytes: &[u8]) -> Result<(Header, usize), ParseError> {
+        let mut pos = 0;
+        let mut h = Header {
+            fields: Vec::new(),
+            sizes: Vec::new(),
+            types: Vec::new(),
+            counts: Vec::new(),
+            points: 0,
+            viewpoint: [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            data: String::new(),
         };
-        match key.as_str() {
-            "VERSION" => {
-                if !rest
-                    .first()
-                    .is_some_and(|v| v.trim_start_matches('.') == "7" || *v == "0.7")
-                {
-                    return Err(format!("unsupported PCD VERSION {}", rest.join(" ")));
-                }
+        let (mut width, mut height, mut points): (Option<usize>, Option<usize>, Option<usize>) =
+            (None, None, None);
+        loop {
+            if pos >= bytes.len() {
+                return Err(bad("header ends without a DATA line"));
             }
-            "FIELDS" => fields = rest.iter().map(|s| s.to_string()).collect(),
-            "SIZE" => sizes = rest.iter().map(|s| num(s)).collect::<Result<_, _>>()?,
-            "TYPE" => types = rest.iter().map(|s| s.to_string()).collect(),
-            "COUNT" => counts = rest.iter().map(|s| num(s)).collect::<Result<_, _>>()?,
-            "WIDTH" => width = Some(num(rest.first().unwrap_or(&""))?),
-            "HEIGHT" => height = Some(num(rest.first().unwrap_or(&""))?),
-            "POINTS" => points = Some(num(rest.first().unwrap_or(&""))?),
-            "VIEWPOINT" => {
-                if rest.len() != 7 {
-                    return Err(format!("VIEWPOINT needs 7 numbers, got {}", rest.len()));
-                }
-                for (v, s) in viewpoint.iter_mut().zip(&rest) {
-                    *v = s
-                        .parse::<f64>()
-                        .map_err(|_| format!("VIEWPOINT: '{s}' is not a number"))?;
-                }
-            }
-            "DATA" => {
-                break rest
-                    .first()
-                    .map(|s| s.to_ascii_lowercase())
-                    .unwrap_or_default()
-            }
-            _ => return Err(format!("unknown header line '{line}'")),
-        }
-    };
-    if counts.is_empty() {
-        counts = vec![1; fields.len()];
-    }
-    if fields.is_empty()
-        || sizes.len() != fields.len()
-        || types.len() != fields.len()
-        || counts.len() != fields.len()
-    {
-        return Err(format!(
-            "FIELDS/SIZE/TYPE/COUNT disagree: {} fields, {} sizes, {} types, {} counts",
-            fields.len(),
-            sizes.len(),
-            types.len(),
-            counts.len()
-        ));
-    }
-    let n = match (points, width, height) {
-        (Some(p), Some(w), Some(h)) if w.checked_mul(h) != Some(p) => {
-            return Err(format!("POINTS {p} disagrees with WIDTH*HEIGHT {w}*{h}"))
-        }
-        (Some(p), _, _) => p,
-        (None, Some(w), Some(h)) => w.checked_mul(h).ok_or("WIDTH*HEIGHT overflows")?,
-        _ => return Err("no POINTS or WIDTH/HEIGHT in header".into()),
-    };
-    let mut layout = Vec::new();
-    let mut offset = 0usize;
-    for i in 0..fields.len() {
-        if !matches!(sizes[i], 1 | 2 | 4 | 8) || !matches!(types[i].as_str(), "F" | "I" | "U") {
-            return Err(format!(
-                "field {}: unsupported SIZE {} TYPE {}",
-                fields[i], sizes[i], types[i]
-            ));
-        }
-        layout.push(Field {
-            offset,
-            size: sizes[i],
-            float: types[i] == "F",
-        });
-        offset = sizes[i]
-            .checked_mul(counts[i])
-            .and_then(|b| offset.checked_add(b))
-            .ok_or("record size overflows")?;
-    }
-    let record = offset;
-    let xyz: Vec<(usize, Field)> = ["x", "y", "z"]
-        .iter()
-        .map(|name| {
-            let i = fields
+            let end = bytes[pos..]
                 .iter()
-                .position(|f| f == name)
-                .ok_or(format!("no '{name}' field"))?;
-            let f = layout[i];
-            if !f.float || !(f.size == 4 || f.size == 8) || counts[i] != 1 {
-                return Err(format!(
-                    "field '{name}' must be a float32/float64 with COUNT 1"
-                ));
+                .position(|&b| b == b'\n')
+                .map_or(bytes.len(), |i| pos + i);
+            let line =
+                std::str::from_utf8(&bytes[pos..end]).map_err(|_| bad("header is not text"))?;
+            pos = (end + 1).min(bytes.len());
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') {
+                continue;
             }
-            Ok((i, f))
-        })
-        .collect::<Result<_, String>>()?;
-    let [tx, ty, tz, qw, qx, qy, qz] = viewpoint;
-    let q = Quaternion::new(qw, qx, qy, qz);
-    if !viewpoint.iter().all(|v| v.is_finite()) || (q.norm() - 1.0).abs() > 1e-3 {
-        return Err(format!(
-            "VIEWPOINT {viewpoint:?} is not a finite pose with a unit quaternion"
-        ));
-    }
-    let pose = Isometry3::from_parts(
-        Translation3::new(tx, ty, tz),
-        UnitQuaternion::from_quaternion(q),
-    );
-    let data = &bytes[pos..];
-    let points = match data_kind.as_str() {
-        "binary" => {
-            let need = n
-                .checked_mul(record)
-                .ok_or("POINTS * record size overflows")?;
-            if data.len() < need {
-                return Err(format!(
-                    "truncated binary data: {} points of {record} bytes need {need} bytes, file has {}",
-                    n,
-                    data.len()
-                ));
-            }
-            let read = |rec: &[u8], f: Field| -> f32 {
-                if f.size == 4 {
-                    f32::from_le_bytes(rec[f.offset..f.offset + 4].try_into().expect("4 bytes"))
-                } else {
-                    f64::from_le_bytes(rec[f.offset..f.offset + 8].try_into().expect("8 bytes"))
-                        as f32
-                }
+            let mut it = line.split_whitespace();
+            let key = it.next().unwrap_or("").to_ascii_uppercase();
+            let rest: Vec<&str> = it.collect();
+            let num = |s: &str| {
+                s.parse::<usize>()
+                    .map_err(|_| bad(format!("{key}: '{s}' is not a count")))
             };
-            data[..need]
-                .chunks_exact(record)
-                .map(|rec| {
-                    [
-                        read(rec, xyz[0].1),
-                        read(rec, xyz[1].1),
-                        read(rec, xyz[2].1),
-                    ]
-                })
-                .collect()
-        }
-        "ascii" => {
-            let text =
-                std::str::from_utf8(data).map_err(|_| "ascii data is not text".to_string())?;
-            // Column of each field's first value.
-            let mut col = Vec::with_capacity(fields.len());
-            let mut c = 0;
-            for &k in &counts {
-                col.push(c);
-                c += k;
-            }
-            let mut out = Vec::with_capacity(n.min(1 << 24));
-            for (ln, line) in text.lines().filter(|l| !l.trim().is_empty()).enumerate() {
-                if ln >= n {
+            match key.as_str() {
+                "VERSION" => {
+                    if !rest
+                        .first()
+                        .is_some_and(|v| v.trim_start_matches('.') == "7" || *v == "0.7")
+                    {
+                        return Err(bad(format!("unsupported PCD VERSION {}", rest.join(" "))));
+                    }
+                }
+                "FIELDS" => h.fields = rest.iter().map(|s| s.to_string()).collect(),
+                "SIZE" => h.sizes = rest.iter().map(|s| num(s)).collect::<Result<_, _>>()?,
+                "TYPE" => h.types = rest.iter().map(|s| s.to_string()).collect(),
+                "COUNT" => h.counts = rest.iter().map(|s| num(s)).collect::<Result<_, _>>()?,
+                "WIDTH" => width = Some(num(rest.first().unwrap_or(&""))?),
+                "HEIGHT" => height = Some(num(rest.first().unwrap_or(&""))?),
+                "POINTS" => points = Some(num(rest.first().unwrap_or(&""))?),
+                "VIEWPOINT" => {
+                    if rest.len() != 7 {
+                        return Err(bad(format!(
+                            "VIEWPOINT needs 7 numbers, got {}",
+                            rest.len()
+                        )));
+                    }
+                    for (v, s) in h.viewpoint.iter_mut().zip(&rest) {
+                        *v = s
+                            .parse::<f64>()
+                            .map_err(|_| bad(format!("VIEWPOINT: '{s}' is not a number")))?;
+                    }
+                }
+                "DATA" => {
+                    h.data = rest
+                        .first()
+                        .map(|s| s.to_ascii_lowercase())
+                        .unwrap_or_default();
                     break;
                 }
-                let vals: Vec<&str> = line.split_whitespace().collect();
-                if vals.len() != c {
-                    return Err(format!(
-                        "ascii point {ln}: {} values, header says {c}",
-                        vals.len()
-                    ));
-                }
-                let g = |i: usize| -> Result<f32, String> {
-                    let s = vals[col[xyz[i].0]];
-                    match s.to_ascii_lowercase().as_str() {
-                        "nan" => Ok(f32::NAN),
-                        _ => s
-                            .parse::<f32>()
-                            .map_err(|_| format!("ascii point {ln}: '{s}' is not a number")),
-                    }
-                };
-                out.push([g(0)?, g(1)?, g(2)?]);
+                _ => return Err(bad(format!("unknown header line '{line}'"))),
             }
-            if out.len() != n {
-                return Err(format!(
-                    "truncated ascii data: header says {n} points, file has {}",
-                    out.len()
-                ));
-            }
-            out
         }
-        "binary_compressed" => return Err(
-            "DATA binary_compressed is not supported (convert with pcl_convert_pcd_ascii_binary)"
-                .into(),
-        ),
-        other => return Err(format!("unknown DATA kind '{other}'")),
+        if h.counts.is_empty() {
+            h.counts = vec![1; h.fields.len()];
+        }
+        let n = h.fields.len();
+        if n == 0 || h.sizes.len() != n || h.types.len() != n || h.counts.len() != n {
+            return Err(bad(format!(
+                "FIELDS/SIZE/TYPE/COUNT disagree: {n} fields, {} sizes, {} types, {} counts",
+                h.sizes.len(),
+                h.types.len(),
+                h.counts.len()
+            )));
+        }
+        h.points = match (points, width, height) {
+            (Some(p), Some(w), Some(h)) if w.checked_mul(h) != Some(p) => {
+                return Err(bad(format!(
+                    "POINTS {p} disagrees with WIDTH*HEIGHT {w}*{h}"
+                )))
+            }
+            (Some(p), _, _) => p,
+            (None, Some(w), Some(h)) => w
+                .checked_mul(h)
+                .ok_or_else(|| bad("WIDTH*HEIGHT overflows"))?,
+            _ => return Err(bad("no POINTS or WIDTH/HEIGHT in header")),
+        };
+        Ok((h, pos))
+    }
+
+    /// Each field's place in a binary record, and the x, y and z fields (float32 or
+    /// float64, one value each).
+    fn layout(&self) -> Result<Layout, ParseError> {
+        let mut fields = Vec::with_capacity(self.fields.len());
+        let mut offset = 0usize;
+        for (i, name) in self.fields.iter().enumerate() {
+            let (size, ty) = (self.sizes[i], self.types[i].as_str());
+            if !matches!(size, 1 | 2 | 4 | 8) || !matches!(ty, "F" | "I" | "U") {
+                return Err(bad(format!(
+                    "field {name}: unsupported SIZE {size} TYPE {ty}"
+                )));
+            }
+            fields.push(Field {
+                offset,
+                size,
+                float: ty == "F",
+            });
+            offset = size
+                .checked_mul(self.counts[i])
+                .and_then(|b| offset.checked_add(b))
+                .ok_or_else(|| bad("record size overflows"))?;
+        }
+        let find = |name: &str| -> Result<(usize, Field), ParseError> {
+            let i = self
+                .fields
+                .iter()
+                .position(|f| f == name)
+                .ok_or_else(|| bad(format!("no '{name}' field")))?;
+            let f = fields[i];
+            if !f.float || !(f.size == 4 || f.size == 8) || self.counts[i] != 1 {
+                return Err(bad(format!(
+                    "field '{name}' must be a float32/float64 with COUNT 1"
+                )));
+            }
+            Ok((i, f))
+        };
+        Ok(Layout {
+            record: offset,
+            xyz: [find("x")?, find("y")?, find("z")?],
+        })
+    }
+
+    /// The sensor pose `VIEWPOINT` gives.
+    fn pose(&self) -> Result<Isometry3<f64>, ParseError> {
+        let [tx, ty, tz, qw, qx, qy, qz] = self.viewpoint;
+        let q = Quaternion::new(qw, qx, qy, qz);
+        if !self.viewpoint.iter().all(|v| v.is_finite()) || (q.norm() - 1.0).abs() > 1e-3 {
+            return Err(bad(format!(
+                "VIEWPOINT {:?} is not a finite pose with a unit quaternion",
+                self.viewpoint
+            )));
+        }
+        Ok(Isometry3::from_parts(
+            Translation3::new(tx, ty, tz),
+            UnitQuaternion::from_quaternion(q),
+        ))
+    }
+}
+
+/// `n` binary records of `layout` at the start of `data`.
+fn read_binary(data: &[u8], n: usize, layout: &Layout) -> Result<Vec<[f32; 3]>, ParseError> {
+    let record = layout.record;
+    let need = n
+        .checked_mul(record)
+        .ok_or_else(|| bad("POINTS * record size overflows"))?;
+    if data.len() < need {
+        return Err(bad(format!(
+            "truncated binary data: {n} points of {record} bytes need {need} bytes, file has {}",
+            data.len()
+        )));
+    }
+    let read = |rec: &[u8], f: Field| -> f32 {
+        if f.size == 4 {
+            f32::from_le_bytes(rec[f.offset..f.offset + 4].try_into().expect("4 bytes"))
+        } else {
+            f64::from_le_bytes(rec[f.offset..f.offset + 8].try_into().expect("8 bytes")) as f32
+        }
     };
-    Ok(PointCloud { points, pose })
+    let [x, y, z] = layout.xyz.map(|(_, f)| f);
+    Ok(data[..need]
+        .chunks_exact(record)
+        .map(|rec| [read(rec, x), read(rec, y), read(rec, z)])
+        .collect())
+}
+
+/// `n` ascii lines of values, `counts` a field, at the start of `data`.
+fn read_ascii(
+    data: &[u8],
+    n: usize,
+    counts: &[usize],
+    layout: &Layout,
+) -> Result<Vec<[f32; 3]>, ParseError> {
+    let text = std::str::from_utf8(data).map_err(|_| bad("ascii data is not text"))?;
+    // Column of each field's first value.
+    let mut col = Vec::with_capacity(counts.len());
+    let mut c = 0;
+    for &k in counts {
+        col.push(c);
+        c += k;
+    }
+    let mut out = Vec::with_capacity(n.min(1 << 24));
+    for (ln, line) in text.lines().filter(|l| !l.trim().is_empty()).enumerate() {
+        if ln >= n {
+            break;
+        }
+        let vals: Vec<&str> = line.split_whitespace().collect();
+        if vals.len() != c {
+            return Err(bad(format!(
+                "ascii point {ln}: {} values, header says {c}",
+                vals.len()
+            )));
+        }
+        let g = |i: usize| -> Result<f32, ParseError> {
+            let s = vals[col[layout.xyz[i].0]];
+            match s.to_ascii_lowercase().as_str() {
+                "nan" => Ok(f32::NAN),
+                _ => s
+                    .parse::<f32>()
+                    .map_err(|_| bad(format!("ascii point {ln}: '{s}' is not a number"))),
+            }
+        };
+        out.push([g(0)?, g(1)?, g(2)?]);
+    }
+    if out.len() != n {
+        return Err(bad(format!(
+            "truncated ascii data: header says {n} points, file has {}",
+            out.len()
+        )));
+    }
+    Ok(out)
 }
 
 /// Write a binary PCD (x y z float32) with the pose in VIEWPOINT.

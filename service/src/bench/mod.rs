@@ -248,6 +248,25 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     let mut snapshots = Vec::new();
     for (name, f) in selected(&files, a.filter.as_deref()) {
+        bench_workload(&a, &name, f, &mut snapshots)?;
+    }
+    if !a.json {
+        println!("kernel = the vector kernels in use (VOXMAP_KERNEL forces one); walk = dense (per-thread bit grids over a small frame's box) or sparse; steps = voxels on the rays; cov% = of those, the share the dense walk skipped in the box around the sensor that its first rays had marked through; ns/st = median ns per step (covered or walked) per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
+    }
+    print_snapshots(&a, &snapshots);
+    Ok(())
+}
+
+/// The rows of one workload: each ray mode on each thread count, into fresh maps; the
+/// snapshot measurements of its exact map go to `snapshots`.
+fn bench_workload(
+    a: &BenchArgs,
+    name: &str,
+    f: &Path,
+    snapshots: &mut Vec<(String, SnapshotBench)>,
+) -> Result<()> {
+    let name = name.to_string();
+    {
         let cloud = pcd::read(f)?;
         let max_range = range_of(&name).unwrap_or(30.0);
         let mut exact_counts = None;
@@ -256,7 +275,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let mut exact_map: Option<OccupancyMap> = None;
         for m in &a.modes {
             let mut agreement: Option<Agreement> = None;
-            let mode = mode_of(m, &a)?;
+            let mode = mode_of(m, a)?;
             for &threads in &a.threads {
                 let cfg = IntegratorConfig {
                     threads,
@@ -352,7 +371,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                     }
                     if mode != RayMode::Exact {
                         println!(
-                            "{:<22}    thinning (choosing and dropping rays, part of prep): {:.2} ms, {:.0}% of the frame",
+                            "{:<22}    selection (choosing and dropping rays, part of prep): {:.2} ms, {:.0}% of the frame",
                             "",
                             ms(p.select),
                             100.0 * ms(p.select) / med.max(1e-9)
@@ -362,17 +381,19 @@ pub fn run(a: BenchArgs) -> Result<()> {
             }
         }
     }
-    if !a.json {
-        println!("kernel = the vector kernels in use (VOXMAP_KERNEL forces one); walk = dense (per-thread bit grids over a small frame's box) or sparse; steps = voxels on the rays; cov% = of those, the share the dense walk skipped in the box around the sensor that its first rays had marked through; ns/st = median ns per step (covered or walked) per thread; B/vox = map bytes per touched voxel; paper = VDB-PAR, 12 threads, ms");
-        if !snapshots.is_empty() {
-            println!();
-            println!(
-                "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>8}",
-                "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "box ms", "open ms", "ms chk", "query ns", "batch ns", "los10m ns", "read ns"
-            );
-        }
+    Ok(())
+}
+
+/// The snapshot and map-file measurements of the exact maps.
+fn print_snapshots(a: &BenchArgs, snapshots: &[(String, SnapshotBench)]) {
+    if !a.json && !snapshots.is_empty() {
+        println!();
+        println!(
+            "snapshot (exact map, mask-only form){:<4} {:>10} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>8}",
+            "", "bytes", "leaves", "B/known", "B/leaf", "encode", "xfaster", "box ms", "open ms", "ms chk", "query ns", "batch ns", "los10m ns", "read ns"
+        );
     }
-    for (name, s) in &snapshots {
+    for (name, s) in snapshots {
         if a.json {
             println!(
                 "{}",
@@ -405,14 +426,13 @@ pub fn run(a: BenchArgs) -> Result<()> {
             "{:<40} {:>12} {:>10} {:>10}",
             "map file (in memory, no disk)", "bytes", "encode ms", "decode ms"
         );
-        for (name, s) in &snapshots {
+        for (name, s) in snapshots {
             println!(
                 "{:<40} {:>12} {:>10.1} {:>10.1}",
                 name, s.file_bytes, s.file_encode_ms, s.file_decode_ms
             );
         }
     }
-    Ok(())
 }
 
 /// How a ray mode's map agrees with the exact map of the same frame.

@@ -164,6 +164,56 @@ impl MapState {
     }
 }
 
+/// The service's iceoryx2 ports: frames in and their wake-up, snapshots out, control.
+struct Ports {
+    intake: intake::FrameIntake,
+    frame_events: iceoryx2::port::listener::Listener<ipc::Service>,
+    out: publish::SnapshotOut,
+    control: control::Control,
+}
+
+impl Ports {
+    fn open(node: &Node<ipc::Service>, names: &ServiceNames, cfg: &Config) -> Result<Self> {
+        let subscriber = open_frames(node, names)?
+            .subscriber_builder()
+            .buffer_size(match cfg.intake {
+                Intake::Queue => cfg.queue_depth,
+                Intake::Latest => qos::FRAME_SUBSCRIBER_BUFFER,
+            })
+            .create()
+            .map_err(|e| anyhow!(e).context("creating the frame subscriber"))?;
+        let frame_events = open_event(node, &names.frames_event)?
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow!(e).context("creating the frame listener"))?;
+        let out = publish::SnapshotOut {
+            publisher: open_snapshots(node, names)?
+                .publisher_builder()
+                .initial_max_slice_len(1 << 20)
+                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .create()
+                .map_err(|e| anyhow!(e).context("creating the snapshot publisher"))?,
+            notifier: open_event(node, &names.snapshot_event)?
+                .notifier_builder()
+                .create()
+                .map_err(|e| anyhow!(e).context("creating the snapshot notifier"))?,
+            with_values: cfg.snapshot_values,
+        };
+        let control = control::Control::new(
+            open_control(node, names)?
+                .server_builder()
+                .create()
+                .map_err(|e| anyhow!(e).context("creating the control server"))?,
+        )?;
+        Ok(Ports {
+            intake: intake::FrameIntake::new(subscriber, cfg.intake),
+            frame_events,
+            out,
+            control,
+        })
+    }
+}
+
 pub fn run(a: ServeArgs) -> Result<()> {
     let cfg = a.resolve()?;
     // Checked before anything is opened: a bad variable stops the start.
@@ -178,38 +228,12 @@ pub fn run(a: ServeArgs) -> Result<()> {
     )?;
     let cleanup = node.try_cleanup_dead_nodes();
     eprintln!("voxmap serve: dead iceoryx2 nodes cleaned up: {cleanup:?}");
-    let subscriber = open_frames(&node, &names)?
-        .subscriber_builder()
-        .buffer_size(match cfg.intake {
-            Intake::Queue => cfg.queue_depth,
-            Intake::Latest => qos::FRAME_SUBSCRIBER_BUFFER,
-        })
-        .create()
-        .map_err(|e| anyhow!(e).context("creating the frame subscriber"))?;
-    let mut intake = intake::FrameIntake::new(subscriber, cfg.intake);
-    let frame_events = open_event(&node, &names.frames_event)?
-        .listener_builder()
-        .create()
-        .map_err(|e| anyhow!(e).context("creating the frame listener"))?;
-    let out = publish::SnapshotOut {
-        publisher: open_snapshots(&node, &names)?
-            .publisher_builder()
-            .initial_max_slice_len(1 << 20)
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
-            .create()
-            .map_err(|e| anyhow!(e).context("creating the snapshot publisher"))?,
-        notifier: open_event(&node, &names.snapshot_event)?
-            .notifier_builder()
-            .create()
-            .map_err(|e| anyhow!(e).context("creating the snapshot notifier"))?,
-        with_values: cfg.snapshot_values,
-    };
-    let mut control = control::Control::new(
-        open_control(&node, &names)?
-            .server_builder()
-            .create()
-            .map_err(|e| anyhow!(e).context("creating the control server"))?,
-    )?;
+    let Ports {
+        mut intake,
+        frame_events,
+        out,
+        mut control,
+    } = Ports::open(&node, &names, &cfg)?;
     let mut s = MapState {
         mapper: cfg.mapper()?,
         started_ns: now_ns(),
