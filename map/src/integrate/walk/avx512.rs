@@ -137,7 +137,9 @@ trait Lanes {
 }
 
 /// The dense walk's lanes: bits of the thread's grid over the frame's box; whether marks
-/// are tested before they are written.
+/// are tested before they are written. Aligned to a cache line for the reason
+/// [`SparseLanes`] is.
+#[repr(align(64))]
 struct DenseLanes<'a, const TEST_FIRST: bool> {
     free: &'a mut [u64],
     hits: &'a mut [u64],
@@ -242,6 +244,12 @@ const _: () = assert!(QUEUE_AT < BUFFERS && BUFFERS.is_power_of_two());
 /// lane and those of its current leaf in a buffer of its own; when it leaves the leaf,
 /// it queues the buffer and takes its next one, and the queue's leaves are OR-ed into the
 /// frame's tables together.
+///
+/// Aligned to a cache line, which makes the walk's frame aligned too: the walk keeps some
+/// of its per-lane vectors on the stack, and where the caller's stack left them across two
+/// cache lines each step's reload missed store forwarding (the ray phase of random 50k
+/// 60 m took 15-20% longer on an Intel AVX-512 CPU, the walk's code unchanged).
+#[repr(align(64))]
 struct SparseLanes<'c, 'a> {
     cache: &'c mut LeafCache<'a>,
     packed: Packed,

@@ -551,7 +551,9 @@ trait Marks {
     fn hit_at(&mut self, p: u64);
 }
 
-/// The dense walk's marks: bits of the thread's grid over the frame's box.
+/// The dense walk's marks: bits of the thread's grid over the frame's box. Aligned to a
+/// cache line so that the walk's frame is (see `avx512::SparseLanes`).
+#[repr(align(64))]
 struct DenseMarks<'a> {
     free: &'a mut [u64],
     hits: &'a mut [u64],

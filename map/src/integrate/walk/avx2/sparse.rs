@@ -51,7 +51,9 @@ struct Entry([u64; 8]);
 /// leaf entry; when it leaves a leaf it moves on to its next entry. So a step has no
 /// branch for the lanes that changed plane or leaf, the one-ray walk's costliest
 /// (mispredicted) branch besides the axis choice. After each burst of steps, the
-/// leaves each lane finished are OR-ed into the frame's tables.
+/// leaves each lane finished are OR-ed into the frame's tables. Aligned to a cache line so
+/// that the walk's frame is (see `avx512::SparseLanes`).
+#[repr(align(64))]
 struct SparseMarks<'c, 'a> {
     cache: &'c mut LeafCache<'a>,
     packed: Packed,
