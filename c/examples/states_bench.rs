@@ -6,7 +6,7 @@
 //!   cargo run --release -p voxmap-c --example states_bench -- SNAPSHOT POINTS BATCH REPS
 
 use std::time::Instant;
-use voxmap_map::io::mapfile;
+use voxmap_reader::mapfile;
 use voxmap_reader::snapshot::SnapshotView;
 use voxmap_reader::{VoxelState, WorldPoint};
 
@@ -16,7 +16,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Err("usage: states_bench SNAPSHOT POINTS BATCH REPS".into());
     };
     let (batch, reps): (usize, usize) = (batch.parse()?, reps.parse()?);
-    let bytes = mapfile::read_snapshot(snap.as_ref())?;
+    let bytes = mapfile::read_as_snapshot(snap.as_ref())?;
     let view = SnapshotView::open(&bytes)?;
     let raw = std::fs::read(points)?;
     let xyz: Vec<f64> = raw

@@ -104,7 +104,7 @@ pub unsafe extern "C" fn voxmap_view_open_file(path: *const c_char) -> *mut voxm
         || {
             // SAFETY: the caller's promise on `path`.
             let path = unsafe { str_arg(path, "path") }?;
-            let bytes: Arc<[u8]> = voxmap_map::io::mapfile::read_as_snapshot(path.as_ref())
+            let bytes: Arc<[u8]> = voxmap_reader::mapfile::read_as_snapshot(path.as_ref())
                 .map_err(|e| Failure::chain(VOXMAP_ERR_FILE, &e))?
                 .into();
             // SAFETY: the bytes are on the heap, owned by the `Arc` the view keeps, and

@@ -13,7 +13,7 @@
 //! Voxel `(x, y, z)` has in-leaf offset `x | y << 3 | z << 6` (`x`, `y`, `z` taken mod 8).
 
 use crate::coord::VoxelCoord;
-use crate::mask::{BitIter, Mask512};
+use crate::mask::BitIter;
 use crate::pages::{Zeroed, HUGE_PAGE};
 pub use crate::tree::*;
 use hashbrown::HashMap;
@@ -71,49 +71,6 @@ pub struct NodeLeaves<T> {
 /// Values a grid can hold: plain old data whose all-zero pattern is the background.
 pub trait GridValue: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug {}
 impl<T: bytemuck::Pod + Send + Sync + PartialEq + std::fmt::Debug> GridValue for T {}
-
-/// An 8x8x8 block of voxels: a value per voxel, which of them are active, and which of
-/// those the grid's owner marks.
-#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Zeroable)]
-#[repr(C)]
-pub struct Leaf<V> {
-    pub active: Mask512,
-    /// A subset of `active` that the grid's owner keeps in step with the values; the grid
-    /// itself never writes it. An occupancy map marks its occupied voxels
-    /// ([`crate::occupancy::OccupancyMap`]), so that readers of occupancy (snapshots, counts)
-    /// read two masks per leaf, not its 512 values.
-    pub marked: Mask512,
-    pub values: [V; LEAF_VOXELS],
-}
-
-impl<V: GridValue> Leaf<V> {
-    /// Ask the CPU to start loading the leaf's two masks into cache, for a loop that reads
-    /// them a few iterations later, so that the leaves' cache misses overlap rather than
-    /// come one after another (see the snapshot writer's `PREFETCH_AHEAD`). Only speed
-    /// changes.
-    #[inline]
-    pub fn prefetch_masks(&self) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-            let base = std::ptr::from_ref(self).cast::<i8>();
-            // The last byte too: a leaf from the allocator (a small map's first chunk) may
-            // start inside a cache line, and its masks then span three.
-            const MASKS: usize = 2 * std::mem::size_of::<Mask512>();
-            for at in (0..MASKS).step_by(64).chain([MASKS - 1]) {
-                // SAFETY: `_mm_prefetch` needs SSE, which every x86_64 CPU has; a prefetch
-                // reads nothing into the program and cannot fault, and `at` is inside the
-                // leaf (the masks come first, `repr(C)`).
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(at)) };
-            }
-        }
-    }
-
-    #[inline]
-    pub fn get(&self, i: usize) -> Option<V> {
-        self.active.get(i).then(|| self.values[i])
-    }
-}
 
 struct Internal {
     origin: VoxelCoord,
@@ -721,7 +678,7 @@ mod tests {
         );
         assert_eq!(
             leaf_box_mask(VoxelCoord::new(-8, 0, 0), near, far),
-            Mask512::FULL
+            crate::mask::Mask512::FULL
         );
     }
 

@@ -26,7 +26,7 @@ use crate::integrate::walk::dense::{self, DenseBits, DenseBox};
 use crate::integrate::walk::sparse;
 use crate::mask::Mask512;
 use crate::model::QuantizedModel;
-use crate::snapshot::writer::{self, PlannedLeaf, Sums};
+use crate::snapshot::encode::{self, PlannedLeaf, Sums};
 use std::ops::Range;
 use std::sync::OnceLock;
 
@@ -224,7 +224,7 @@ pub struct Kernels {
     pub(crate) observe_leaf: fn(&mut Leaf<i8>, &Slot, &QuantizedModel, bool) -> u64,
     /// The distance field's three passes over one tile (see `field::tile::passes`).
     pub(crate) field_passes: fn(&mut Scratch, usize, usize, Region),
-    /// The snapshot records of one piece of leaves (see `snapshot::writer::encode_piece`).
+    /// The snapshot records of one piece of leaves (see `snapshot::encode::encode_piece`).
     pub(crate) encode_piece: fn(&mut [PlannedLeaf<'_>], &[Mask512]) -> Encoded,
 }
 
@@ -280,7 +280,7 @@ static SCALAR: Kernels = Kernels {
     walk_sparse: sparse::walk_rays,
     observe_leaf: update::observe_leaf::<update::Scalar>,
     field_passes: tile::passes,
-    encode_piece: |piece, keeps| writer::encode_piece(piece, keeps, None),
+    encode_piece: encode::encode_piece,
 };
 
 // SAFETY (every `unsafe` block of the two tables below): the tables are reachable only
@@ -312,7 +312,7 @@ static AVX2: Kernels = Kernels {
         update::avx2::observe_leaf(leaf, slot, q, fresh)
     },
     field_passes: |s, n, r, region| unsafe { tile::passes_avx2(s, n, r, region) },
-    encode_piece: |piece, keeps| unsafe { writer::encode_piece_avx2(piece, keeps) },
+    encode_piece: |piece, keeps| unsafe { encode::encode_piece_avx2(piece, keeps) },
 };
 
 /// Eight rays at a time where AVX-512 pays; AVX2's entries elsewhere.
@@ -345,7 +345,7 @@ static AVX512: Kernels = Kernels {
         update::avx512::observe_leaf(leaf, slot, q, fresh)
     },
     field_passes: |s, n, r, region| unsafe { tile::passes_avx512(s, n, r, region) },
-    encode_piece: |piece, keeps| unsafe { writer::encode_piece_avx512(piece, keeps) },
+    encode_piece: |piece, keeps| unsafe { encode::encode_piece_avx512(piece, keeps) },
 };
 
 /// Print a test's notice that it skips a kernel, straight to the process's stderr: the

@@ -316,7 +316,7 @@ impl View {
 /// with its probabilities).
 #[pyfunction]
 pub fn open(path: std::path::PathBuf) -> PyResult<View> {
-    let bytes: Arc<[u8]> = voxmap_map::io::mapfile::read_as_snapshot(&path)
+    let bytes: Arc<[u8]> = voxmap_reader::mapfile::read_as_snapshot(&path)
         .map_err(|e| voxmap_error(&e))?
         .into();
     // SAFETY: the bytes are on the heap, owned by the `Arc` the view keeps, never written.

@@ -11,6 +11,8 @@
 //!   [`VoxelState`].
 //! - [`tree`]: the tree's fixed shape (leaves of 8³ voxels, blocks of 8³ leaves), [`mask`]
 //!   the leaves' 512-bit masks, [`raycast`] the exact DDA.
+//! - [`mapfile::read_as_snapshot`]: a map file (`.vxm`) or snapshot file opened as
+//!   snapshot bytes, on the calling thread.
 //!
 //! The map itself, its integrator and the snapshot writer are in `voxmap-map`, which
 //! builds on this crate.
@@ -25,6 +27,7 @@
 
 pub mod coord;
 pub mod field;
+pub mod mapfile;
 pub mod mask;
 pub mod model;
 pub mod prefetch;

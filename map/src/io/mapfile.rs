@@ -1,65 +1,23 @@
-//! Map files: the full map (log-odds, sensor model, resolution) in a versioned,
-//! checksummed file, written atomically; and snapshot files.
-//!
-//! ```text
-//! magic "VXMMAP\0\0" | version u32 | header length u32 | header (bincode) | header crc32 u32
-//! body: leaf_count records of { origin [i32; 3], known mask [u64; 8], values [i8; 512] }
-//! version 2 only, the distance field: field leaf_count records of
-//!   { origin [i32; 3], band mask [u64; 8], one (dx, dy, dz) i8 offset per band voxel }
-//! ```
-//! A file without a distance field is version 1, which earlier builds read; one with a
-//! field ([`save_map_with_field`]) is version 2, whose header adds the field's settings,
-//! record count, length and CRC-32. A loaded field is checked against its map (every
-//! obstacle at offset 0, nothing else there), so a field of another map is refused.
-//! All integers little-endian. The header holds the body's CRC-32; a file is loaded
-//! completely and verified before a map is built, so a bad file changes nothing.
+//! Map files: the full map (log-odds, sensor model, resolution, and its distance field) in
+//! a versioned, checksummed file, written atomically; and snapshot files. The format and
+//! its checks are `voxmap-reader`'s `mapfile` (drawn out there and in
+//! `docs/file-formats.md`); this module writes files and builds a map from one. A loaded
+//! field is checked against its map (every obstacle at offset 0, nothing else there), so a
+//! field of another map is refused. A file is loaded completely and verified before a map
+//! is built, so a bad file changes nothing.
 
 use crate::coord::VoxelCoord;
-use crate::field::{DistanceField, FieldConfig, LeafBand};
-use crate::grid::LEAF_VOXELS;
-use crate::model::SensorModel;
+use crate::field::{DistanceField, LeafBand};
 use crate::occupancy::OccupancyMap;
-use crate::snapshot::{SnapshotError, SnapshotView};
-use serde::{Deserialize, Serialize};
+use crate::snapshot::{OnPool, SnapshotError, SnapshotView};
+use serde::Serialize;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-
-pub const MAP_MAGIC: [u8; 8] = *b"VXMMAP\0\0";
-/// The newest version this build reads and writes: 2 with a distance field, else 1.
-pub const MAP_VERSION: u32 = 2;
-/// The version of files without a distance field.
-const MAP_VERSION_PLAIN: u32 = 1;
-/// A body record: origin, then known mask at `MASK_AT`, then values at `VALUES_AT`.
-const MASK_AT: usize = 12;
-const VALUES_AT: usize = MASK_AT + 64;
-const RECORD: usize = VALUES_AT + LEAF_VOXELS;
-const MAX_HEADER: usize = 4096;
-
-/// A version 2 header: the map's, then the distance field's.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct FileHeaderWithField {
-    map: FileHeader,
-    field: FieldFileHeader,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct FieldFileHeader {
-    config: FieldConfig,
-    /// The voxels the field covered (its window when saved), inclusive.
-    window: Option<([i32; 3], [i32; 3])>,
-    leaf_count: u64,
-    body_len: u64,
-    body_crc32: u32,
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct FileHeader {
-    resolution: f64,
-    model: SensorModel,
-    frac_bits: u8,
-    leaf_count: u64,
-    body_crc32: u32,
-}
+use voxmap_reader::mapfile::{self as format, fill_leaf, record_origin};
+pub use voxmap_reader::mapfile::{
+    Decode, FieldFileHeader, FileHeader, FileHeaderWithField, MAP_MAGIC, MAP_VERSION,
+    MAP_VERSION_PLAIN, MASK_AT, RECORD, VALUES_AT,
+};
 
 /// A map or snapshot file could not be written or read.
 #[derive(Debug)]
@@ -322,22 +280,7 @@ fn encode_head(header: &impl Serialize, version: u32) -> Vec<u8> {
 
 /// CRC-32 of `bytes`, in pieces on the current rayon pool, combined.
 fn par_crc32(bytes: &[u8]) -> u32 {
-    use rayon::prelude::*;
-    const PIECE: usize = 8 << 20;
-    bytes
-        .par_chunks(PIECE)
-        .map(|p| {
-            let mut h = crc32fast::Hasher::new();
-            h.update(p);
-            h
-        })
-        .collect::<Vec<_>>()
-        .into_iter()
-        .fold(crc32fast::Hasher::new(), |mut acc, h| {
-            acc.combine(&h);
-            acc
-        })
-        .finalize()
+    format::crc32(bytes, 8 << 20, &OnPool)
 }
 
 /// Save a map atomically.
@@ -381,13 +324,6 @@ fn decode_err(path: &Path) -> impl FnOnce(Decode) -> MapFileError + '_ {
     }
 }
 
-/// Why map bytes did not decode.
-#[derive(Debug, PartialEq)]
-pub enum Decode {
-    Version(u32),
-    Corrupt(String),
-}
-
 /// Decode map-file bytes into a new map (a distance field the file carries is checked and
 /// dropped).
 pub fn decode_map(bytes: &[u8]) -> Result<OccupancyMap, Decode> {
@@ -399,87 +335,19 @@ pub fn decode_map_with_field(
     bytes: &[u8],
 ) -> Result<(OccupancyMap, Option<DistanceField>), Decode> {
     let bad = |s: &str| Decode::Corrupt(s.to_string());
-    if bytes.len() < 16 || bytes[..8] != MAP_MAGIC {
-        return Err(bad("not a voxmap map file (bad magic)"));
-    }
-    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != MAP_VERSION && version != MAP_VERSION_PLAIN {
-        return Err(Decode::Version(version));
-    }
-    let hlen = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes")) as usize;
-    if hlen > MAX_HEADER || bytes.len() < 16 + hlen + 4 {
-        return Err(bad("header length out of range or file truncated"));
-    }
-    let hb = &bytes[16..16 + hlen];
-    let hcrc = u32::from_le_bytes(bytes[16 + hlen..20 + hlen].try_into().expect("4 bytes"));
-    if crc32fast::hash(hb) != hcrc {
-        return Err(bad("header checksum mismatch"));
-    }
-    let cfg = bincode::config::standard().with_limit::<MAX_HEADER>();
-    let (h, field_header) = if version == MAP_VERSION_PLAIN {
-        let (h, _): (FileHeader, usize) = bincode::serde::decode_from_slice(hb, cfg)
-            .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
-        (h, None)
-    } else {
-        let (h, _): (FileHeaderWithField, usize) = bincode::serde::decode_from_slice(hb, cfg)
-            .map_err(|e| Decode::Corrupt(format!("header: {e}")))?;
-        (h.map, Some(h.field))
-    };
-    let mut body = &bytes[20 + hlen..];
-    let mut field_body: &[u8] = &[];
-    if let Some(fh) = &field_header {
-        let split = h
-            .leaf_count
-            .checked_mul(RECORD as u64)
-            .filter(|&n| n <= body.len() as u64)
-            .ok_or_else(|| bad("file shorter than its leaves"))?;
-        (body, field_body) = body.split_at(split as usize);
-        if field_body.len() as u64 != fh.body_len {
-            return Err(Decode::Corrupt(format!(
-                "distance field is {} bytes, header says {}",
-                field_body.len(),
-                fh.body_len
-            )));
-        }
-        if par_crc32(field_body) != fh.body_crc32 {
-            return Err(bad("distance field checksum mismatch"));
-        }
-    }
-    // Leaf indices are u32.
-    if h.leaf_count > u64::from(u32::MAX) {
-        return Err(bad("leaf count out of range"));
-    }
-    let want = h.leaf_count * RECORD as u64;
-    if body.len() as u64 != want {
-        return Err(Decode::Corrupt(format!(
-            "body is {} bytes, header says {} leaves ({want} bytes)",
-            body.len(),
-            h.leaf_count
-        )));
-    }
-    if par_crc32(body) != h.body_crc32 {
-        return Err(bad("body checksum mismatch"));
-    }
+    let parsed = format::parse(bytes, &OnPool)?;
+    let h = &parsed.header;
     let mut map = OccupancyMap::new(h.resolution, h.model)
         .map_err(|e| Decode::Corrupt(format!("parameters: {e}")))?;
-    let q = *map.quantized();
-    if q.frac_bits != h.frac_bits {
-        return Err(bad("fixed-point scale disagrees with the sensor model"));
-    }
+    let q = parsed.quantized()?;
+    let body = parsed.body;
     // Leaves are created in record order, so record i fills leaf i; a leaf that exists
     // already is a record stored twice.
     let grid = map.grid_mut();
     let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
     let mut items: Vec<(u32, &[u8])> = Vec::with_capacity(h.leaf_count as usize);
     for (i, rec) in body.chunks_exact(RECORD).enumerate() {
-        let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
-        let o = VoxelCoord::new(c(0), c(1), c(2));
-        if o.to_array()
-            .iter()
-            .any(|v| v & 7 != 0 || v.unsigned_abs() >= 1 << 30)
-        {
-            return Err(bad("leaf origin not leaf-aligned or out of range"));
-        }
+        let o = record_origin(rec)?;
         if grid.leaf_index_or_insert(o, Some(&mut hint)) as usize != i {
             return Err(bad("leaf stored twice"));
         }
@@ -488,37 +356,14 @@ pub fn decode_map_with_field(
     let out_of_range = grid.leaf_pool_mut().par_update(
         &items,
         |_| (),
-        |leaf, rec| {
-            let mut bad = false;
-            for w in 0..8 {
-                let word =
-                    u64::from_le_bytes(rec[MASK_AT + 8 * w..][..8].try_into().expect("8 bytes"));
-                leaf.active.words[w] = word;
-                let vals = &rec[VALUES_AT + 64 * w..][..64];
-                // The leaf's occupied marks (`Leaf::marked`), in the same pass.
-                let mut occupied = 0u64;
-                for (b, (out, &v)) in leaf.values[64 * w..64 * w + 64]
-                    .iter_mut()
-                    .zip(vals)
-                    .enumerate()
-                {
-                    let known = word >> b & 1 != 0;
-                    let v = v as i8;
-                    bad |= known & !(q.min..=q.max).contains(&v);
-                    occupied |= u64::from(known & (v >= q.threshold)) << b;
-                    *out = if known { v } else { 0 };
-                }
-                leaf.marked.words[w] = occupied;
-            }
-            u64::from(bad)
-        },
+        |leaf, rec| u64::from(!fill_leaf(rec, &q, leaf)),
     );
     if out_of_range > 0 {
         return Err(bad("log-odds value outside the clamping range"));
     }
-    let field = match field_header {
+    let field = match &parsed.field {
         None => None,
-        Some(fh) => Some(decode_field(&map, &fh, field_body)?),
+        Some(fh) => Some(decode_field(&map, fh, parsed.field_body)?),
     };
     Ok((map, field))
 }
@@ -527,36 +372,13 @@ pub fn decode_map_with_field(
 fn decode_field(
     map: &OccupancyMap,
     fh: &FieldFileHeader,
-    mut rec: &[u8],
+    rec: &[u8],
 ) -> Result<DistanceField, Decode> {
     let bad = |s: &str| Decode::Corrupt(format!("distance field: {s}"));
-    if fh.leaf_count > u64::from(u32::MAX) {
-        return Err(bad("leaf count out of range"));
-    }
-    let mut leaves = Vec::with_capacity(fh.leaf_count.min(1 << 20) as usize);
-    for _ in 0..fh.leaf_count {
-        if rec.len() < 76 {
-            return Err(bad("records truncated"));
-        }
-        let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
-        let origin = VoxelCoord::new(c(0), c(1), c(2));
-        let mut mask = crate::mask::Mask512::EMPTY;
-        for (w, word) in mask.words.iter_mut().enumerate() {
-            *word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
-        }
-        let n = 3 * mask.count() as usize;
-        let offsets_bytes = rec
-            .get(76..76 + n)
-            .ok_or_else(|| bad("records truncated"))?;
-        let offsets = (offsets_bytes.chunks_exact(3))
-            .map(|o| [o[0] as i8, o[1] as i8, o[2] as i8])
-            .collect();
+    let mut leaves = Vec::new();
+    for (origin, mask, offsets) in format::field_records(fh, rec)? {
         let band = LeafBand::new(mask, offsets).ok_or_else(|| bad("records truncated"))?;
         leaves.push((origin, band));
-        rec = &rec[76 + n..];
-    }
-    if !rec.is_empty() {
-        return Err(bad("bytes after the last record"));
     }
     let window = fh
         .window
@@ -639,7 +461,11 @@ fn read_as_snapshot_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::FieldConfig;
+    use crate::grid::LEAF_VOXELS;
+    use crate::model::SensorModel;
     use crate::snapshot::{Meta, Plan, Scope};
+    use voxmap_reader::mapfile::snapshot_of;
 
     fn sample_map() -> OccupancyMap {
         let model = SensorModel {
@@ -858,6 +684,59 @@ mod tests {
                 "the field of another map is refused"
             );
         }
+    }
+
+    /// A planner's path (`voxmap_reader::mapfile::snapshot_of`: in order, from the file's
+    /// records) gives the bytes the map's writer gives of the decoded map, without and with
+    /// a distance field (both policies, whole and windowed), and refuses what the map's
+    /// loader refuses.
+    #[test]
+    fn the_readers_snapshot_of_a_map_file_equals_the_writers() {
+        use crate::field::UnknownPolicy;
+        let map = sample_map();
+        let meta = Meta {
+            with_values: true,
+            ..Default::default()
+        };
+        let plain = encode_map(&map);
+        let want = Plan::new(&decode_map(&plain).unwrap(), Scope::Whole, meta).to_vec();
+        assert_eq!(snapshot_of(&plain).unwrap(), want);
+        for unknown in [UnknownPolicy::Free, UnknownPolicy::Occupied] {
+            for window in [None, Some([2.0, 1.5, 0.5])] {
+                let cfg = FieldConfig {
+                    max_distance: 0.3,
+                    unknown,
+                    window,
+                };
+                let mut f = DistanceField::new(cfg, map.resolution()).unwrap();
+                f.rebuild(&map, Some(crate::WorldPoint::new(1.0, -2.0, 0.0)));
+                let bytes = encode_map_parts_with(&map, Some(&f)).into_bytes();
+                let (back, carried) = decode_map_with_field(&bytes).unwrap();
+                let carried = carried.expect("the field");
+                let want = Plan::new(&back, Scope::Whole, meta)
+                    .with_field(&carried)
+                    .to_vec();
+                let got = snapshot_of(&bytes).unwrap();
+                assert!(got == want, "{unknown:?} {window:?}");
+                assert!(SnapshotView::open_checked(&got)
+                    .unwrap()
+                    .distance_field()
+                    .is_some());
+            }
+        }
+        // The field of another map, a value out of range, a cut: refused by both.
+        let f = field_of(&map, UnknownPolicy::Free);
+        let mut other = sample_map();
+        other.set_value(VoxelCoord::new(200, 200, 0), 100);
+        other.set_value(VoxelCoord::new(0, 0, 0), 100);
+        let wrong = encode_map_parts_with(&other, Some(&f)).into_bytes();
+        assert!(
+            matches!(snapshot_of(&wrong), Err(Decode::Corrupt(m)) if m.contains("distance field"))
+        );
+        let cut = &plain[..plain.len() - 3];
+        assert!(snapshot_of(cut).is_err() && decode_map(cut).is_err());
+        let lying = with_header(&plain, |h, _| h.leaf_count += 1);
+        assert!(snapshot_of(&lying).is_err() && decode_map(&lying).is_err());
     }
 
     #[test]

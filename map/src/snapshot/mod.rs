@@ -1,7 +1,7 @@
 //! Snapshots of a map: [`writer::Plan`] sizes a snapshot of the map (whole or a box, with
-//! or without values and the distance field) and writes it straight into a caller's buffer.
-//! The layout, the records and the views are `voxmap-reader`'s `snapshot`, re-exported
-//! here.
+//! or without values and the distance field) and writes it straight into a caller's buffer,
+//! through `voxmap-reader`'s [`Encoder`]. The layout, the records, the encoder and the views
+//! are `voxmap-reader`'s `snapshot`, re-exported here.
 //!
 //! A map written into a snapshot and read back in place:
 //!
@@ -38,7 +38,7 @@ pub use voxmap_reader::snapshot::*;
 
 pub mod writer;
 
-pub use writer::{Meta, Plan, Scope};
+pub use writer::{OnPool, Plan};
 
 #[cfg(test)]
 mod tests;

@@ -2,6 +2,7 @@
 //! scopes, dense and hashed indexes.
 
 use super::*;
+use voxmap_reader::snapshot::Pieces;
 
 #[test]
 fn view_agrees_with_the_map_on_every_query() {
@@ -10,7 +11,7 @@ fn view_agrees_with_the_map_on_every_query() {
         let bytes = encode(&map, Scope::Whole, true);
         let view = SnapshotView::open_checked(&bytes).unwrap();
         // Written in many parallel pieces, checksum included.
-        assert!(map.grid().leaf_count() > 10 * super::writer::PIECE);
+        assert!(map.grid().leaf_count() > 10 * super::writer::OnPool.sizes().0);
         assert!(bytes.len() > 10 * 4096);
         let c = map.counts();
         assert_eq!(view.counts(), (c.occupied + c.free, c.occupied));
