@@ -13,7 +13,9 @@
 //! [`UnknownPolicy`]); the map crate's `DistanceField` builds and maintains a field beside
 //! a map. Snapshots carry it ([`crate::snapshot::field`]), where planners query it in place.
 
-use crate::coord::ConfigError;
+use crate::coord::{ConfigError, VoxelCoord};
+use crate::mask::Mask512;
+use hashbrown::HashMap;
 
 /// Largest band radius in voxels: offsets are stored as `i8`, and the transform's keys
 /// hold a squared distance below `2 * 63²` in 13 bits.
@@ -120,4 +122,104 @@ impl FieldConfig {
 #[inline]
 pub fn offset_len2(o: [i8; 3]) -> i32 {
     o.iter().map(|&c| i32::from(c) * i32::from(c)).sum()
+}
+
+/// The obstacles of a map leaf under a policy: its occupied voxels, and its unknown ones
+/// too where unknown counts as occupied.
+pub fn obstacles(active: &Mask512, marked: &Mask512, policy: UnknownPolicy) -> Mask512 {
+    match policy {
+        UnknownPolicy::Free => *marked,
+        UnknownPolicy::Occupied => Mask512 {
+            words: std::array::from_fn(|w| marked.words[w] | !active.words[w]),
+        },
+    }
+}
+
+/// Whether the leaf at `origin` reaches into `window` (or there is none).
+pub fn leaf_in_window(window: Option<(VoxelCoord, VoxelCoord)>, origin: VoxelCoord) -> bool {
+    window.is_none_or(|(lo, hi)| {
+        let e = origin + VoxelCoord::new(7, 7, 7);
+        origin.x <= hi.x
+            && lo.x <= e.x
+            && origin.y <= hi.y
+            && lo.y <= e.y
+            && origin.z <= hi.z
+            && lo.z <= e.z
+    })
+}
+
+/// One leaf's band: which of its voxels are in the band, and their offsets to the nearest
+/// obstacle, in the mask's order.
+pub trait Band {
+    fn mask(&self) -> &Mask512;
+    fn offsets(&self) -> &[[i8; 3]];
+
+    /// The band's obstacles: its voxels at offset zero.
+    fn obstacles(&self) -> Mask512 {
+        let mut at_zero = Mask512::EMPTY;
+        for (i, d) in self.mask().iter_ones().zip(self.offsets()) {
+            if *d == [0; 3] {
+                at_zero.set(i);
+            }
+        }
+        at_zero
+    }
+}
+
+impl Band for (Mask512, Vec<[i8; 3]>) {
+    fn mask(&self) -> &Mask512 {
+        &self.0
+    }
+
+    fn offsets(&self) -> &[[i8; 3]] {
+        &self.1
+    }
+}
+
+/// Check a field's bands read from a file against the map they were saved with: each band
+/// leaf-aligned, a leaf of the map (`is_leaf`), inside the window, stored once, its offsets
+/// within `radius`; and in every map leaf inside the window (`leaves`: origin and
+/// obstacles) the band's voxels at offset zero exactly its obstacles. So a field of another
+/// map is refused.
+pub fn check_bands<B: Band>(
+    bands: &HashMap<VoxelCoord, B>,
+    duplicates: bool,
+    radius: u32,
+    window: Option<(VoxelCoord, VoxelCoord)>,
+    is_leaf: impl Fn(VoxelCoord) -> bool,
+    leaves: impl Iterator<Item = (VoxelCoord, Mask512)>,
+) -> Result<(), String> {
+    if duplicates {
+        return Err("a leaf stored twice".into());
+    }
+    let r2 = (radius * radius) as i32;
+    for (&o, band) in bands {
+        if o.to_array()
+            .iter()
+            .any(|c| c & 7 != 0 || c.unsigned_abs() >= 1 << 30)
+        {
+            return Err(format!(
+                "leaf origin {o:?} not leaf-aligned or out of range"
+            ));
+        }
+        if !is_leaf(o) {
+            return Err(format!("leaf {o:?} is not a leaf of the map"));
+        }
+        if !leaf_in_window(window, o) {
+            return Err(format!("leaf {o:?} lies outside the field's window"));
+        }
+        if band.offsets().iter().any(|&d| offset_len2(d) >= r2) {
+            return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
+        }
+    }
+    for (o, obstacles) in leaves {
+        if !leaf_in_window(window, o) {
+            continue;
+        }
+        let stored = bands.get(&o).map_or(Mask512::EMPTY, |b| b.obstacles());
+        if stored != obstacles {
+            return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
+        }
+    }
+    Ok(())
 }

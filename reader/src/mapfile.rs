@@ -14,7 +14,7 @@
 //! anything is built from it, so a bad file changes nothing.
 
 use crate::coord::{GridTransform, VoxelCoord};
-use crate::field::{offset_len2, FieldConfig, UnknownPolicy};
+use crate::field::{check_bands, obstacles, FieldConfig};
 use crate::mask::Mask512;
 use crate::model::{QuantizedModel, SensorModel};
 use crate::snapshot::{Encoder, FieldBands, InOrder, MapInfo, Meta, Pieces, PlannedLeaf};
@@ -276,86 +276,6 @@ pub fn field_records(fh: &FieldFileHeader, mut rec: &[u8]) -> Result<Vec<BandRec
         return Err(bad("bytes after the last record"));
     }
     Ok(out)
-}
-
-/// The obstacles of a map leaf under a policy: its occupied voxels, and its unknown ones
-/// too where unknown counts as occupied.
-pub fn obstacles(active: &Mask512, marked: &Mask512, policy: UnknownPolicy) -> Mask512 {
-    match policy {
-        UnknownPolicy::Free => *marked,
-        UnknownPolicy::Occupied => Mask512 {
-            words: std::array::from_fn(|w| marked.words[w] | !active.words[w]),
-        },
-    }
-}
-
-/// Whether the leaf at `origin` reaches into `window` (or there is none).
-pub fn leaf_in_window(window: Option<(VoxelCoord, VoxelCoord)>, origin: VoxelCoord) -> bool {
-    window.is_none_or(|(lo, hi)| {
-        let e = origin + VoxelCoord::new(7, 7, 7);
-        origin.x <= hi.x
-            && lo.x <= e.x
-            && origin.y <= hi.y
-            && lo.y <= e.y
-            && origin.z <= hi.z
-            && lo.z <= e.z
-    })
-}
-
-/// Check a field's bands read from a file against the map they were saved with: each band
-/// leaf-aligned, a leaf of the map (`is_leaf`), inside the window, stored once, its offsets
-/// within `radius`; and in every map leaf inside the window (`leaves`: origin and
-/// obstacles) the band's voxels at offset zero exactly its obstacles. So a field of another
-/// map is refused.
-pub fn check_bands(
-    bands: &HashMap<VoxelCoord, (Mask512, Vec<[i8; 3]>)>,
-    duplicates: bool,
-    radius: u32,
-    window: Option<(VoxelCoord, VoxelCoord)>,
-    is_leaf: impl Fn(VoxelCoord) -> bool,
-    leaves: impl Iterator<Item = (VoxelCoord, Mask512)>,
-) -> Result<(), String> {
-    if duplicates {
-        return Err("a leaf stored twice".into());
-    }
-    let r2 = (radius * radius) as i32;
-    for (&o, (_, offsets)) in bands {
-        if o.to_array()
-            .iter()
-            .any(|c| c & 7 != 0 || c.unsigned_abs() >= 1 << 30)
-        {
-            return Err(format!(
-                "leaf origin {o:?} not leaf-aligned or out of range"
-            ));
-        }
-        if !is_leaf(o) {
-            return Err(format!("leaf {o:?} is not a leaf of the map"));
-        }
-        if !leaf_in_window(window, o) {
-            return Err(format!("leaf {o:?} lies outside the field's window"));
-        }
-        if offsets.iter().any(|&d| offset_len2(d) >= r2) {
-            return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
-        }
-    }
-    for (o, obstacles) in leaves {
-        if !leaf_in_window(window, o) {
-            continue;
-        }
-        let stored = bands.get(&o).map_or(Mask512::EMPTY, |(mask, offsets)| {
-            let mut at_zero = Mask512::EMPTY;
-            for (i, d) in mask.iter_ones().zip(offsets) {
-                if *d == [0; 3] {
-                    at_zero.set(i);
-                }
-            }
-            at_zero
-        });
-        if stored != obstacles {
-            return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
-        }
-    }
-    Ok(())
 }
 
 /// The place of the leaf at `origin` in block order: internal nodes (128³ voxels) by

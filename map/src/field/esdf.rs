@@ -10,7 +10,7 @@
 //! their results are stored in tile order.
 
 use super::tile::{self, Region, Scratch, TILE, TILE_LOG2};
-use super::FieldConfig;
+use super::{check_bands, leaf_in_window, Band, FieldConfig};
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
 use crate::mask::Mask512;
 use crate::occupancy::OccupancyMap;
@@ -50,12 +50,9 @@ impl LeafBand {
         if mask.count() as usize != offsets.len() {
             return None;
         }
-        let mut obstacles = Mask512::EMPTY;
-        for (i, o) in mask.iter_ones().zip(&offsets) {
-            if *o == [0; 3] {
-                obstacles.set(i);
-            }
-        }
+        let band = (mask, offsets);
+        let obstacles = band.obstacles();
+        let (mask, offsets) = band;
         Some(Self {
             mask,
             obstacles,
@@ -91,6 +88,16 @@ impl LeafBand {
     /// Heap bytes: the band's box and its offsets' allocation.
     fn heap_bytes(&self) -> usize {
         allocation(std::mem::size_of::<Self>()) + allocation(3 * self.offsets.len())
+    }
+}
+
+impl Band for LeafBand {
+    fn mask(&self) -> &Mask512 {
+        &self.mask
+    }
+
+    fn offsets(&self) -> &[[i8; 3]] {
+        &self.offsets
     }
 }
 
@@ -258,8 +265,8 @@ impl DistanceField {
     }
 
     /// A field read back from a file (see `io::mapfile`) for `map`, covering `window`:
-    /// refused, with the reason, unless its offsets lie in the band and its obstacles are
-    /// exactly the map's (every obstacle stored at offset 0, nothing else there).
+    /// refused, with the reason, unless its bands pass `field::check_bands` (offsets in the
+    /// band, obstacles exactly the map's: every obstacle stored at offset 0, nothing else).
     pub fn restore(
         cfg: FieldConfig,
         map: &OccupancyMap,
@@ -268,45 +275,31 @@ impl DistanceField {
     ) -> Result<Self, String> {
         let mut f = Self::new(cfg, map.resolution()).map_err(|e| e.to_string())?;
         f.window = window;
-        let (policy, r2) = (cfg.unknown, (f.radius * f.radius) as i32);
-        for (o, band) in leaves {
-            if o.to_array()
-                .iter()
-                .any(|c| c & 7 != 0 || c.unsigned_abs() >= 1 << 30)
-            {
-                return Err(format!(
-                    "leaf origin {o:?} not leaf-aligned or out of range"
-                ));
-            }
-            if map.grid().leaf_index(o).is_none() {
-                return Err(format!("leaf {o:?} is not a leaf of the map"));
-            }
-            if !f.overlaps_window(o) {
-                return Err(format!("leaf {o:?} lies outside the field's window"));
-            }
-            if band.offsets().iter().any(|&o| super::offset_len2(o) >= r2) {
-                return Err(format!("an offset of leaf {o:?} reaches beyond the radius"));
-            }
-            if f.leaves.contains_key(&o) {
-                return Err(format!("leaf {o:?} stored twice"));
-            }
+        let n = leaves.len();
+        let bands: HashMap<VoxelCoord, LeafBand> = leaves.into_iter().collect();
+        let policy = cfg.unknown;
+        let map_leaves = (map.grid().leaves()).map(|(o, leaf)| (o, tile::obstacles(leaf, policy)));
+        let is_leaf = |o| map.grid().leaf_index(o).is_some();
+        check_bands(
+            &bands,
+            bands.len() != n,
+            f.radius,
+            window,
+            is_leaf,
+            map_leaves,
+        )?;
+        for (o, band) in bands {
             f.set_band(o, Some(band));
         }
-        // The band's voxels at offset zero are exactly the map's obstacles, in every leaf
-        // the window reaches; the others' obstacles are kept apart.
+        // Every map leaf has its entry (none where it has no band); those the window leaves
+        // out keep their obstacles apart.
         for (o, leaf) in map.grid().leaves() {
-            let obstacles = tile::obstacles(leaf, policy);
-            let inside = f.overlaps_window(o);
-            let stored = f.leaves.entry(o).or_insert(None);
-            if !inside {
+            f.leaves.entry(o).or_insert(None);
+            if !leaf_in_window(window, o) {
+                let obstacles = tile::obstacles(leaf, policy);
                 if !obstacles.is_empty() {
                     f.outside.insert(o, obstacles);
                 }
-                continue;
-            }
-            let band_obstacles = stored.as_ref().map_or(Mask512::EMPTY, |b| b.obstacles);
-            if band_obstacles != obstacles {
-                return Err(format!("leaf {o:?} disagrees with the map's obstacles"));
             }
         }
         Ok(f)
@@ -585,11 +578,6 @@ fn window_around(
         p.z + half[2],
     ))?;
     Some((lo, hi))
-}
-
-/// Whether the leaf at `origin` reaches into `window` (or there is none).
-fn leaf_in_window(window: Option<(VoxelCoord, VoxelCoord)>, origin: VoxelCoord) -> bool {
-    window.is_none_or(|(lo, hi)| overlaps(origin, origin + VoxelCoord::new(7, 7, 7), lo, hi))
 }
 
 /// Inclusive voxel box of a tile.

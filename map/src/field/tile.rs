@@ -75,12 +75,7 @@ pub(super) fn decode(key: u32) -> [i8; 3] {
 /// The obstacles of a map leaf under a policy.
 #[inline]
 pub(super) fn obstacles(leaf: &Leaf<i8>, policy: UnknownPolicy) -> Mask512 {
-    match policy {
-        UnknownPolicy::Free => leaf.marked,
-        UnknownPolicy::Occupied => Mask512 {
-            words: std::array::from_fn(|w| leaf.marked.words[w] | !leaf.active.words[w]),
-        },
-    }
+    super::obstacles(&leaf.active, &leaf.marked, policy)
 }
 
 /// The obstacles of a voxel no leaf holds (unknown).

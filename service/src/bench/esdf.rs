@@ -94,7 +94,19 @@ fn mapped(
     max_range: f64,
     frame: &Frame<'_>,
 ) -> Result<OccupancyMap> {
-    let mut mapper = Mapper::new(&MapperConfig {
+    let mut mapper = mapper(a, threads, max_range, None)?;
+    mapper.insert(frame, FrameStamp::default())?;
+    Ok(mapper.into_parts().0)
+}
+
+/// A mapper of the bench's resolution, with a field of `field`'s settings.
+fn mapper(
+    a: &BenchArgs,
+    threads: usize,
+    max_range: f64,
+    field: Option<FieldConfig>,
+) -> Result<Mapper> {
+    Ok(Mapper::new(&MapperConfig {
         resolution: a.resolution,
         model: SensorModel::default(),
         integrator: IntegratorConfig {
@@ -103,10 +115,8 @@ fn mapped(
             pin_threads: a.pin_threads,
             ..Default::default()
         },
-        field: None,
-    })?;
-    mapper.insert(frame, FrameStamp::default())?;
-    Ok(mapper.into_parts().0)
+        field,
+    })?)
 }
 
 /// One bulk-build row.
@@ -275,17 +285,7 @@ fn sequence(a: &BenchArgs, threads: usize, cfg: FieldConfig) -> Result<()> {
     let max_range = 8.0;
     let mut rows: Vec<(f64, f64)> = Vec::new();
     for run in 0..a.runs.max(1) {
-        let mut mapper = Mapper::new(&MapperConfig {
-            resolution: a.resolution,
-            model: SensorModel::default(),
-            integrator: IntegratorConfig {
-                threads,
-                max_range,
-                pin_threads: a.pin_threads,
-                ..Default::default()
-            },
-            field: Some(cfg),
-        })?;
+        let mut mapper = mapper(a, threads, max_range, Some(cfg))?;
         for (i, f) in frames.iter().enumerate() {
             let frame = Frame {
                 pose: f.pose,
