@@ -18,8 +18,8 @@
 use crate::field::tile::{self, Region, Scratch};
 use crate::grid::Leaf;
 use crate::integrate::marks::{FrameMarks, Slot};
-use crate::integrate::ray::{self, CellKeys, ChunkOrder, ExtentSum, Ray, RayMaker, Sides};
-use crate::integrate::select::{self, CellBox, Chooser};
+use crate::integrate::ray::{CellKeys, ChunkOrder, ExtentSum, Ray, RayMaker, Sides};
+use crate::integrate::select::{CellBox, Chooser};
 use crate::integrate::update;
 use crate::integrate::walk::covered::Covered;
 use crate::integrate::walk::dense::{self, DenseBits, DenseBox};
@@ -32,6 +32,8 @@ use std::sync::OnceLock;
 
 #[cfg(target_arch = "x86_64")]
 use crate::integrate::walk::{avx2 as walk_avx2, avx512 as walk_avx512};
+#[cfg(target_arch = "x86_64")]
+use crate::integrate::{ray, select};
 
 /// A set of kernels. Every kernel computes exactly what `Scalar` does.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -189,9 +191,11 @@ pub(crate) struct DenseWalk<'a> {
     /// The box around the sensor whose voxels the rays skip.
     pub covered: Option<&'a Covered>,
     /// AVX-512: test each mark before writing it.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     pub test_first: bool,
     /// AVX2: walk the rays in groups of four instead of refilling each lane as its ray
     /// ends.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     pub grouped: bool,
 }
 
