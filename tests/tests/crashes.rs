@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use voxmap_client::{ClientError, FramePublisher, MapControl, SnapshotSubscriber};
 use voxmap_map::io::mapfile;
-use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_map::{Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig, OccupancyMap};
 use voxmap_map::{VoxelState, WorldPoint};
 use voxmap_tests::{
     connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, Service, TestRng,
@@ -218,10 +218,13 @@ fn kill_9_at_random_moments_during_replay_with_two_planners() {
 /// A map of many voxels (a fine room scanned from many poses): its file takes a while to
 /// write, so that kills land inside the save.
 fn large_map(resolution: f64, frames: usize) -> OccupancyMap {
-    let mut map = OccupancyMap::new(resolution, SensorModel::default()).unwrap();
-    let mut integ = Integrator::new(IntegratorConfig {
-        threads: 2,
-        max_range: 20.0,
+    let mut mapper = Mapper::new(&MapperConfig {
+        resolution,
+        integrator: IntegratorConfig {
+            threads: 2,
+            max_range: 20.0,
+            ..Default::default()
+        },
         ..Default::default()
     })
     .unwrap();
@@ -234,9 +237,13 @@ fn large_map(resolution: f64, frames: usize) -> OccupancyMap {
             pose: Isometry3::translation(sensor[0], sensor[1], sensor[2]),
             points: &pts,
         };
-        integ.integrate(&mut map, &frame).unwrap();
+        let stamp = FrameStamp {
+            sequence: i as u64 + 1,
+            stamp_ns: 0,
+        };
+        mapper.insert(&frame, stamp).unwrap();
     }
-    map
+    mapper.into_parts().0
 }
 
 /// Files in `dir`, sorted by name.

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use voxmap_client::SnapshotSubscriber;
 use voxmap_map::io::mapfile;
 use voxmap_map::snapshot::{Nearest, SnapshotView};
-use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel, WorldPoint};
+use voxmap_map::{Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig, WorldPoint};
 use voxmap_tests::{room_scan, run_ok, tmpdir, unique_prefix, Service};
 
 const REPO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
@@ -124,20 +124,30 @@ fn fixture(name: &str) -> Fixture {
     let dir = tmpdir(name);
     // 2.5 cm voxels: a snapshot over 512 KiB, where the batched queries take their staged
     // path (below, they answer one point at a time).
-    let mut map = OccupancyMap::new(0.025, SensorModel::default()).unwrap();
-    let mut integ = Integrator::new(IntegratorConfig {
-        threads: 2,
-        max_range: 8.0,
+    let mut mapper = Mapper::new(&MapperConfig {
+        resolution: 0.025,
+        integrator: IntegratorConfig {
+            threads: 2,
+            max_range: 8.0,
+            ..Default::default()
+        },
         ..Default::default()
     })
     .unwrap();
+    let mut seq = 0;
+    let mut insert = |pose, pts: &[[f32; 3]]| {
+        seq += 1;
+        let stamp = FrameStamp {
+            sequence: seq,
+            stamp_ns: seq,
+        };
+        mapper.insert(&Frame { pose, points: pts }, stamp).unwrap();
+    };
     let h = [3.0, 2.0, 1.5];
     for sensor in [[0.5, -0.3, 0.2], [-1.2, 0.8, -0.4]] {
         let pose = Isometry3::translation(sensor[0], sensor[1], sensor[2]);
         let pts = room_scan(h, sensor, 60_000);
-        integ
-            .integrate(&mut map, &Frame { pose, points: &pts })
-            .unwrap();
+        insert(pose, &pts);
     }
     let mut rng = Rng(0x2545F4914F6CDD1D);
     for _ in 0..3 {
@@ -148,10 +158,9 @@ fn fixture(name: &str) -> Fixture {
         let pts: Vec<[f32; 3]> = (0..5000)
             .map(|_| [0, 1, 2].map(|k| rng.within(-h[k], h[k]) as f32))
             .collect();
-        integ
-            .integrate(&mut map, &Frame { pose, points: &pts })
-            .unwrap();
+        insert(pose, &pts);
     }
+    let (map, _) = mapper.into_parts();
     let map_path = dir.join("map.vxm");
     mapfile::save_map(&map, &map_path).unwrap();
     let snap = mapfile::read_as_snapshot(&map_path).unwrap();

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 use voxmap_client::{FrameHeader, FramePublisher, MapControl, FRAME_VERSION, MAX_FRAME_POINTS};
 use voxmap_map::io::mapfile;
-use voxmap_map::{Frame, Integrator, IntegratorConfig, OccupancyMap, SensorModel};
+use voxmap_map::{Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig};
 use voxmap_tests::{
     connect_with_retry, room_scan, tmpdir, unique_prefix, voxels, voxmap_bin, Service, TestRng,
 };
@@ -210,27 +210,30 @@ fn a_hostile_publisher_changes_nothing_but_its_good_frames() {
     );
 
     // The map is the good frames' map, integrated here in the same order.
-    let mut map = OccupancyMap::new(0.1, SensorModel::default()).unwrap();
-    let mut integ = Integrator::new(IntegratorConfig {
-        threads: 2,
-        max_range: 10.0,
+    let mut mapper = Mapper::new(&MapperConfig {
+        integrator: IntegratorConfig {
+            threads: 2,
+            max_range: 10.0,
+            ..Default::default()
+        },
         ..Default::default()
     })
     .unwrap();
-    for (pose, pts) in &good {
-        integ
-            .integrate(
-                &mut map,
-                &Frame {
-                    pose: *pose,
-                    points: pts,
-                },
-            )
-            .unwrap();
+    for (i, (pose, pts)) in good.iter().enumerate() {
+        let frame = Frame {
+            pose: *pose,
+            points: pts,
+        };
+        let stamp = FrameStamp {
+            sequence: i as u64 + 1,
+            stamp_ns: 0,
+        };
+        mapper.insert(&frame, stamp).unwrap();
     }
+    let map = mapper.map();
     let served = mapfile::load_map(&saved).unwrap();
     assert!(!good.is_empty());
-    assert_eq!(voxels(&served), voxels(&map));
+    assert_eq!(voxels(&served), voxels(map));
     eprintln!(
         "hostile publisher: {sent} frames ({} good, {} bad by reason {sent_bad:?}), all received, every bad one rejected, the map equal to the good frames' map",
         good.len(),
