@@ -41,6 +41,7 @@ pub mod mapper;
 pub mod occupancy;
 mod pages;
 pub mod snapshot;
+pub mod store;
 
 #[cfg(test)]
 use voxmap_reader::test_rng;

@@ -8,6 +8,7 @@
 
 use crate::coord::VoxelCoord;
 use crate::field::{DistanceField, LeafBand};
+use crate::grid::Leaf;
 use crate::occupancy::OccupancyMap;
 use crate::snapshot::{OnPool, SnapshotError, SnapshotView};
 use serde::Serialize;
@@ -92,6 +93,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapFileError> {
 
 /// [`write_atomic`] of the concatenation of `parts`, without concatenating them in memory.
 pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<(), MapFileError> {
+    write_atomic_with(path, |f| parts.iter().try_for_each(|p| f.write_all(p)))
+}
+
+/// [`write_atomic`] of what `write` writes to the temporary file.
+pub fn write_atomic_with(
+    path: &Path,
+    write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+) -> Result<(), MapFileError> {
     let dir = path
         .parent()
         .filter(|d| !d.as_os_str().is_empty())
@@ -105,9 +114,7 @@ pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<(), MapFileErr
     let tmp = dir.join(format!("{stem}{}", std::process::id()));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
-        for part in parts {
-            f.write_all(part).map_err(io_err(&tmp))?;
-        }
+        write(&mut f).map_err(io_err(&tmp))?;
         f.sync_all().map_err(io_err(&tmp))?;
         std::fs::rename(&tmp, path).map_err(io_err(path))?;
         if let Ok(d) = std::fs::File::open(dir) {
@@ -203,23 +210,7 @@ pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) 
     body.par_chunks_mut(RECORD)
         .zip(&leaves)
         .with_min_len(256)
-        .for_each(|(rec, (o, leaf))| {
-            for (k, c) in o.to_array().into_iter().enumerate() {
-                rec[4 * k..4 * k + 4].copy_from_slice(&c.to_le_bytes());
-            }
-            for (w, &word) in leaf.active.words.iter().enumerate() {
-                rec[MASK_AT + 8 * w..][..8].copy_from_slice(&word.to_le_bytes());
-                // Unknown voxels are stored as 0, whatever the leaf holds there.
-                let vals = &leaf.values[64 * w..64 * w + 64];
-                for (b, (out, &v)) in rec[VALUES_AT + 64 * w..][..64]
-                    .iter_mut()
-                    .zip(vals)
-                    .enumerate()
-                {
-                    *out = (v as u8) & 0u8.wrapping_sub((word >> b & 1) as u8);
-                }
-            }
-        });
+        .for_each(|(rec, (o, leaf))| write_leaf_record(rec, *o, leaf));
     let header = FileHeader {
         resolution: map.resolution(),
         model: *map.model(),
@@ -263,6 +254,73 @@ pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) 
         body,
         field: records,
     }
+}
+
+/// One body record ([`RECORD`] bytes) of the leaf at `origin`: what the map file's body
+/// and the tile store's tile records hold.
+pub fn write_leaf_record(rec: &mut [u8], origin: VoxelCoord, leaf: &Leaf<i8>) {
+    for (k, c) in origin.to_array().into_iter().enumerate() {
+        rec[4 * k..4 * k + 4].copy_from_slice(&c.to_le_bytes());
+    }
+    for (w, &word) in leaf.active.words.iter().enumerate() {
+        rec[MASK_AT + 8 * w..][..8].copy_from_slice(&word.to_le_bytes());
+        // Unknown voxels are stored as 0, whatever the leaf holds there.
+        let vals = &leaf.values[64 * w..64 * w + 64];
+        for (b, (out, &v)) in rec[VALUES_AT + 64 * w..][..64]
+            .iter_mut()
+            .zip(vals)
+            .enumerate()
+        {
+            *out = (v as u8) & 0u8.wrapping_sub((word >> b & 1) as u8);
+        }
+    }
+}
+
+/// A plain map file (no distance field) written from its body in pieces, in order, each
+/// whole leaf records: the body goes to a temporary file as it comes (its length and
+/// checksum counted), then the head and the body to `path` atomically. For maps larger
+/// than memory (a tile store's). Returns the leaves written.
+pub fn write_map_streamed<E: From<MapFileError>>(
+    path: &Path,
+    map: &OccupancyMap,
+    mut pieces: impl FnMut(&mut dyn FnMut(&[u8]) -> Result<(), MapFileError>) -> Result<(), E>,
+) -> Result<u64, E> {
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map_or("map".into(), |n| n.to_string_lossy());
+    let body_path = dir.join(format!(".{name}.body.{}", std::process::id()));
+    let result = (|| {
+        let file = std::fs::File::create(&body_path).map_err(io_err(&body_path))?;
+        let mut body = std::io::BufWriter::new(file);
+        let (mut crc, mut len) = (crc32fast::Hasher::new(), 0u64);
+        pieces(&mut |piece: &[u8]| {
+            crc.update(piece);
+            len += piece.len() as u64;
+            body.write_all(piece).map_err(io_err(&body_path))
+        })?;
+        body.flush().map_err(io_err(&body_path))?;
+        drop(body);
+        let header = FileHeader {
+            resolution: map.resolution(),
+            model: *map.model(),
+            frac_bits: map.quantized().frac_bits,
+            leaf_count: len / RECORD as u64,
+            body_crc32: crc.finalize(),
+        };
+        let head = encode_head(&header, MAP_VERSION_PLAIN);
+        let mut body = std::fs::File::open(&body_path).map_err(io_err(&body_path))?;
+        write_atomic_with(path, |f| {
+            f.write_all(&head)?;
+            std::io::copy(&mut body, f).map(|_| ())
+        })?;
+        Ok(header.leaf_count)
+    })();
+    let _ = std::fs::remove_file(&body_path);
+    result
 }
 
 /// A file's head: magic, version, header length, header, header checksum.

@@ -18,7 +18,11 @@
 //! assert_eq!(mapper.last_frame().sequence, 1);
 //! ```
 
-use crate::coord::{ConfigError, WorldPoint};
+mod tiles;
+
+pub use tiles::{SaveReport, StoreConfig, TileReport, TileStats};
+
+use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
 use crate::field::{DistanceField, FieldConfig, FieldReport};
 use crate::integrate::{
     Frame, IntegrateError, IntegrateReport, Integrator, IntegratorConfig, SetupError,
@@ -28,6 +32,9 @@ use crate::io::mapfile::{self, EncodedMap};
 use crate::model::SensorModel;
 use crate::occupancy::OccupancyMap;
 use crate::snapshot::{Meta, Plan, Scope};
+use crate::store::{ExportError, StoreError, StoreParams, TileStore};
+use std::path::Path;
+use tiles::Tiles;
 
 /// What a [`Mapper`] is made with.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,11 +67,13 @@ pub struct FrameStamp {
 }
 
 /// What inserting one frame did.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct InsertReport {
     pub integrate: IntegrateReport,
     /// The distance field's update, when the mapper keeps one.
     pub field: Option<FieldReport>,
+    /// Tiles loaded and evicted, when the mapper keeps a tile store.
+    pub tiles: Option<TileReport>,
 }
 
 /// What became of the distance field when a map was put in ([`Mapper::replace_map`]).
@@ -120,6 +129,8 @@ pub struct Mapper {
     last: FrameStamp,
     /// The last integrated frame's sensor position.
     sensor: Option<WorldPoint>,
+    /// The tile store and the tiles' residency, when the mapper keeps a store.
+    tiles: Option<Tiles>,
 }
 
 impl Mapper {
@@ -146,6 +157,7 @@ impl Mapper {
             field,
             last: FrameStamp::default(),
             sensor: None,
+            tiles: None,
         };
         mapper.rebuild_field();
         Ok(mapper)
@@ -158,6 +170,11 @@ impl Mapper {
         frame: &Frame<'_>,
         stamp: FrameStamp,
     ) -> Result<InsertReport, IntegrateError> {
+        let mut tiles = self.tiles.as_ref().map(|_| TileReport::default());
+        if let (Some(t), Some(r)) = (&mut self.tiles, &mut tiles) {
+            let max_range = self.integrator.config().max_range;
+            t.load_for_frame(&mut self.map, frame, max_range, r);
+        }
         let integrate = self.integrator.integrate(&mut self.map, frame)?;
         self.last = stamp;
         let sensor = WorldPoint::from(frame.pose.translation.vector);
@@ -166,7 +183,116 @@ impl Mapper {
             let (integ, map) = (&self.integrator, &self.map);
             integ.install(|| f.update(map, integrate.bounds, Some(sensor)))
         });
-        Ok(InsertReport { integrate, field })
+        if let (Some(t), Some(r)) = (&mut self.tiles, &mut tiles) {
+            t.after_frame(&mut self.map, integrate.bounds, sensor, r);
+        }
+        Ok(InsertReport {
+            integrate,
+            field,
+            tiles,
+        })
+    }
+
+    /// Keep the map in a tile store from now on: a new one in `cfg.dir`, or (`resume`)
+    /// the one there, whose tiles then load as frames or [`Mapper::load_region`] reach
+    /// them, and whose last frame becomes the mapper's. With a memory budget, the map's
+    /// resident bytes are kept under it after each frame by evicting tiles to the store.
+    /// Refused, changing nothing, where the mapper keeps a distance field (not yet
+    /// supported with a store), its map is not empty, or the store's map parameters are
+    /// not the mapper's.
+    pub fn open_store(&mut self, cfg: &StoreConfig) -> Result<(), StoreError> {
+        let refuse = |problem: String| StoreError::Params {
+            path: cfg.dir.clone(),
+            problem,
+        };
+        if self.field.is_some() {
+            return Err(refuse(
+                "a tile store with a distance field is not supported yet".into(),
+            ));
+        }
+        if self.map.grid().leaf_count() > 0 || self.tiles.is_some() {
+            return Err(refuse(
+                "a tile store is opened for an empty mapper only".into(),
+            ));
+        }
+        let params = StoreParams {
+            resolution: self.map.resolution(),
+            model: *self.map.model(),
+            frac_bits: self.map.quantized().frac_bits,
+        };
+        let (store, stored, last) = if cfg.resume {
+            let (store, manifest) = TileStore::open(&cfg.dir)?;
+            if manifest.params != params {
+                return Err(refuse(format!(
+                    "the store's map has resolution {} m and sensor model {:?}; this mapper's {} m and {:?}",
+                    manifest.params.resolution, manifest.params.model, params.resolution, params.model
+                )));
+            }
+            let stored = (manifest.tiles.iter())
+                .map(|e| VoxelCoord::from_array(e.tile))
+                .collect();
+            let last = FrameStamp {
+                sequence: manifest.last_frame.0,
+                stamp_ns: manifest.last_frame.1,
+            };
+            (store, stored, last)
+        } else {
+            (
+                TileStore::create(&cfg.dir, params)?,
+                Default::default(),
+                self.last,
+            )
+        };
+        self.last = last;
+        self.tiles = Some(Tiles::new(store, cfg.memory_budget, stored));
+        Ok(())
+    }
+
+    /// Bring back the stored tiles overlapping the world box [lo, hi] (a snapshot's
+    /// window, a query's region); nothing without a store.
+    pub fn load_region(&mut self, lo: WorldPoint, hi: WorldPoint) -> Option<TileReport> {
+        let t = self.tiles.as_mut()?;
+        let mut r = TileReport::default();
+        t.load_box(&mut self.map, lo.coords.into(), hi.coords.into(), &mut r);
+        t.adopt_new_nodes(&self.map);
+        Some(r)
+    }
+
+    /// Save incrementally to the tile store: the tiles changed since their latest record,
+    /// then a new manifest. `None` without a store.
+    pub fn save_store(&mut self) -> Option<Result<SaveReport, StoreError>> {
+        let last = (self.last.sequence, self.last.stamp_ns);
+        let t = self.tiles.as_mut()?;
+        Some(self.integrator.install(|| t.save(&self.map, last)))
+    }
+
+    /// Write the map as a map file at `path` (atomically): with a tile store, every tile,
+    /// in memory or only in the store, streamed tile by tile; otherwise as
+    /// [`Mapper::encode_file`] (with the field). Returns the leaves written.
+    pub fn write_map_file(&mut self, path: &Path) -> Result<u64, ExportError> {
+        match &mut self.tiles {
+            Some(t) => t.export(&self.map, path),
+            None => {
+                let file = self.encode_file();
+                file.write(path)?;
+                Ok(self
+                    .map
+                    .grid()
+                    .leaves()
+                    .filter(|(_, l)| !l.active.is_empty())
+                    .count() as u64)
+            }
+        }
+    }
+
+    /// The tiles' counters, when the mapper keeps a store.
+    pub fn tile_stats(&self) -> Option<TileStats> {
+        Some(self.tiles.as_ref()?.stats(&self.map))
+    }
+
+    /// The tile store's directory, when the mapper keeps one.
+    pub fn store_dir(&self) -> Option<&Path> {
+        Some(self.tiles.as_ref()?.store.dir())
     }
 
     pub fn map(&self) -> &OccupancyMap {
@@ -223,9 +349,13 @@ impl Mapper {
         self.install(|| mapfile::encode_map_parts_with(&self.map, self.field.as_ref()))
     }
 
-    /// Forget everything the map holds (and the field).
+    /// Forget everything the map holds (and the field, and the tile store's tiles from its
+    /// next commit on).
     pub fn clear(&mut self) {
         self.map.clear();
+        if let Some(t) = &mut self.tiles {
+            t.clear();
+        }
         if let Some(f) = &mut self.field {
             f.clear();
         }

@@ -79,9 +79,31 @@ struct Internal {
 }
 
 /// Leaves in zeroed chunks of [`POOL_CHUNK`]; indices are stable for the pool's life.
+/// The slots of removed leaves ([`Grid::remove_node`]) are zeroed and handed out again
+/// before the pool grows, so that a map kept within a memory budget stays in the memory
+/// it has.
 pub struct LeafPool<V> {
     chunks: Vec<Zeroed<Leaf<V>>>,
     len: usize,
+    /// Zeroed slots below `len`, free for new leaves.
+    free: Vec<u32>,
+}
+
+/// The slots of a batch of new leaves ([`LeafPool::take_n`]): a run of fresh slots at the
+/// pool's end, or, where removed leaves left slots, those first.
+enum NewSlots {
+    Run(u32),
+    List(Vec<u32>),
+}
+
+impl NewSlots {
+    #[inline]
+    fn get(&self, k: u32) -> u32 {
+        match self {
+            Self::Run(first) => first + k,
+            Self::List(v) => v[k as usize],
+        }
+    }
 }
 
 impl<V: GridValue> LeafPool<V> {
@@ -89,11 +111,40 @@ impl<V: GridValue> LeafPool<V> {
         Self {
             chunks: Vec::new(),
             len: 0,
+            free: Vec::new(),
         }
     }
 
     fn push_zeroed(&mut self) -> u32 {
-        self.push_zeroed_n(1)
+        match self.free.pop() {
+            Some(i) => i,
+            None => self.push_zeroed_n(1),
+        }
+    }
+
+    /// `n` zeroed slots: free ones first (lowest first), then new ones at the end.
+    fn take_n(&mut self, n: usize) -> NewSlots {
+        if self.free.is_empty() {
+            return NewSlots::Run(self.push_zeroed_n(n));
+        }
+        let reused = n.min(self.free.len());
+        // `free` is kept in descending order: its lowest slots are at its end.
+        let mut list: Vec<u32> = self.free.split_off(self.free.len() - reused);
+        list.reverse();
+        if n > reused {
+            let first = self.push_zeroed_n(n - reused);
+            list.extend(first..first + (n - reused) as u32);
+        }
+        NewSlots::List(list)
+    }
+
+    /// Zero the slots and make them free for new leaves.
+    fn release(&mut self, slots: &[u32]) {
+        for &i in slots {
+            *self.get_mut(i) = bytemuck::Zeroable::zeroed();
+        }
+        self.free.extend_from_slice(slots);
+        self.free.sort_unstable_by(|a, b| b.cmp(a));
     }
 
     /// `n` more zeroed leaves; returns the first one's index. The chunks they need are
@@ -130,12 +181,18 @@ impl<V: GridValue> LeafPool<V> {
         &mut self.chunks[i / POOL_CHUNK][i % POOL_CHUNK]
     }
 
+    /// Slots in use or free: one past the highest leaf index.
     pub fn len(&self) -> usize {
         self.len
     }
 
     pub fn is_empty(&self) -> bool {
         self.len == 0
+    }
+
+    /// Leaves in use.
+    pub fn live(&self) -> usize {
+        self.len - self.free.len()
     }
 
     /// Apply `f` to each listed leaf, in parallel across chunks, and sum what it returns.
@@ -216,8 +273,67 @@ impl<V: GridValue> Grid<V> {
         }
     }
 
+    /// Leaves in the grid.
     pub fn leaf_count(&self) -> usize {
+        self.leaves.live()
+    }
+
+    /// Leaf slots, in use or free: one past the highest leaf index.
+    pub fn leaf_slots(&self) -> usize {
         self.leaves.len()
+    }
+
+    /// Internal nodes.
+    pub fn node_count(&self) -> usize {
+        self.internals.len()
+    }
+
+    /// Bytes the grid's leaves and nodes take where memory is budgeted: its leaves in use
+    /// and its nodes, not free slots (which new leaves take before the pool grows).
+    pub fn live_bytes(&self) -> usize {
+        self.leaves.live() * std::mem::size_of::<Leaf<V>>()
+            + self.internals.len() * std::mem::size_of::<Internal>()
+            + self.root.capacity() * (std::mem::size_of::<(VoxelCoord, u32)>() + 1)
+    }
+
+    /// The origins of the internal nodes, in no particular order.
+    pub fn node_origins(&self) -> impl Iterator<Item = VoxelCoord> + '_ {
+        self.internals.iter().map(|n| n.origin)
+    }
+
+    /// The leaves of the internal node at `node` (its origin), in block order; none where
+    /// the grid has no such node.
+    pub fn leaves_of_node(
+        &self,
+        node: VoxelCoord,
+    ) -> impl Iterator<Item = (VoxelCoord, &Leaf<V>)> + '_ {
+        let n = self
+            .root
+            .get(&internal_key(node))
+            .map(|&ii| &*self.internals[ii as usize])
+            .filter(|n| n.origin == node);
+        n.into_iter().flat_map(move |n| self.node_leaves(n))
+    }
+
+    /// Remove the internal node at `node` (its origin) with its leaves, whose slots new
+    /// leaves then take; returns the leaves removed (0 where there was no such node).
+    /// Other nodes' leaves keep their indices.
+    pub fn remove_node(&mut self, node: VoxelCoord) -> usize {
+        let key = internal_key(node);
+        let Some(&ii) = self.root.get(&key) else {
+            return 0;
+        };
+        if self.internals[ii as usize].origin != node {
+            return 0;
+        }
+        self.root.remove(&key);
+        let gone = self.internals.swap_remove(ii as usize);
+        if let Some(moved) = self.internals.get(ii as usize) {
+            self.root.insert(internal_key(moved.origin), ii);
+        }
+        let slots: Vec<u32> = Self::node_leaf_indices(&gone).map(|(_, i)| i).collect();
+        self.leaves.release(&slots);
+        slots.len()
     }
 
     /// Active voxels.
@@ -278,6 +394,15 @@ impl<V: GridValue> Grid<V> {
         origin: VoxelCoord,
         hint: Option<&mut (VoxelCoord, u32)>,
     ) -> u32 {
+        self.find_or_make_leaf(origin, hint).0
+    }
+
+    /// [`Self::leaf_index_or_insert`], and whether the leaf is new.
+    fn find_or_make_leaf(
+        &mut self,
+        origin: VoxelCoord,
+        hint: Option<&mut (VoxelCoord, u32)>,
+    ) -> (u32, bool) {
         let key = internal_key(origin);
         let ii = match hint {
             Some(h) if h.0 == key && (h.1 as usize) < self.internals.len() => h.1,
@@ -300,13 +425,13 @@ impl<V: GridValue> Grid<V> {
         };
         let ci = child_index(origin);
         if let Some(li) = self.internals[ii as usize].child(ci) {
-            return li;
+            return (li, false);
         }
         let li = self.leaves.push_zeroed();
         let node = &mut self.internals[ii as usize];
         node.child_mask[ci >> 6] |= 1 << (ci & 63);
         node.children[ci] = li;
-        li
+        (li, true)
     }
 
     /// [`Self::leaf_index_or_insert`] for many leaves at once, in parallel on the current
@@ -323,7 +448,6 @@ impl<V: GridValue> Grid<V> {
         groups: &[NodeLeaves<T>],
     ) -> Vec<(u32, (T, bool))> {
         use rayon::prelude::*;
-        let first_new = self.leaves.len() as u32;
         // Each group's node key, none for an empty group.
         let group_keys: Vec<Option<VoxelCoord>> = (groups.iter())
             .map(|g| {
@@ -341,8 +465,8 @@ impl<V: GridValue> Grid<V> {
             let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
             return (leaves.into_iter())
                 .map(|(o, tag)| {
-                    let l = self.leaf_index_or_insert(o, Some(&mut hint));
-                    (l, (tag, l >= first_new))
+                    let (l, new) = self.find_or_make_leaf(o, Some(&mut hint));
+                    (l, (tag, new))
                 })
                 .collect();
         }
@@ -379,14 +503,14 @@ impl<V: GridValue> Grid<V> {
                 })
             })
             .collect();
-        let mut next = first_new;
+        let mut next = 0;
         let starts: Vec<u32> = (new.iter())
             .map(|&n| {
                 next += n;
                 next - n
             })
             .collect();
-        self.leaves.push_zeroed_n((next - first_new) as usize);
+        let slots = self.leaves.take_n(next as usize);
         // The groups' nodes, each borrowed by its group alone (they are distinct).
         let mut mine: Vec<Option<&mut Internal>> = (0..groups.len()).map(|_| None).collect();
         let mut owner: Vec<(usize, usize)> = (nodes.iter().enumerate())
@@ -415,16 +539,17 @@ impl<V: GridValue> Grid<V> {
                 let mut next = start;
                 for (&(c, tag), at) in g.children.iter().zip(part.iter_mut()) {
                     let ci = usize::from(c);
-                    let l = match node.child(ci) {
-                        Some(l) => l,
+                    let (l, new) = match node.child(ci) {
+                        Some(l) => (l, false),
                         None => {
+                            let l = slots.get(next);
                             node.child_mask[ci >> 6] |= 1 << (ci & 63);
-                            node.children[ci] = next;
+                            node.children[ci] = l;
                             next += 1;
-                            next - 1
+                            (l, true)
                         }
                     };
-                    at.write((l, (tag, l >= first_new)));
+                    at.write((l, (tag, new)));
                 }
                 next - start
             })
@@ -614,288 +739,4 @@ impl<'a, V: GridValue> Accessor<'a, V> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn set_get_across_signs_and_nodes() {
-        let mut g = Grid::<i8>::new();
-        let pts = [
-            VoxelCoord::new(0, 0, 0),
-            VoxelCoord::new(-1, -1, -1),
-            VoxelCoord::new(7, 8, -8),
-            VoxelCoord::new(127, 128, -129),
-            VoxelCoord::new(i32::MAX >> 2, i32::MIN >> 2, 5),
-        ];
-        for (i, &p) in pts.iter().enumerate() {
-            g.set(p, i as i8 + 1);
-        }
-        for (i, &p) in pts.iter().enumerate() {
-            assert_eq!(g.get(p), Some(i as i8 + 1), "{p:?}");
-            assert_eq!(g.accessor().get(p), Some(i as i8 + 1));
-        }
-        assert_eq!(g.get(VoxelCoord::new(1, 0, 0)), None);
-        assert_eq!(g.leaf_count(), 5);
-        let mut got: Vec<_> = g.active_voxels().collect();
-        got.sort();
-        let mut want: Vec<_> = pts
-            .iter()
-            .enumerate()
-            .map(|(i, &p)| (p, i as i8 + 1))
-            .collect();
-        want.sort();
-        assert_eq!(got, want);
-    }
-
-    #[test]
-    fn leaf_box_masks_hold_the_voxels_inside() {
-        let mut rng = crate::test_rng::Rng(3);
-        for _ in 0..2000 {
-            let o = VoxelCoord::new(rng.i(-40, 40), rng.i(-40, 40), rng.i(-40, 40))
-                .shr(3)
-                .shl(3);
-            let mut c = || rng.i(-50, 50);
-            let (a, b) = (
-                VoxelCoord::new(c(), c(), c()),
-                VoxelCoord::new(c(), c(), c()),
-            );
-            let (lo, hi) = (
-                VoxelCoord::new(a.x.min(b.x), a.y.min(b.y), a.z.min(b.z)),
-                VoxelCoord::new(a.x.max(b.x), a.y.max(b.y), a.z.max(b.z)),
-            );
-            let m = leaf_box_mask(o, lo, hi);
-            for i in 0..LEAF_VOXELS {
-                let v = voxel_at(o, i);
-                let inside = (0..3).all(|k| {
-                    lo.to_array()[k] <= v.to_array()[k] && v.to_array()[k] <= hi.to_array()[k]
-                });
-                assert_eq!(m.get(i), inside, "{o:?} [{lo:?}, {hi:?}] {v:?}");
-            }
-        }
-        let (near, far) = (
-            VoxelCoord::new(i32::MIN, i32::MIN, i32::MIN),
-            VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
-        );
-        assert_eq!(
-            leaf_box_mask(VoxelCoord::new(-8, 0, 0), near, far),
-            crate::mask::Mask512::FULL
-        );
-    }
-
-    #[test]
-    fn leaves_inserted_by_groups_are_those_inserted_one_by_one() {
-        let mut rng = crate::test_rng::Rng(11);
-        let mut leaf = || {
-            VoxelCoord::new(rng.i(-300, 300), rng.i(-300, 300), rng.i(-40, 40))
-                .shr(LEAF_LOG2)
-                .shl(LEAF_LOG2)
-        };
-        let before: Vec<VoxelCoord> = (0..300).map(|_| leaf()).collect();
-        let mut origins: Vec<VoxelCoord> = (0..4000).map(|_| leaf()).collect();
-        let node = |o: &VoxelCoord| {
-            let k = internal_key(*o);
-            (k.z, k.y, k.x)
-        };
-        origins.sort_by_key(|o| (node(o), o.z, o.y, o.x));
-        origins.dedup();
-        // Grouped by internal node, in a scrambled order of nodes, one group empty.
-        let mut groups: Vec<Vec<(VoxelCoord, usize)>> = Vec::new();
-        for (i, &o) in origins.iter().enumerate() {
-            match groups.last_mut() {
-                Some(g) if internal_key(g[0].0) == internal_key(o) => g.push((o, i)),
-                _ => groups.push(vec![(o, i)]),
-            }
-        }
-        groups.reverse();
-        groups.swap(0, 3);
-        let as_nodes = |groups: &[Vec<(VoxelCoord, usize)>]| -> Vec<NodeLeaves<usize>> {
-            (groups.iter())
-                .map(|g| {
-                    let node = internal_key(g[0].0).shl(INTERNAL_TOTAL_LOG2);
-                    let children = g.iter().map(|&(o, i)| (child_index(o) as u16, i));
-                    let children: Vec<_> = children.collect();
-                    for (&(o, _), &(c, _)) in g.iter().zip(&children) {
-                        assert_eq!(child_origin(node, c), o);
-                    }
-                    NodeLeaves { node, children }
-                })
-                .collect()
-        };
-        let mut nodes = as_nodes(&groups);
-        let empty = NodeLeaves {
-            node: VoxelCoord::new(128, 0, -256),
-            children: Vec::new(),
-        };
-        nodes.insert(2, empty);
-        // Two groups in one node: the one-by-one path.
-        let mut shared = nodes.clone();
-        let half = shared[1].children.len() / 2;
-        let tail = shared[1].children.split_off(half);
-        shared.push(NodeLeaves {
-            node: shared[1].node,
-            children: tail,
-        });
-        // Refused on either path: a child out of range, a node origin that is not one.
-        for (base, bad) in [&nodes, &shared]
-            .into_iter()
-            .flat_map(|b| [(b, (0, 1 << 12)), (b, (1, 0))])
-        {
-            let mut refused = base.clone();
-            refused[1].node.x += bad.0;
-            refused[1].children[0].0 += bad.1;
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                Grid::<i8>::new().leaf_indices_or_insert(&refused)
-            }));
-            assert!(r.is_err(), "{bad:?} must be refused");
-        }
-        for (case, groups) in [nodes, shared].iter().enumerate() {
-            let (mut grouped, mut single) = (Grid::<i8>::new(), Grid::<i8>::new());
-            for g in [&mut grouped, &mut single] {
-                for &o in &before {
-                    g.leaf_index_or_insert(o, None);
-                }
-            }
-            let first_new = single.leaf_count() as u32;
-            let want: Vec<(u32, (usize, bool))> = (groups.iter())
-                .flat_map(|g| (g.children.iter()).map(|&(c, i)| (child_origin(g.node, c), i)))
-                .map(|(o, i)| {
-                    let l = single.leaf_index_or_insert(o, None);
-                    (l, (i, l >= first_new))
-                })
-                .collect();
-            let nodes_before = grouped.internals.len();
-            let got = grouped.leaf_indices_or_insert(groups);
-            assert!(grouped.internals.len() > nodes_before);
-            assert_eq!(got, want, "case {case}");
-            assert!(got.iter().any(|&(_, (_, new))| !new) && got.iter().any(|&(_, (_, new))| new));
-            assert_eq!(grouped.leaf_count(), single.leaf_count());
-            for &o in origins.iter().chain(&before) {
-                assert_eq!(
-                    grouped.leaf_index_or_insert(o, None),
-                    single.leaf_index_or_insert(o, None)
-                );
-            }
-            assert_eq!(
-                grouped.leaf_count(),
-                single.leaf_count(),
-                "nothing new after"
-            );
-        }
-    }
-
-    #[test]
-    fn leaf_geometry() {
-        let v = VoxelCoord::new(-1, 9, -9);
-        assert_eq!(leaf_origin(v), VoxelCoord::new(-8, 8, -16));
-        assert_eq!(voxel_at(leaf_origin(v), leaf_offset(v)), v);
-    }
-
-    #[test]
-    fn memory_grows_with_leaves_and_accessor_matches_get() {
-        let mut g = Grid::<i8>::new();
-        let m0 = g.memory_bytes();
-        let mut rng = 12345u64;
-        let mut next = || {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            (rng % 2000) as i32 - 1000
-        };
-        let mut pts = Vec::new();
-        for _ in 0..5000 {
-            let p = VoxelCoord::new(next(), next(), next());
-            g.set(p, 1);
-            pts.push(p);
-        }
-        assert!(g.memory_bytes() >= g.leaf_count() * std::mem::size_of::<Leaf<i8>>());
-        assert!(g.memory_bytes() > m0);
-        let mut acc = g.accessor();
-        for _ in 0..20000 {
-            let p = VoxelCoord::new(next(), next(), next());
-            assert_eq!(acc.get(p), g.get(p));
-        }
-        for p in pts {
-            assert_eq!(acc.get(p), Some(1));
-        }
-    }
-
-    /// Each leaf once; each block's leaves together and by in-block index; blocks of one
-    /// internal node by origin (z, y, x); the same as the parallel form.
-    #[test]
-    fn block_order_groups_blocks_and_sorts_within() {
-        let mut g = Grid::<i8>::new();
-        let mut rng = crate::test_rng::Rng(7);
-        let mut want = std::collections::BTreeSet::new();
-        for _ in 0..3000 {
-            let v = VoxelCoord::new(rng.i(-300, 300), rng.i(-300, 300), rng.i(-140, 140));
-            g.set(v, 1);
-            want.insert(leaf_origin(v));
-        }
-        let order: Vec<VoxelCoord> = g.leaves_in_block_order().map(|(o, _)| o).collect();
-        assert_eq!(order.len(), want.len());
-        assert_eq!(
-            order
-                .iter()
-                .copied()
-                .collect::<std::collections::BTreeSet<_>>(),
-            want
-        );
-        let key = |o: VoxelCoord| {
-            let b = block_origin(o);
-            (internal_key(o), (b.z, b.y, b.x), leaf_in_block(o))
-        };
-        let mut done = std::collections::HashSet::new();
-        for w in order.windows(2) {
-            let (a, b) = (key(w[0]), key(w[1]));
-            if a.0 == b.0 {
-                assert!(a < b, "{:?} before {:?}", w[0], w[1]);
-            }
-            if block_origin(w[0]) != block_origin(w[1]) {
-                assert!(done.insert(block_origin(w[0])), "block {:?} split", w[0]);
-            }
-        }
-        let par = g.leaf_indices_in_block_order();
-        assert_eq!(par.iter().map(|&(o, _)| o).collect::<Vec<_>>(), order);
-        for (o, i) in par {
-            assert_eq!(g.leaf_index(o), Some(i));
-        }
-        let v = VoxelCoord::new(-65, 70, 200);
-        assert_eq!(block_origin(v), VoxelCoord::new(-128, 64, 192));
-        assert_eq!(leaf_in_block(v), 7 + (1 << 6)); // (7, 0, 1)
-        assert_eq!(
-            leaf_of_block(block_origin(v), leaf_in_block(v)),
-            leaf_origin(v)
-        );
-    }
-
-    #[test]
-    fn par_update_touches_each_listed_leaf_once() {
-        let mut g = Grid::<i8>::new();
-        let idx: Vec<u32> = (0..1000)
-            .map(|i| g.leaf_index_or_insert(VoxelCoord::new(i * 8, 0, 0), None))
-            .collect();
-        let items: Vec<(u32, i8)> = idx
-            .iter()
-            .step_by(3)
-            .map(|&i| (i, (i % 100) as i8))
-            .collect();
-        let n = g.leaf_pool_mut().par_update(
-            &items,
-            |_| (),
-            |leaf, &v| {
-                leaf.values[0] += v;
-                leaf.active.set(0);
-                1
-            },
-        );
-        assert_eq!(n, items.len() as u64);
-        for (k, &li) in idx.iter().enumerate() {
-            let want = if k % 3 == 0 {
-                Some((li % 100) as i8)
-            } else {
-                None
-            };
-            assert_eq!(g.leaf(li).get(0), want);
-        }
-    }
-}
+mod tests;

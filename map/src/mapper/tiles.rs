@@ -1,0 +1,377 @@
+//! A mapper's tiles when it keeps a tile store: which tiles are in memory (when last
+//! observed, whether changed since their latest record) and which only in the store;
+//! loading the tiles a frame will touch before it is integrated, and after it, under a
+//! memory budget, evicting the least recently observed tiles, farthest from the sensor
+//! first. A tile is one internal node of the grid (128³ voxels).
+
+use crate::coord::{VoxelCoord, WorldPoint};
+use crate::grid::INTERNAL_TOTAL_LOG2;
+use crate::integrate::Frame;
+use crate::occupancy::OccupancyMap;
+use crate::store::export::write_tiles;
+use crate::store::record::{raw_tile, tile_of};
+use crate::store::{ExportError, StoreCounters, StoreError, TileStore};
+use hashbrown::{HashMap, HashSet};
+use std::time::{Duration, Instant};
+
+const TILE: i32 = 1 << INTERNAL_TOTAL_LOG2;
+
+/// How a mapper keeps its store: where, and the memory budget (bytes) its map stays under.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StoreConfig {
+    pub dir: std::path::PathBuf,
+    /// `None`: no budget; the store only makes saves incremental.
+    pub memory_budget: Option<u64>,
+    /// Continue the store in `dir` (its tiles loaded as frames reach them) rather than
+    /// start one there.
+    pub resume: bool,
+}
+
+/// What the tiles did around one frame.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TileReport {
+    /// Tiles brought back from the store before the frame (or a region).
+    pub loaded: u32,
+    pub evicted: u32,
+    /// Time spent loading, before the frame was integrated: what the frame waited for.
+    pub load_time: Duration,
+    /// Time spent evicting after the frame.
+    pub evict_time: Duration,
+    /// Tiles whose record was refused (each error names its tile); their regions read as
+    /// unknown.
+    pub refused: Vec<String>,
+    /// The store's writer failed: eviction stops, tiles stay in memory.
+    pub write_error: Option<String>,
+}
+
+/// What an incremental save wrote.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SaveReport {
+    pub tiles_written: u64,
+    pub generation: u64,
+    pub time: Duration,
+}
+
+/// A resident tile.
+#[derive(Clone, Copy, Debug)]
+struct Resident {
+    /// The mapper's frame count when a frame last touched it (or it was loaded).
+    last_observed: u64,
+    /// Changed since its latest record in the store (or it has none).
+    dirty: bool,
+}
+
+/// Counters since the store was opened, for `stats`, the log and `inspect`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TileStats {
+    pub memory_budget: Option<u64>,
+    /// The map's resident bytes: leaves and nodes in use, and records waiting for the
+    /// store's writer.
+    pub resident_bytes: u64,
+    pub tiles_resident: u64,
+    /// Tiles only in the store.
+    pub tiles_stored: u64,
+    pub evictions: u64,
+    pub loads: u64,
+    pub refused: u64,
+    /// The longest a frame waited for its tiles to load.
+    pub worst_wait: Duration,
+    pub store: StoreCounters,
+}
+
+pub(crate) struct Tiles {
+    pub(crate) store: TileStore,
+    budget: Option<u64>,
+    resident: HashMap<VoxelCoord, Resident>,
+    stored: HashSet<VoxelCoord>,
+    /// Frames integrated since the store was opened.
+    clock: u64,
+    stats: TileStats,
+}
+
+impl Tiles {
+    pub(crate) fn new(store: TileStore, budget: Option<u64>, stored: HashSet<VoxelCoord>) -> Self {
+        Self {
+            store,
+            budget,
+            resident: HashMap::new(),
+            stored,
+            clock: 0,
+            stats: TileStats {
+                memory_budget: budget,
+                ..Default::default()
+            },
+        }
+    }
+
+    /// Load the stored tiles the frame's rays can reach: those overlapping the box of the
+    /// sensor and its points (cut at `max_range`).
+    pub(crate) fn load_for_frame(
+        &mut self,
+        map: &mut OccupancyMap,
+        frame: &Frame<'_>,
+        max_range: f64,
+        report: &mut TileReport,
+    ) {
+        if self.stored.is_empty() {
+            return;
+        }
+        let o = frame.pose.translation.vector;
+        let (mut lo, mut hi) = ([o.x, o.y, o.z], [o.x, o.y, o.z]);
+        for p in frame.points {
+            let v = nalgebra::Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let d = v.norm();
+            if !d.is_finite() {
+                continue;
+            }
+            let v = if d > max_range {
+                v * (max_range / d)
+            } else {
+                v
+            };
+            let w = frame.pose.transform_point(&v.into());
+            for k in 0..3 {
+                lo[k] = lo[k].min(w[k]);
+                hi[k] = hi[k].max(w[k]);
+            }
+        }
+        self.load_box(map, lo, hi, report);
+    }
+
+    /// Load the stored tiles overlapping the world box [lo, hi].
+    pub(crate) fn load_box(
+        &mut self,
+        map: &mut OccupancyMap,
+        lo: [f64; 3],
+        hi: [f64; 3],
+        report: &mut TileReport,
+    ) {
+        if self.stored.is_empty() {
+            return;
+        }
+        let t = map.transform();
+        // One voxel of slack each way: a ray's last voxel may round across a face.
+        let corner = |p: [f64; 3], s: f64| {
+            let u = t.point_to_units(&WorldPoint::new(p[0], p[1], p[2]));
+            let c = |k: usize| {
+                (u[k] + s)
+                    .floor()
+                    .clamp(-(1 << 30) as f64, ((1 << 30) - 1) as f64) as i32
+            };
+            tile_of(VoxelCoord::new(c(0), c(1), c(2)))
+        };
+        let (a, b) = (corner(lo, -1.0), corner(hi, 1.0));
+        let start = Instant::now();
+        let mut want = Vec::new();
+        for z in (a.z..=b.z).step_by(TILE as usize) {
+            for y in (a.y..=b.y).step_by(TILE as usize) {
+                for x in (a.x..=b.x).step_by(TILE as usize) {
+                    let k = VoxelCoord::new(x, y, z);
+                    if self.stored.contains(&k) {
+                        want.push(k);
+                    }
+                }
+            }
+        }
+        for k in want {
+            self.load(map, k, report);
+        }
+        let waited = start.elapsed();
+        report.load_time += waited;
+        self.stats.worst_wait = self.stats.worst_wait.max(report.load_time);
+    }
+
+    fn load(&mut self, map: &mut OccupancyMap, tile: VoxelCoord, report: &mut TileReport) {
+        self.stored.remove(&tile);
+        match self.store.get(tile) {
+            Ok(leaves) => {
+                let grid = map.grid_mut();
+                let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
+                for (o, leaf) in leaves.into_iter().flatten() {
+                    let i = grid.leaf_index_or_insert(o, Some(&mut hint));
+                    *grid.leaf_mut(i) = leaf;
+                }
+                self.resident.insert(
+                    tile,
+                    Resident {
+                        last_observed: self.clock,
+                        dirty: false,
+                    },
+                );
+                report.loaded += 1;
+                self.stats.loads += 1;
+            }
+            Err(e) => {
+                // The region reads as unknown from now on; the record is dropped so that no
+                // later save names it.
+                self.store.forget(tile);
+                self.stats.refused += 1;
+                report.refused.push(e.to_string());
+            }
+        }
+    }
+
+    /// After a frame that touched the voxel box `bounds`: its tiles are observed now and
+    /// changed; then, over the budget, evict.
+    pub(crate) fn after_frame(
+        &mut self,
+        map: &mut OccupancyMap,
+        bounds: Option<(VoxelCoord, VoxelCoord)>,
+        sensor: WorldPoint,
+        report: &mut TileReport,
+    ) {
+        self.clock += 1;
+        if let Some((lo, hi)) = bounds {
+            let (a, b) = (tile_of(lo), tile_of(hi));
+            for z in (a.z..=b.z).step_by(TILE as usize) {
+                for y in (a.y..=b.y).step_by(TILE as usize) {
+                    for x in (a.x..=b.x).step_by(TILE as usize) {
+                        let k = VoxelCoord::new(x, y, z);
+                        if let Some(r) = self.resident.get_mut(&k) {
+                            *r = Resident {
+                                last_observed: self.clock,
+                                dirty: true,
+                            };
+                        }
+                    }
+                }
+            }
+        }
+        self.adopt_new_nodes(map);
+        self.evict_over_budget(map, sensor, report);
+    }
+
+    /// Nodes the grid has and the list lacks (made by the frame) become resident tiles,
+    /// observed now and changed.
+    pub(crate) fn adopt_new_nodes(&mut self, map: &OccupancyMap) {
+        if map.grid().node_count() == self.resident.len() {
+            return;
+        }
+        for k in map.grid().node_origins() {
+            self.resident.entry(k).or_insert(Resident {
+                last_observed: self.clock,
+                dirty: true,
+            });
+        }
+    }
+
+    pub(crate) fn resident_bytes(&self, map: &OccupancyMap) -> u64 {
+        (map.grid().live_bytes() + self.store.pending_bytes()) as u64
+    }
+
+    fn evict_over_budget(
+        &mut self,
+        map: &mut OccupancyMap,
+        sensor: WorldPoint,
+        report: &mut TileReport,
+    ) {
+        let Some(budget) = self.budget else { return };
+        if report.write_error.is_some() || self.resident_bytes(map) <= budget {
+            return;
+        }
+        let start = Instant::now();
+        // Down to three quarters of the budget, so that eviction comes in batches, not
+        // after every frame.
+        let low = budget / 4 * 3;
+        let s = map.transform().point_to_units(&sensor);
+        let far = |k: &VoxelCoord| {
+            let c = k.to_array().map(|v| f64::from(v) + f64::from(TILE) / 2.0);
+            (0..3).map(|i| (c[i] - s[i]).powi(2)).sum::<f64>()
+        };
+        let mut order: Vec<(u64, f64, VoxelCoord)> = (self.resident.iter())
+            .filter(|(_, r)| r.last_observed < self.clock)
+            .map(|(k, r)| (r.last_observed, far(k), *k))
+            .collect();
+        // Least recently observed first; among those, farthest first.
+        order.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
+        for (_, _, k) in order {
+            if self.resident_bytes(map) <= low {
+                break;
+            }
+            if let Err(e) = self.evict(map, k) {
+                report.write_error = Some(e.to_string());
+                break;
+            }
+            report.evicted += 1;
+        }
+        report.evict_time = start.elapsed();
+    }
+
+    /// Write the tile to the store if changed, then drop it from memory.
+    fn evict(&mut self, map: &mut OccupancyMap, tile: VoxelCoord) -> Result<(), StoreError> {
+        let r = self.resident[&tile];
+        if r.dirty || !self.store.has(tile) {
+            let (raw, _) = raw_tile(map.grid(), tile);
+            self.store.put(tile, r.last_observed, raw)?;
+        }
+        map.grid_mut().remove_node(tile);
+        self.resident.remove(&tile);
+        self.stored.insert(tile);
+        self.stats.evictions += 1;
+        Ok(())
+    }
+
+    /// Hand every changed resident tile to the store, then commit.
+    pub(crate) fn save(
+        &mut self,
+        map: &OccupancyMap,
+        last_frame: (u64, u64),
+    ) -> Result<SaveReport, StoreError> {
+        let start = Instant::now();
+        let mut written = 0;
+        let mut dirty: Vec<VoxelCoord> = (self.resident.iter())
+            .filter(|(_, r)| r.dirty)
+            .map(|(k, _)| *k)
+            .collect();
+        dirty.sort_unstable_by_key(|k| (k.z, k.y, k.x));
+        for k in dirty {
+            let (raw, _) = raw_tile(map.grid(), k);
+            self.store.put(k, self.resident[&k].last_observed, raw)?;
+            if let Some(r) = self.resident.get_mut(&k) {
+                r.dirty = false;
+            }
+            written += 1;
+        }
+        let generation = self.store.commit(last_frame)?;
+        Ok(SaveReport {
+            tiles_written: written,
+            generation,
+            time: start.elapsed(),
+        })
+    }
+
+    /// Forget every tile, in memory and in the store (the next commit holds none).
+    pub(crate) fn clear(&mut self) {
+        for k in self.store.tiles() {
+            self.store.forget(k);
+        }
+        self.resident.clear();
+        self.stored.clear();
+    }
+
+    /// The map file of every tile, in memory or only in the store, at `path`.
+    pub(crate) fn export(
+        &mut self,
+        map: &OccupancyMap,
+        path: &std::path::Path,
+    ) -> Result<u64, ExportError> {
+        let tiles: Vec<VoxelCoord> = self.resident.keys().chain(&self.stored).copied().collect();
+        let (resident, store) = (&self.resident, &mut self.store);
+        write_tiles(path, map, tiles, |k| {
+            if resident.contains_key(&k) {
+                return Ok(raw_tile(map.grid(), k).0);
+            }
+            Ok(store.get_raw(k)?.unwrap_or_default())
+        })
+    }
+
+    pub(crate) fn stats(&self, map: &OccupancyMap) -> TileStats {
+        TileStats {
+            resident_bytes: self.resident_bytes(map),
+            tiles_resident: self.resident.len() as u64,
+            tiles_stored: self.stored.len() as u64,
+            store: self.store.counters(),
+            ..self.stats
+        }
+    }
+}

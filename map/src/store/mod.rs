@@ -1,0 +1,735 @@
+//! The tile store: a map kept on disk tile by tile, for a map larger than its memory
+//! budget and for saves that write only what changed.
+//!
+//! A store is a directory:
+//! ```text
+//! manifest            the live record of every tile, the map's parameters, a generation;
+//!                     replaced atomically (temporary file, fsync, rename, fsync the directory)
+//! seg-00000001.vxs    append-only segment files of tile records (`record`), each a head
+//!                     "VXMSEG\0\0" | version u32 | 0 u32, then records back to back
+//! ```
+//! Records are appended by a writer thread of the store's own (write-behind), so that
+//! evicting a tile costs the frame only a copy of its leaves. [`TileStore::commit`] waits
+//! for the writer, syncs the segments and writes a new manifest; only a committed manifest
+//! is what a later [`TileStore::open`] sees, so a crash at any moment leaves the last
+//! committed map. A process opening a store starts a new segment and never appends to one
+//! a crash may have cut short; segments no committed manifest names are removed at the next
+//! commit.
+
+pub(crate) mod export;
+pub mod record;
+
+pub use export::{export, ExportError};
+
+use crate::coord::VoxelCoord;
+use crate::grid::Leaf;
+use crate::model::{QuantizedModel, SensorModel};
+use hashbrown::HashMap;
+use record::RecordError;
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::Write;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+
+pub const MANIFEST_MAGIC: [u8; 8] = *b"VXMSTORE";
+/// The manifest version this build reads and writes.
+pub const MANIFEST_VERSION: u32 = 1;
+pub const SEGMENT_MAGIC: [u8; 8] = *b"VXMSEG\0\0";
+pub const SEGMENT_VERSION: u32 = 1;
+const SEGMENT_HEAD: u64 = 16;
+/// A segment is closed and a new one started past this many bytes.
+const SEGMENT_MAX: u64 = 64 << 20;
+/// The longest manifest a store may have (a tile entry is about 40 bytes).
+const MAX_MANIFEST: usize = 1 << 30;
+const MANIFEST: &str = "manifest";
+
+/// The map parameters a store is kept with; a store refuses a map of others.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoreParams {
+    pub resolution: f64,
+    pub model: SensorModel,
+    pub frac_bits: u8,
+}
+
+/// A tile's leaves with their origins, in block order.
+pub type TileLeaves = Vec<(VoxelCoord, Leaf<i8>)>;
+
+/// Where a tile's live record is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileEntry {
+    pub tile: [i32; 3],
+    pub segment: u32,
+    pub offset: u64,
+    /// The whole record's bytes (head and payload).
+    pub len: u32,
+    pub leaves: u32,
+}
+
+/// What a manifest holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub params: StoreParams,
+    /// Commits so far.
+    pub generation: u64,
+    /// The last frame in the map when committed: sequence and time stamp (ns).
+    pub last_frame: (u64, u64),
+    /// The segment a new writer starts.
+    pub next_segment: u32,
+    pub tiles: Vec<TileEntry>,
+}
+
+/// Why a store operation failed; a failed operation changes no committed state.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum StoreError {
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The directory holds a store already (creating) or none (opening).
+    Exists(PathBuf),
+    Missing(PathBuf),
+    /// The manifest is damaged or of another version.
+    Manifest {
+        path: PathBuf,
+        problem: String,
+    },
+    /// The store was made for a map of other parameters.
+    Params {
+        path: PathBuf,
+        problem: String,
+    },
+    /// One tile's record was refused: the tile is named, its region reads as unknown.
+    Tile {
+        tile: [i32; 3],
+        segment: PathBuf,
+        offset: u64,
+        source: RecordError,
+    },
+    /// The writer thread failed to write a record (the tile stays in memory).
+    Write(String),
+}
+
+impl std::fmt::Display for StoreError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            Self::Exists(p) => write!(
+                f,
+                "{} holds a tile store already (continue it with --load, or name another directory)",
+                p.display()
+            ),
+            Self::Missing(p) => write!(f, "{} holds no tile store (no manifest)", p.display()),
+            Self::Manifest { path, problem } => {
+                write!(f, "{}: bad store manifest: {problem}", path.display())
+            }
+            Self::Params { path, problem } => write!(f, "{}: {problem}", path.display()),
+            Self::Tile {
+                tile,
+                segment,
+                offset,
+                source,
+            } => write!(
+                f,
+                "tile {tile:?} (record at {} byte {offset}) refused: {source}",
+                segment.display()
+            ),
+            Self::Write(e) => write!(f, "writing tile records: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for StoreError {}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
+    move |source| StoreError::Io {
+        path: path.into(),
+        source,
+    }
+}
+
+fn segment_name(id: u32) -> String {
+    format!("seg-{id:08}.vxs")
+}
+
+/// A tile's latest record: written (`Loc`), or waiting for the writer thread.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Loc {
+    segment: u32,
+    offset: u64,
+    len: u32,
+    leaves: u32,
+}
+
+/// What the store's owner and its writer thread share.
+#[derive(Default)]
+struct Shared {
+    index: HashMap<VoxelCoord, Loc>,
+    /// Raw records handed to the writer and not yet written, with the put's number: the
+    /// latest put of a tile wins.
+    pending: HashMap<VoxelCoord, (u64, Arc<Vec<u8>>)>,
+    pending_bytes: usize,
+    /// The writer's first failure, reported by the next put or commit.
+    error: Option<String>,
+    /// Bytes in the segments this process wrote (records).
+    written_bytes: u64,
+    records_written: u64,
+    /// Each segment's bytes of live records (those the index names).
+    live: HashMap<u32, u64>,
+    /// The segment being written and its length.
+    active: (u32, u64),
+}
+
+enum Job {
+    Put {
+        tile: VoxelCoord,
+        put: u64,
+        last_observed: u64,
+        raw: Arc<Vec<u8>>,
+    },
+    Flush(mpsc::Sender<Result<(), String>>),
+}
+
+/// Counters of a store, for `stats` and `inspect`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StoreCounters {
+    /// Tiles with a record (written or waiting).
+    pub tiles: u64,
+    pub pending_bytes: u64,
+    pub records_written: u64,
+    pub written_bytes: u64,
+    /// Bytes of the segment files on disk.
+    pub disk_bytes: u64,
+    pub generation: u64,
+}
+
+/// An open tile store.
+pub struct TileStore {
+    dir: PathBuf,
+    params: StoreParams,
+    q: QuantizedModel,
+    shared: Arc<Mutex<Shared>>,
+    jobs: Option<mpsc::Sender<Job>>,
+    writer: Option<std::thread::JoinHandle<()>>,
+    puts: u64,
+    generation: u64,
+    /// Open segment files for reading.
+    readers: HashMap<u32, File>,
+}
+
+impl TileStore {
+    /// A new, empty store in `dir` (made if missing); refused where `dir` holds one.
+    pub fn create(dir: &Path, params: StoreParams) -> Result<Self, StoreError> {
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        if dir.join(MANIFEST).exists() {
+            return Err(StoreError::Exists(dir.into()));
+        }
+        let manifest = Manifest {
+            params,
+            generation: 0,
+            last_frame: (0, 0),
+            next_segment: 1,
+            tiles: Vec::new(),
+        };
+        write_manifest(dir, &manifest)?;
+        Self::start(dir, manifest, true)
+    }
+
+    /// The store in `dir` as its last commit left it.
+    pub fn open(dir: &Path) -> Result<(Self, Manifest), StoreError> {
+        Self::open_with(dir, true)
+    }
+
+    /// [`Self::open`] for reading only: no writer, nothing in `dir` changes; puts and
+    /// commits are refused.
+    pub fn open_read_only(dir: &Path) -> Result<(Self, Manifest), StoreError> {
+        Self::open_with(dir, false)
+    }
+
+    fn open_with(dir: &Path, writable: bool) -> Result<(Self, Manifest), StoreError> {
+        let manifest = read_manifest(dir)?;
+        for e in &manifest.tiles {
+            if e.segment >= manifest.next_segment {
+                return Err(StoreError::Manifest {
+                    path: dir.join(MANIFEST),
+                    problem: format!("tile {:?} in a segment not yet started", e.tile),
+                });
+            }
+        }
+        let store = Self::start(dir, manifest.clone(), writable)?;
+        Ok((store, manifest))
+    }
+
+    fn start(dir: &Path, manifest: Manifest, writable: bool) -> Result<Self, StoreError> {
+        let q = manifest
+            .params
+            .model
+            .quantize()
+            .map_err(|e| StoreError::Params {
+                path: dir.into(),
+                problem: format!("sensor model: {e}"),
+            })?;
+        let mut shared = Shared::default();
+        for e in &manifest.tiles {
+            let loc = Loc {
+                segment: e.segment,
+                offset: e.offset,
+                len: e.len,
+                leaves: e.leaves,
+            };
+            let tile = VoxelCoord::from_array(e.tile);
+            if shared.index.insert(tile, loc).is_some() {
+                return Err(StoreError::Manifest {
+                    path: dir.join(MANIFEST),
+                    problem: format!("tile {:?} listed twice", e.tile),
+                });
+            }
+            *shared.live.entry(e.segment).or_default() += u64::from(e.len);
+        }
+        let mut store = Self {
+            dir: dir.into(),
+            params: manifest.params,
+            q,
+            shared: Arc::new(Mutex::new(Shared::default())),
+            jobs: None,
+            writer: None,
+            puts: 0,
+            generation: manifest.generation,
+            readers: HashMap::new(),
+        };
+        if !writable {
+            store.shared = Arc::new(Mutex::new(shared));
+            return Ok(store);
+        }
+        // A new segment for this process: never append after a tail a crash may have cut.
+        let id = manifest.next_segment;
+        let path = dir.join(segment_name(id));
+        let mut seg = File::create(&path).map_err(io_err(&path))?;
+        let mut head = SEGMENT_MAGIC.to_vec();
+        head.extend_from_slice(&SEGMENT_VERSION.to_le_bytes());
+        head.extend_from_slice(&0u32.to_le_bytes());
+        seg.write_all(&head).map_err(io_err(&path))?;
+        shared.active = (id, SEGMENT_HEAD);
+        let shared = Arc::new(Mutex::new(shared));
+        let (tx, rx) = mpsc::channel();
+        let writer = {
+            let (shared, at) = (shared.clone(), dir.to_path_buf());
+            std::thread::Builder::new()
+                .name("voxmap-store".into())
+                .spawn(move || write_records(&at, seg, &shared, &rx))
+                .map_err(io_err(dir))?
+        };
+        store.shared = shared;
+        store.jobs = Some(tx);
+        store.writer = Some(writer);
+        Ok(store)
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn params(&self) -> &StoreParams {
+        &self.params
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Shared> {
+        // The writer never panics holding the lock; a poisoned lock still holds valid maps.
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Every tile with a record (written or waiting for the writer).
+    pub fn tiles(&self) -> Vec<VoxelCoord> {
+        let s = self.lock();
+        let mut t: Vec<VoxelCoord> = s.index.keys().copied().collect();
+        t.extend(s.pending.keys().filter(|k| !s.index.contains_key(*k)));
+        t
+    }
+
+    /// Whether the tile has a record.
+    pub fn has(&self, tile: VoxelCoord) -> bool {
+        let s = self.lock();
+        s.index.contains_key(&tile) || s.pending.contains_key(&tile)
+    }
+
+    /// Raw bytes waiting for the writer thread (memory the store holds).
+    pub fn pending_bytes(&self) -> usize {
+        self.lock().pending_bytes
+    }
+
+    /// Hand a tile's raw leaf records ([`record::raw_tile`]) to the writer thread, as the
+    /// tile's latest record. Fails, keeping nothing, where the writer has failed before.
+    pub fn put(
+        &mut self,
+        tile: VoxelCoord,
+        last_observed: u64,
+        raw: Vec<u8>,
+    ) -> Result<(), StoreError> {
+        let raw = Arc::new(raw);
+        self.puts += 1;
+        {
+            let mut s = self.lock();
+            if let Some(e) = &s.error {
+                return Err(StoreError::Write(e.clone()));
+            }
+            s.pending_bytes += raw.len();
+            if let Some((_, old)) = s.pending.insert(tile, (self.puts, raw.clone())) {
+                s.pending_bytes -= old.len();
+            }
+        }
+        let job = Job::Put {
+            tile,
+            put: self.puts,
+            last_observed,
+            raw,
+        };
+        self.jobs
+            .as_ref()
+            .and_then(|j| j.send(job).ok())
+            .ok_or_else(|| {
+                StoreError::Write("the store is open read-only or its writer has ended".into())
+            })
+    }
+
+    /// The tile's leaves from its latest record, checked; `None` where it has none.
+    pub fn get(
+        &mut self,
+        tile: VoxelCoord,
+    ) -> Result<Option<TileLeaves>, StoreError> {
+        Ok(self.fetch(tile)?.map(|(_, leaves)| leaves))
+    }
+
+    /// The tile's raw leaf records from its latest record, checked as [`Self::get`] does.
+    pub fn get_raw(&mut self, tile: VoxelCoord) -> Result<Option<Vec<u8>>, StoreError> {
+        Ok(self.fetch(tile)?.map(|(raw, _)| raw))
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn fetch(
+        &mut self,
+        tile: VoxelCoord,
+    ) -> Result<Option<(Vec<u8>, TileLeaves)>, StoreError> {
+        let (pending, loc) = {
+            let s = self.lock();
+            (
+                s.pending.get(&tile).map(|p| p.1.clone()),
+                s.index.get(&tile).copied(),
+            )
+        };
+        if let Some(raw) = pending {
+            let leaves =
+                record::leaves_of(&raw, tile, &self.q).map_err(|source| StoreError::Tile {
+                    tile: tile.to_array(),
+                    segment: PathBuf::from("(memory)"),
+                    offset: 0,
+                    source,
+                })?;
+            return Ok(Some((raw.to_vec(), leaves)));
+        }
+        let Some(loc) = loc else { return Ok(None) };
+        let path = self.dir.join(segment_name(loc.segment));
+        let refused = |source| StoreError::Tile {
+            tile: tile.to_array(),
+            segment: path.clone(),
+            offset: loc.offset,
+            source,
+        };
+        let file = match self.readers.entry(loc.segment) {
+            hashbrown::hash_map::Entry::Occupied(f) => f.into_mut(),
+            hashbrown::hash_map::Entry::Vacant(v) => {
+                v.insert(File::open(&path).map_err(io_err(&path))?)
+            }
+        };
+        let mut bytes = vec![0u8; loc.len as usize];
+        let got = read_at_most(file, &mut bytes, loc.offset).map_err(io_err(&path))?;
+        bytes.truncate(got);
+        let (head, raw) = record::decode(&bytes).map_err(refused)?;
+        let leaves = record::leaves_of(&raw, tile, &self.q).map_err(refused)?;
+        if head.tile != tile || head.leaves != loc.leaves || bytes.len() != loc.len as usize {
+            return Err(refused(RecordError::Corrupt(format!(
+                "the record is of tile {:?} with {} leaves, the manifest says {:?} with {}",
+                head.tile.to_array(),
+                head.leaves,
+                tile.to_array(),
+                loc.leaves
+            ))));
+        }
+        Ok(Some((raw, leaves)))
+    }
+
+    /// Drop the tile's record from the store (a refused tile, a cleared map); the next
+    /// commit no longer names it.
+    pub fn forget(&mut self, tile: VoxelCoord) {
+        let mut s = self.lock();
+        if let Some(loc) = s.index.remove(&tile) {
+            *s.live.entry(loc.segment).or_default() -= u64::from(loc.len);
+        }
+        if let Some((_, raw)) = s.pending.remove(&tile) {
+            s.pending_bytes -= raw.len();
+        }
+    }
+
+    /// Wait until the writer thread has written every record handed to it.
+    pub fn flush(&mut self) -> Result<(), StoreError> {
+        let (tx, rx) = mpsc::channel();
+        self.jobs
+            .as_ref()
+            .and_then(|j| j.send(Job::Flush(tx)).ok())
+            .ok_or_else(|| StoreError::Write("the writer thread has ended".into()))?;
+        rx.recv()
+            .map_err(|_| StoreError::Write("the writer thread has ended".into()))?
+            .map_err(StoreError::Write)
+    }
+
+    /// Make everything handed to the store so far the store's committed state: wait for
+    /// the writer, sync the segments, replace the manifest. Then remove the segments no
+    /// live record is in. Returns the new generation.
+    pub fn commit(&mut self, last_frame: (u64, u64)) -> Result<u64, StoreError> {
+        self.flush()?;
+        let (tiles, next_segment, keep) = {
+            let s = self.lock();
+            let mut tiles: Vec<TileEntry> = (s.index.iter())
+                .map(|(t, l)| TileEntry {
+                    tile: t.to_array(),
+                    segment: l.segment,
+                    offset: l.offset,
+                    len: l.len,
+                    leaves: l.leaves,
+                })
+                .collect();
+            tiles.sort_unstable_by_key(|e| (e.tile[2], e.tile[1], e.tile[0]));
+            let mut keep: Vec<u32> = s
+                .live
+                .iter()
+                .filter(|(_, &b)| b > 0)
+                .map(|(&k, _)| k)
+                .collect();
+            keep.push(s.active.0);
+            (tiles, s.active.0 + 1, keep)
+        };
+        // The flush synced the active segment; closed ones were synced when closed.
+        let manifest = Manifest {
+            params: self.params,
+            generation: self.generation + 1,
+            last_frame,
+            next_segment,
+            tiles,
+        };
+        write_manifest(&self.dir, &manifest)?;
+        self.generation += 1;
+        self.remove_segments_but(&keep);
+        Ok(self.generation)
+    }
+
+    /// Remove segment files whose number is not in `keep` (best effort: a file left is
+    /// removed by a later commit).
+    fn remove_segments_but(&mut self, keep: &[u32]) {
+        let Ok(entries) = std::fs::read_dir(&self.dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name();
+            let Some(id) = name.to_str().and_then(|n| {
+                n.strip_prefix("seg-")?
+                    .strip_suffix(".vxs")?
+                    .parse::<u32>()
+                    .ok()
+            }) else {
+                continue;
+            };
+            if !keep.contains(&id) {
+                self.readers.remove(&id);
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+
+    pub fn counters(&self) -> StoreCounters {
+        let s = self.lock();
+        let tiles = s.index.len()
+            + s.pending
+                .keys()
+                .filter(|k| !s.index.contains_key(*k))
+                .count();
+        let disk_bytes = std::fs::read_dir(&self.dir)
+            .map(|d| {
+                d.flatten()
+                    .filter(|e| e.file_name().to_string_lossy().ends_with(".vxs"))
+                    .filter_map(|e| e.metadata().ok())
+                    .map(|m| m.len())
+                    .sum()
+            })
+            .unwrap_or(0);
+        StoreCounters {
+            tiles: tiles as u64,
+            pending_bytes: s.pending_bytes as u64,
+            records_written: s.records_written,
+            written_bytes: s.written_bytes,
+            disk_bytes,
+            generation: self.generation,
+        }
+    }
+}
+
+impl Drop for TileStore {
+    /// The writer finishes what it was handed (nothing is committed).
+    fn drop(&mut self) {
+        self.jobs = None;
+        if let Some(w) = self.writer.take() {
+            let _ = w.join();
+        }
+    }
+}
+
+/// Read into `buf` from `at` until it is full or the file ends; returns the bytes read.
+fn read_at_most(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<usize> {
+    let mut got = 0;
+    while got < buf.len() {
+        match f.read_at(&mut buf[got..], at + got as u64) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(got)
+}
+
+/// The writer thread: compress and append each record handed to it, then point the index
+/// at it; sync on a flush and when a segment is closed.
+fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc::Receiver<Job>) {
+    let lock = || shared.lock().unwrap_or_else(|e| e.into_inner());
+    for job in jobs {
+        match job {
+            Job::Flush(reply) => {
+                let r = match lock().error.clone() {
+                    Some(e) => Err(e),
+                    None => seg
+                        .sync_data()
+                        .map_err(|e| format!("syncing a segment: {e}")),
+                };
+                let _ = reply.send(r);
+            }
+            Job::Put {
+                tile,
+                put,
+                last_observed,
+                raw,
+            } => {
+                if lock().error.is_some() {
+                    continue;
+                }
+                let bytes = record::encode(tile, last_observed, &raw);
+                let (mut id, mut len) = lock().active;
+                let rotated = (|| -> std::io::Result<()> {
+                    if len + bytes.len() as u64 > SEGMENT_MAX && len > SEGMENT_HEAD {
+                        seg.sync_data()?;
+                        id += 1;
+                        let path = dir.join(segment_name(id));
+                        seg = File::create(&path)?;
+                        let mut head = SEGMENT_MAGIC.to_vec();
+                        head.extend_from_slice(&SEGMENT_VERSION.to_le_bytes());
+                        head.extend_from_slice(&0u32.to_le_bytes());
+                        seg.write_all(&head)?;
+                        len = SEGMENT_HEAD;
+                    }
+                    seg.write_all(&bytes)
+                })();
+                let mut s = lock();
+                if let Err(e) = rotated {
+                    // The tile stays pending, in memory: nothing is lost, the owner hears.
+                    s.error = Some(format!("segment {}: {e}", segment_name(id)));
+                    continue;
+                }
+                let loc = Loc {
+                    segment: id,
+                    offset: len,
+                    len: bytes.len() as u32,
+                    leaves: (raw.len() / crate::io::mapfile::RECORD) as u32,
+                };
+                s.active = (id, len + bytes.len() as u64);
+                s.records_written += 1;
+                s.written_bytes += bytes.len() as u64;
+                if let Some(old) = s.index.insert(tile, loc) {
+                    *s.live.entry(old.segment).or_default() -= u64::from(old.len);
+                }
+                *s.live.entry(id).or_default() += u64::from(loc.len);
+                if s.pending.get(&tile).is_some_and(|p| p.0 == put) {
+                    s.pending.remove(&tile);
+                    s.pending_bytes -= raw.len();
+                }
+            }
+        }
+    }
+    let _ = seg.sync_data();
+}
+
+fn write_manifest(dir: &Path, m: &Manifest) -> Result<(), StoreError> {
+    let body =
+        bincode::serde::encode_to_vec(m, bincode::config::standard()).expect("a manifest encodes");
+    let mut out = MANIFEST_MAGIC.to_vec();
+    out.extend_from_slice(&MANIFEST_VERSION.to_le_bytes());
+    out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    out.extend_from_slice(&body);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    let path = dir.join(MANIFEST);
+    crate::io::mapfile::write_atomic(&path, &out).map_err(|e| StoreError::Io {
+        path,
+        source: std::io::Error::other(e.to_string()),
+    })
+}
+
+/// The committed manifest of the store in `dir`, checked.
+pub fn read_manifest(dir: &Path) -> Result<Manifest, StoreError> {
+    let path = dir.join(MANIFEST);
+    if !path.exists() {
+        return Err(StoreError::Missing(dir.into()));
+    }
+    let bytes = std::fs::read(&path).map_err(io_err(&path))?;
+    let bad = |problem: String| StoreError::Manifest {
+        path: path.clone(),
+        problem,
+    };
+    if bytes.len() < 24 || bytes[..8] != MANIFEST_MAGIC {
+        return Err(bad("not a voxmap store manifest".into()));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if version != MANIFEST_VERSION {
+        return Err(bad(format!(
+            "version {version} (this build reads {MANIFEST_VERSION})"
+        )));
+    }
+    let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
+    if len > MAX_MANIFEST as u64 || bytes.len() as u64 != 24 + len {
+        return Err(bad(format!(
+            "{} bytes where the head says {}",
+            bytes.len(),
+            24 + len
+        )));
+    }
+    let (head, crc) = bytes.split_at(bytes.len() - 4);
+    if crc32fast::hash(head) != u32::from_le_bytes(crc.try_into().expect("4 bytes")) {
+        return Err(bad("checksum mismatch".into()));
+    }
+    let (m, used): (Manifest, usize) =
+        bincode::serde::decode_from_slice(&head[20..], bincode::config::standard())
+            .map_err(|e| bad(format!("does not decode: {e}")))?;
+    if used != head.len() - 20 {
+        return Err(bad("trailing bytes".into()));
+    }
+    m.params
+        .model
+        .quantize()
+        .map_err(|e| bad(format!("sensor model: {e}")))?;
+    if !(m.params.resolution.is_finite() && m.params.resolution > 0.0) {
+        return Err(bad(format!("resolution {}", m.params.resolution)));
+    }
+    Ok(m)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,218 @@
+//! One tile record: the leaves of one tile (an internal node, 128³ voxels) as the map
+//! file's leaf records, compressed with zstd and framed by a header with two CRC-32s.
+//!
+//! ```text
+//! head (48 bytes): magic "VXTR" | version u32 | tile origin [i32; 3] | last observed u64
+//!                  | leaf count u32 | raw length u32 | payload length u32
+//!                  | payload crc32 u32 | head crc32 u32 (over the 44 bytes before it)
+//! payload: zstd frame of leaf count × RECORD bytes (origin, known mask, values), in
+//!          block order
+//! ```
+//! All integers little-endian. A record is checked whole (both CRCs, the lengths, each
+//! leaf inside its tile, in block order, values in the clamping range) before any leaf of
+//! it goes into a map.
+
+use crate::coord::VoxelCoord;
+use crate::grid::{Grid, Leaf, INTERNAL_CHILDREN, INTERNAL_TOTAL_LOG2};
+use crate::io::mapfile::{write_leaf_record, RECORD};
+use crate::model::QuantizedModel;
+use voxmap_reader::mapfile::{fill_leaf, record_origin};
+
+pub const RECORD_MAGIC: [u8; 4] = *b"VXTR";
+/// The tile record version this build reads and writes.
+pub const RECORD_VERSION: u32 = 1;
+/// Bytes of a record's head.
+pub const HEAD: usize = 48;
+/// The zstd level tile records are written with (see docs/file-formats.md for the sizes).
+pub const ZSTD_LEVEL: i32 = 1;
+
+/// A tile's head, as read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RecordHead {
+    pub tile: VoxelCoord,
+    pub last_observed: u64,
+    pub leaves: u32,
+    pub raw_len: u32,
+    pub payload_len: u32,
+    pub payload_crc: u32,
+}
+
+/// Why a tile record was refused.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum RecordError {
+    /// Fewer bytes than the head says.
+    Truncated { have: usize, need: usize },
+    /// Not a tile record (magic) or its head's CRC fails.
+    BadHead(&'static str),
+    /// A version this build does not read.
+    Version(u32),
+    /// The payload's CRC fails, it does not decompress to its length, or its leaves are
+    /// not a tile's.
+    Corrupt(String),
+}
+
+impl std::fmt::Display for RecordError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Truncated { have, need } => {
+                write!(f, "truncated: {have} bytes where the record needs {need}")
+            }
+            Self::BadHead(why) => write!(f, "bad record head: {why}"),
+            Self::Version(v) => write!(
+                f,
+                "tile record version {v} (this build reads {RECORD_VERSION})"
+            ),
+            Self::Corrupt(why) => write!(f, "corrupt tile record: {why}"),
+        }
+    }
+}
+
+impl std::error::Error for RecordError {}
+
+/// The origin of the tile holding voxel `v`.
+pub fn tile_of(v: VoxelCoord) -> VoxelCoord {
+    v.shr(INTERNAL_TOTAL_LOG2).shl(INTERNAL_TOTAL_LOG2)
+}
+
+/// The tile at `tile` as uncompressed leaf records (its leaves with a known voxel, in
+/// block order) and their count.
+pub fn raw_tile(grid: &Grid<i8>, tile: VoxelCoord) -> (Vec<u8>, u32) {
+    let mut raw = Vec::new();
+    let mut n = 0;
+    for (o, leaf) in grid.leaves_of_node(tile) {
+        if leaf.active.is_empty() {
+            continue;
+        }
+        let at = raw.len();
+        raw.resize(at + RECORD, 0);
+        write_leaf_record(&mut raw[at..], o, leaf);
+        n += 1;
+    }
+    (raw, n)
+}
+
+/// A whole record (head and payload) of a tile's raw leaf records.
+pub fn encode(tile: VoxelCoord, last_observed: u64, raw: &[u8]) -> Vec<u8> {
+    let payload = zstd::bulk::compress(raw, ZSTD_LEVEL).expect("zstd compresses into a Vec");
+    let mut out = Vec::with_capacity(HEAD + payload.len());
+    out.extend_from_slice(&RECORD_MAGIC);
+    out.extend_from_slice(&RECORD_VERSION.to_le_bytes());
+    for c in tile.to_array() {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    out.extend_from_slice(&last_observed.to_le_bytes());
+    out.extend_from_slice(&((raw.len() / RECORD) as u32).to_le_bytes());
+    out.extend_from_slice(&(raw.len() as u32).to_le_bytes());
+    out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+    let head_crc = crc32fast::hash(&out[..HEAD - 4]);
+    out.extend_from_slice(&head_crc.to_le_bytes());
+    out.extend_from_slice(&payload);
+    out
+}
+
+/// The head of a record, checked (magic, version, CRC, lengths within a tile's).
+pub fn read_head(bytes: &[u8]) -> Result<RecordHead, RecordError> {
+    if bytes.len() < HEAD {
+        return Err(RecordError::Truncated {
+            have: bytes.len(),
+            need: HEAD,
+        });
+    }
+    let u32_at = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
+    if bytes[..4] != RECORD_MAGIC {
+        return Err(RecordError::BadHead("not a tile record"));
+    }
+    if crc32fast::hash(&bytes[..HEAD - 4]) != u32_at(HEAD - 4) {
+        return Err(RecordError::BadHead("head checksum mismatch"));
+    }
+    let version = u32_at(4);
+    if version != RECORD_VERSION {
+        return Err(RecordError::Version(version));
+    }
+    let c = |k: usize| u32_at(8 + 4 * k) as i32;
+    let head = RecordHead {
+        tile: VoxelCoord::new(c(0), c(1), c(2)),
+        last_observed: u64::from_le_bytes(bytes[20..28].try_into().expect("8 bytes")),
+        leaves: u32_at(28),
+        raw_len: u32_at(32),
+        payload_len: u32_at(36),
+        payload_crc: u32_at(40),
+    };
+    if tile_of(head.tile) != head.tile
+        || head
+            .tile
+            .to_array()
+            .iter()
+            .any(|v| v.unsigned_abs() >= 1 << 30)
+    {
+        return Err(RecordError::Corrupt("tile origin not a tile's".into()));
+    }
+    if head.leaves as usize > INTERNAL_CHILDREN
+        || head.raw_len as usize != head.leaves as usize * RECORD
+    {
+        return Err(RecordError::Corrupt(format!(
+            "{} leaves in {} bytes",
+            head.leaves, head.raw_len
+        )));
+    }
+    // zstd never grows incompressible data by more than a small bound.
+    if head.payload_len as usize > zstd::zstd_safe::compress_bound(head.raw_len as usize) {
+        return Err(RecordError::Corrupt(
+            "payload longer than its data could make".into(),
+        ));
+    }
+    Ok(head)
+}
+
+/// The record's raw leaf records, decompressed and checked against the head (CRC, length);
+/// [`leaves_of`] checks the leaves. `bytes` is the whole record.
+pub fn decode(bytes: &[u8]) -> Result<(RecordHead, Vec<u8>), RecordError> {
+    let head = read_head(bytes)?;
+    let need = HEAD + head.payload_len as usize;
+    if bytes.len() < need {
+        return Err(RecordError::Truncated {
+            have: bytes.len(),
+            need,
+        });
+    }
+    let payload = &bytes[HEAD..need];
+    if crc32fast::hash(payload) != head.payload_crc {
+        return Err(RecordError::Corrupt("payload checksum mismatch".into()));
+    }
+    let raw = zstd::bulk::decompress(payload, head.raw_len as usize)
+        .map_err(|e| RecordError::Corrupt(format!("payload does not decompress: {e}")))?;
+    if raw.len() != head.raw_len as usize {
+        return Err(RecordError::Corrupt("payload decompresses short".into()));
+    }
+    Ok((head, raw))
+}
+
+/// Raw leaf records of the tile at `tile` as leaves, checked: inside the tile, in strictly
+/// increasing block order, values within `q`'s clamping range.
+pub fn leaves_of(
+    raw: &[u8],
+    tile: VoxelCoord,
+    q: &QuantizedModel,
+) -> Result<Vec<(VoxelCoord, Leaf<i8>)>, RecordError> {
+    let bad = |s: String| RecordError::Corrupt(s);
+    let mut out: Vec<(VoxelCoord, Leaf<i8>)> = Vec::with_capacity(raw.len() / RECORD);
+    let mut last: Option<[i32; 9]> = None;
+    for rec in raw.chunks_exact(RECORD) {
+        let o = record_origin(rec).map_err(|e| bad(e.to_string()))?;
+        if tile_of(o) != tile {
+            return Err(bad(format!("leaf {:?} outside the tile", o.to_array())));
+        }
+        let order = voxmap_reader::mapfile::block_order(o);
+        if last.is_some_and(|l| l >= order) {
+            return Err(bad("leaves out of block order or stored twice".into()));
+        }
+        last = Some(order);
+        let mut leaf: Leaf<i8> = bytemuck::Zeroable::zeroed();
+        if !fill_leaf(rec, q, &mut leaf) {
+            return Err(bad("log-odds value outside the clamping range".into()));
+        }
+        out.push((o, leaf));
+    }
+    Ok(out)
+}
