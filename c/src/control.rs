@@ -38,6 +38,21 @@ pub struct voxmap_stats {
     pub intake_us_p99: f64,
     /// The integrator's kernel (`scalar`, `avx2`, `avx512`), NUL-terminated.
     pub kernel: [c_char; 17],
+    /// The memory budget (bytes; 0 = unlimited).
+    pub memory_budget_bytes: u64,
+    /// The map's resident bytes (with a tile store: leaves, nodes, records waiting to be written).
+    pub resident_bytes: u64,
+    /// Tiles (128^3 voxels) in memory, with a tile store.
+    pub tiles_resident: u64,
+    /// Tiles only in the tile store.
+    pub tiles_stored: u64,
+    /// Tiles evicted to the store and loaded back from it since the start.
+    pub tile_evictions: u64,
+    pub tile_loads: u64,
+    /// Tiles whose store record was refused (damaged); their regions read as unknown.
+    pub tiles_refused: u64,
+    /// The longest a frame waited for its tiles to load, ms.
+    pub tile_wait_ms_max: f64,
 }
 
 /// Connect to the control requests of map `map` under `prefix`. Requests wait up to 30 s
@@ -111,6 +126,14 @@ pub unsafe extern "C" fn voxmap_control_stats(
             intake_us_p50: s.intake_us_p50,
             intake_us_p99: s.intake_us_p99,
             kernel,
+            memory_budget_bytes: s.memory_budget_bytes,
+            resident_bytes: s.resident_bytes,
+            tiles_resident: s.tiles_resident,
+            tiles_stored: s.tiles_stored,
+            tile_evictions: s.tile_evictions,
+            tile_loads: s.tile_loads,
+            tiles_refused: s.tiles_refused,
+            tile_wait_ms_max: s.tile_wait_ms_max,
         };
         Ok(0)
     })

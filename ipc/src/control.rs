@@ -199,7 +199,7 @@ impl ControlRequest {
 
 /// Service counters, as reported by a `Stats` request.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::StatsWire::v3")]
+#[type_name("voxmap::StatsWire::v4")]
 #[repr(C)]
 pub struct StatsWire {
     pub frames_received: u64,
@@ -222,6 +222,21 @@ pub struct StatsWire {
     pub intake_us_p99: f64,
     /// The integrator's vector kernels (`scalar`, `avx2`, `avx512`), ASCII, zero-padded.
     pub kernel: [u8; 16],
+    /// The memory budget (bytes; 0 = unlimited).
+    pub memory_budget_bytes: u64,
+    /// The map's resident bytes (with a tile store: leaves, nodes, records waiting to be written).
+    pub resident_bytes: u64,
+    /// Tiles (128^3 voxels) in memory, with a tile store.
+    pub tiles_resident: u64,
+    /// Tiles only in the tile store.
+    pub tiles_stored: u64,
+    /// Tiles evicted to the store and loaded back from it since the start.
+    pub tile_evictions: u64,
+    pub tile_loads: u64,
+    /// Tiles whose store record was refused (damaged); their regions read as unknown.
+    pub tiles_refused: u64,
+    /// The longest a frame waited for its tiles to load, ms.
+    pub tile_wait_ms_max: f64,
 }
 
 impl StatsWire {
@@ -245,7 +260,7 @@ impl StatsWire {
 
 /// A control response: `ok` 1 or 0, a message, and the current stats.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("voxmap::ControlResponse::v3")]
+#[type_name("voxmap::ControlResponse::v4")]
 #[repr(C)]
 pub struct ControlResponse {
     pub ok: u32,

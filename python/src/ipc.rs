@@ -150,6 +150,14 @@ impl Control {
         d.set_item("intake_us_p50", s.intake_us_p50)?;
         d.set_item("intake_us_p99", s.intake_us_p99)?;
         d.set_item("kernel", s.kernel())?;
+        d.set_item("memory_budget_bytes", s.memory_budget_bytes)?;
+        d.set_item("resident_bytes", s.resident_bytes)?;
+        d.set_item("tiles_resident", s.tiles_resident)?;
+        d.set_item("tiles_stored", s.tiles_stored)?;
+        d.set_item("tile_evictions", s.tile_evictions)?;
+        d.set_item("tile_loads", s.tile_loads)?;
+        d.set_item("tiles_refused", s.tiles_refused)?;
+        d.set_item("tile_wait_ms_max", s.tile_wait_ms_max)?;
         Ok(d)
     }
 

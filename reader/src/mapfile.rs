@@ -282,7 +282,7 @@ pub fn field_records(fh: &FieldFileHeader, mut rec: &[u8]) -> Result<Vec<BandRec
 /// origin (z, y, x), within a node its blocks (64³) by origin, within a block its leaves by
 /// origin: the order of the map crate's `Grid::leaves_in_block_order`, which snapshots
 /// index by.
-fn block_order(o: VoxelCoord) -> [i32; 9] {
+pub fn block_order(o: VoxelCoord) -> [i32; 9] {
     let [x, y, z] = o.to_array();
     [
         z >> 7,

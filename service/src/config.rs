@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use voxmap_ipc::ports::qos::FRAME_SUBSCRIBER_BUFFER;
 use voxmap_map::field::{FieldConfig, UnknownPolicy};
+use voxmap_map::mapper::StoreConfig;
 use voxmap_map::{
     Integrator, IntegratorConfig, Mapper, MapperConfig, OccupancyMap, RayMode, SensorModel,
 };
@@ -73,6 +74,11 @@ pub struct Config {
     pub ros2: voxmap_ros2::Ros2Config,
     /// The distance field.
     pub esdf: EsdfConfig,
+    /// Keep the map in a tile store in this directory ("" = none).
+    pub store: String,
+    /// Keep the map's resident bytes under this ("256M", "2G", bytes, or "unlimited");
+    /// needs a store.
+    pub memory_budget: String,
 }
 
 /// `[esdf]`: whether the service keeps a distance field, and its [`FieldConfig`].
@@ -141,6 +147,14 @@ pub struct MappingArgs {
     /// sensor.
     #[arg(long, value_delimiter = ',', num_args = 3, value_name = "X,Y,Z")]
     pub esdf_window: Option<Vec<f64>>,
+    /// Keep the map in a tile store in this directory, continuing the one there if any:
+    /// saves write only the tiles changed, and with --memory-budget far tiles live there.
+    #[arg(long, value_name = "DIR")]
+    pub store: Option<PathBuf>,
+    /// Keep the map's resident bytes under this (suffixes K, M, G: binary multiples; or
+    /// "unlimited"), evicting the least recently observed tiles to --store.
+    #[arg(long, value_name = "BYTES")]
+    pub memory_budget: Option<String>,
 }
 
 impl MappingArgs {
@@ -164,12 +178,51 @@ impl MappingArgs {
              occupancy_threshold => sensor_model.occupancy_threshold,
              esdf_max_distance => esdf.max_distance, esdf_unknown => esdf.unknown);
         c.esdf.enabled |= self.esdf;
+        if let Some(d) = &self.store {
+            c.store = d.to_string_lossy().into_owned();
+        }
+        if let Some(b) = &self.memory_budget {
+            c.memory_budget = b.clone();
+        }
         if let Some(w) = &self.esdf_window {
             c.esdf.window = Some([w[0], w[1], w[2]]);
         }
         c.check()?;
         Ok(c)
     }
+}
+
+/// Bytes from "256M", "2G", "512K" (binary multiples), a plain number, or "unlimited"
+/// (`None`).
+pub fn parse_bytes(s: &str) -> Result<Option<u64>> {
+    let t = s.trim();
+    if t.eq_ignore_ascii_case("unlimited") || t.is_empty() {
+        return Ok(None);
+    }
+    let (num, mult) = match t.char_indices().last() {
+        Some((i, c)) if c.is_ascii_alphabetic() => {
+            let m: u64 = match c.to_ascii_uppercase() {
+                'K' => 1 << 10,
+                'M' => 1 << 20,
+                'G' => 1 << 30,
+                'T' => 1 << 40,
+                _ => bail!("memory_budget '{s}': the suffix must be K, M, G or T"),
+            };
+            (&t[..i], m)
+        }
+        _ => (t, 1),
+    };
+    let n: u64 = num
+        .trim()
+        .parse()
+        .with_context(|| format!("memory_budget '{s}': not a whole number of bytes"))?;
+    let bytes = n
+        .checked_mul(mult)
+        .with_context(|| format!("memory_budget '{s}' is too large"))?;
+    if bytes < 1 << 20 {
+        bail!("memory_budget '{s}' is below 1M: a map needs more");
+    }
+    Ok(Some(bytes))
 }
 
 /// Apply a (possibly partial) TOML document over `base`: keys it names replace base's.
@@ -229,6 +282,13 @@ impl Config {
                 voxmap_map::integrate::MAX_RANGE_VOXELS
             );
         }
+        let budget = self.memory_budget()?;
+        if budget.is_some() && self.store.is_empty() {
+            bail!("memory_budget needs a store (--store DIR) to keep what it evicts");
+        }
+        if !self.store.is_empty() && self.esdf.enabled {
+            bail!("a tile store (--store) with the distance field (--esdf) is not supported yet");
+        }
         // The map, integrator and field check the rest with their own messages.
         self.new_map()?;
         self.integrator()?;
@@ -272,9 +332,33 @@ impl Config {
         }
     }
 
-    /// A mapper with an empty map.
+    /// `memory_budget` in bytes (`None`: unlimited).
+    pub fn memory_budget(&self) -> Result<Option<u64>> {
+        parse_bytes(&self.memory_budget)
+    }
+
+    /// The tile store these settings ask for, if any.
+    pub fn store_config(&self) -> Result<Option<StoreConfig>> {
+        if self.store.is_empty() {
+            return Ok(None);
+        }
+        let dir = PathBuf::from(&self.store);
+        Ok(Some(StoreConfig {
+            resume: voxmap_map::store::exists(&dir),
+            dir,
+            memory_budget: self.memory_budget()?,
+        }))
+    }
+
+    /// A mapper with an empty map, or with the map of its tile store (loaded as frames
+    /// reach it).
     pub fn mapper(&self) -> Result<Mapper> {
-        Ok(Mapper::new(&self.mapper_config())?)
+        let mut m = Mapper::new(&self.mapper_config())?;
+        if let Some(sc) = self.store_config()? {
+            m.open_store(&sc)
+                .with_context(|| format!("tile store {}", sc.dir.display()))?;
+        }
+        Ok(m)
     }
 }
 
@@ -319,6 +403,10 @@ mod tests {
             ("[esdf]\nmax_distance = 9.0\n", "esdf max_distance"),
             ("[esdf]\nunknown = \"maybe\"\n", "unknown variant `maybe`"),
             ("[esdf]\nwindow = [1.0, -1.0, 1.0]\n", "esdf window"),
+            ("memory_budget = \"256X\"\n", "suffix"),
+            ("memory_budget = \"12\"\n", "below 1M"),
+            ("memory_budget = \"99999999999T\"\n", "too large"),
+            ("memory_budget = \"256M\"\n", "needs a store"),
         ] {
             std::fs::write(&f, bad).unwrap();
             let e = format!(

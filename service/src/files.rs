@@ -172,11 +172,18 @@ fn push_bounds(d: &mut Vec<(&'static str, String)>, leaves: &[LeafOccupancy], re
 
 #[derive(Args, Debug)]
 pub struct InspectArgs {
-    /// Map file, snapshot file, OctoMap .bt file, or ROS 2 bag (directory, .mcap, .db3).
+    /// Map file, snapshot file, OctoMap .bt file, ROS 2 bag (directory, .mcap, .db3), or
+    /// tile store (directory).
     pub file: PathBuf,
+    /// For a tile store: read and check every tile record too.
+    #[arg(long)]
+    pub check: bool,
 }
 
 pub fn inspect(a: InspectArgs) -> Result<()> {
+    if voxmap_map::store::exists(&a.file) {
+        return inspect_store(&a.file, a.check);
+    }
     if voxmap_ros::bag::is_bag(&a.file) {
         return crate::bags::inspect(&a.file);
     }
@@ -190,8 +197,12 @@ pub fn inspect(a: InspectArgs) -> Result<()> {
 
 #[derive(Args, Debug)]
 pub struct ExportArgs {
-    /// Map file or snapshot file (or a .bt, to convert to PLY).
+    /// Map file or snapshot file (or a .bt, to convert to PLY), or a tile store
+    /// (directory).
     pub input: PathBuf,
+    /// From a tile store: write its map as a map file (.vxm) here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Write OctoMap's binary tree format here.
     #[arg(long)]
     pub bt: Option<PathBuf>,
@@ -210,7 +221,25 @@ pub struct ExportArgs {
     pub esdf_unknown: voxmap_map::field::UnknownPolicy,
 }
 
-pub fn export(a: ExportArgs) -> Result<()> {
+pub fn export(mut a: ExportArgs) -> Result<()> {
+    if voxmap_map::store::exists(&a.input) {
+        let out = a
+            .out
+            .clone()
+            .context("a tile store exports to a map file first: pass --out MAP.vxm")?;
+        let leaves = voxmap_map::store::export(&a.input, &out)?;
+        println!(
+            "wrote {}: map file of the tile store {} ({leaves} leaves)",
+            out.display(),
+            a.input.display()
+        );
+        if a.bt.is_none() && a.ply.is_none() && a.snapshot.is_none() {
+            return Ok(());
+        }
+        a.input = out;
+    } else if a.out.is_some() {
+        bail!("--out is for a tile store; {} holds none", a.input.display());
+    }
     if a.bt.is_none() && a.ply.is_none() && a.snapshot.is_none() {
         bail!("nothing to do: pass --bt OUT.bt, --ply OUT.ply and/or --snapshot OUT");
     }
@@ -295,4 +324,43 @@ fn occupied_colored(leaves: &[LeafOccupancy], res: f64) -> Vec<([f32; 3], [u8; 3
             (p.map(|c| c as f32), ply::height_color(t))
         })
         .collect()
+}
+
+/// `voxmap inspect STORE_DIR`: the manifest, the segments, and with `check` every record.
+fn inspect_store(dir: &Path, check: bool) -> Result<()> {
+    use voxmap_map::store::TileStore;
+    let (mut store, m) = TileStore::open_read_only(dir)?;
+    let leaves: u64 = m.tiles.iter().map(|e| u64::from(e.leaves)).sum();
+    let live: u64 = m.tiles.iter().map(|e| u64::from(e.len)).sum();
+    let raw = leaves * mapfile::RECORD as u64;
+    let disk = store.counters().disk_bytes;
+    let segments: std::collections::BTreeSet<u32> = m.tiles.iter().map(|e| e.segment).collect();
+    println!("{} (tile store)", dir.display());
+    let p = &m.params;
+    for (k, v) in [
+        ("resolution", format!("{} m", p.resolution)),
+        ("sensor model", format!("{:?}", p.model)),
+        ("generation", m.generation.to_string()),
+        ("last frame", format!("sequence {}, stamp {} ns", m.last_frame.0, m.last_frame.1)),
+        ("tiles", m.tiles.len().to_string()),
+        ("leaves", leaves.to_string()),
+        ("records", format!("{live} bytes ({raw} uncompressed, {:.1}x)", raw as f64 / live.max(1) as f64)),
+        ("segments", format!("{} with live records, {disk} bytes on disk ({:.0}% live)", segments.len(), 100.0 * live as f64 / disk.max(1) as f64)),
+    ] {
+        println!("  {k:<20} {v}");
+    }
+    if check {
+        let mut bad = 0;
+        for e in &m.tiles {
+            if let Err(err) = store.get(voxmap_map::VoxelCoord::from_array(e.tile)) {
+                println!("  refused: {err}");
+                bad += 1;
+            }
+        }
+        println!("  {:<20} {} records read, {bad} refused", "check", m.tiles.len());
+        if bad > 0 {
+            bail!("{bad} tile records of {} refused", dir.display());
+        }
+    }
+    Ok(())
 }

@@ -65,3 +65,18 @@ pub fn keep_freed_memory() {
         }
     }
 }
+
+/// The process's peak resident set (bytes), from `/proc/self/status` (`VmHWM`); `None`
+/// where the system does not say.
+pub fn peak_rss() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kb: u64 = s
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kb << 10)
+}

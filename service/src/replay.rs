@@ -206,6 +206,9 @@ struct Offline {
     field_ms: Vec<f64>,
     /// Integration time, seconds.
     integrate_s: f64,
+    /// Each frame's time (ms): integration, and with a tile store the tiles it waited for
+    /// and the evictions after it.
+    frame_ms: Vec<f64>,
 }
 
 struct Online {
@@ -467,6 +470,7 @@ impl Sink {
                 out: a.out.clone().context("--offline needs --out MAP")?,
                 field_ms: Vec::new(),
                 integrate_s: 0.0,
+                frame_ms: Vec::new(),
             })));
         }
         let control = MapControl::connect(&a.prefix, &a.map)
@@ -504,7 +508,15 @@ impl Sink {
                 };
                 match off.mapper.insert(&frame, stamp) {
                     Ok(rep) => {
-                        off.integrate_s += rep.integrate.times.total().as_secs_f64();
+                        let mut t = rep.integrate.times.total().as_secs_f64();
+                        if let Some(tiles) = &rep.tiles {
+                            t += (tiles.load_time + tiles.evict_time).as_secs_f64();
+                            for e in tiles.refused.iter().chain(&tiles.write_error) {
+                                bar.suspend(|| eprintln!("voxmap replay: tile store: {e}"));
+                            }
+                        }
+                        off.integrate_s += t;
+                        off.frame_ms.push(t * 1e3);
                         if let Some(f) = &rep.field {
                             off.field_ms.push(f.time.as_secs_f64() * 1e3);
                         }
@@ -542,11 +554,48 @@ impl Sink {
             Sink::DryRun => {}
             Sink::Offline(off) => {
                 let Offline {
-                    mapper,
+                    mut mapper,
                     out,
                     mut field_ms,
                     integrate_s,
+                    mut frame_ms,
                 } = *off;
+                frame_ms.sort_by(f64::total_cmp);
+                let q = |p| crate::quantile::percentile(&frame_ms, p);
+                println!(
+                    "frames: {} ms p50 {:.2}, p99 {:.2}, max {:.2}; peak RSS {}",
+                    frame_ms.len(),
+                    q(0.5),
+                    q(0.99),
+                    frame_ms.last().copied().unwrap_or(0.0),
+                    crate::os::peak_rss().map_or("unknown".into(), |b| format!("{} MiB", b >> 20))
+                );
+                if let Some(t) = mapper.tile_stats() {
+                    let leaves = mapper
+                        .write_map_file(&out)
+                        .with_context(|| format!("writing {}", out.display()))?;
+                    let saved = mapper.save_store().context("no store")?.context("saving the tile store")?;
+                    println!(
+                        "tile store {}: {} tiles in memory, {} only stored, {} evictions, {} loads, {} refused, worst wait {:.2} ms; resident {} MiB, budget {}; saved ({} tiles written, generation {})",
+                        mapper.store_dir().map_or(String::new(), |d| d.display().to_string()),
+                        t.tiles_resident,
+                        t.tiles_stored,
+                        t.evictions,
+                        t.loads,
+                        t.refused,
+                        t.worst_wait.as_secs_f64() * 1e3,
+                        t.resident_bytes >> 20,
+                        t.memory_budget.map_or("unlimited".into(), |b| format!("{} MiB", b >> 20)),
+                        saved.tiles_written,
+                        saved.generation
+                    );
+                    println!(
+                        "integration {integrate_s:.2} s ({:.2} Mpoints/s), with the tiles' loads and evictions",
+                        points as f64 / integrate_s.max(1e-9) / 1e6
+                    );
+                    println!("wrote {} ({leaves} leaves)", out.display());
+                    return Ok(());
+                }
                 let (map, field) = mapper.into_parts();
                 let c = map.counts();
                 println!(

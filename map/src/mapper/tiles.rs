@@ -87,6 +87,8 @@ pub(crate) struct Tiles {
     /// Frames integrated since the store was opened.
     clock: u64,
     stats: TileStats,
+    /// The store's writer failed: no more evictions (told once, in that frame's report).
+    write_failed: bool,
 }
 
 impl Tiles {
@@ -97,6 +99,7 @@ impl Tiles {
             resident: HashMap::new(),
             stored,
             clock: 0,
+            write_failed: false,
             stats: TileStats {
                 memory_budget: budget,
                 ..Default::default()
@@ -266,7 +269,7 @@ impl Tiles {
         report: &mut TileReport,
     ) {
         let Some(budget) = self.budget else { return };
-        if report.write_error.is_some() || self.resident_bytes(map) <= budget {
+        if self.write_failed || self.resident_bytes(map) <= budget {
             return;
         }
         let start = Instant::now();
@@ -289,6 +292,7 @@ impl Tiles {
                 break;
             }
             if let Err(e) = self.evict(map, k) {
+                self.write_failed = true;
                 report.write_error = Some(e.to_string());
                 break;
             }

@@ -683,6 +683,11 @@ fn write_manifest(dir: &Path, m: &Manifest) -> Result<(), StoreError> {
     })
 }
 
+/// Whether `dir` holds a store (a manifest, sound or not).
+pub fn exists(dir: &Path) -> bool {
+    dir.join(MANIFEST).exists()
+}
+
 /// The committed manifest of the store in `dir`, checked.
 pub fn read_manifest(dir: &Path) -> Result<Manifest, StoreError> {
     let path = dir.join(MANIFEST);

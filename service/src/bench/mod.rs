@@ -2,6 +2,7 @@
 //! side by side with the paper's numbers.
 
 mod e2e;
+mod mission;
 mod esdf;
 
 use anyhow::{bail, Context, Result};
@@ -85,6 +86,30 @@ pub struct BenchArgs {
     /// (DIR/scan_dat.pcd) as PCD files here, for bench/esdf_vs_edt3d.sh.
     #[arg(long, value_name = "DIR")]
     esdf_write_pcd: Option<PathBuf>,
+    /// Instead: the long-mission benchmark: a LiDAR driven around the procedural city and
+    /// back, the map without a budget and under --memory-budget (each a process of its
+    /// own): frame p50/p99, peak RSS, tile traffic, final maps compared.
+    #[arg(long)]
+    mission: bool,
+    /// With --mission: frames along the route.
+    #[arg(long, default_value_t = 2000)]
+    mission_frames: usize,
+    /// With --mission: the route goes around this many blocks (48 m) a side.
+    #[arg(long, default_value_t = 8)]
+    mission_blocks: u32,
+    /// With --mission: the budgeted run's memory budget.
+    #[arg(long, default_value = "256M")]
+    memory_budget: String,
+    /// With --mission: alternated rounds of the two runs.
+    #[arg(long, default_value_t = 1)]
+    mission_rounds: usize,
+    /// With --mission: keep the stores and maps here (default: a temporary directory,
+    /// removed after).
+    #[arg(long, value_name = "DIR")]
+    mission_dir: Option<PathBuf>,
+    /// One mission run in this process (the parent's child).
+    #[arg(long, hide = true)]
+    mission_child: bool,
 }
 
 /// The paper's VDB-PAR times (12 threads, ms) for (kind, points, range).
@@ -216,6 +241,13 @@ fn ms(d: std::time::Duration) -> f64 {
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
+    if a.mission {
+        return if a.mission_child {
+            mission::child(&a)
+        } else {
+            mission::run(&a)
+        };
+    }
     if let Some(secs) = a.e2e {
         return e2e::run(secs, a.pin_threads, a.e2e_ros2, a.e2e_esdf);
     }

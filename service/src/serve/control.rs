@@ -13,6 +13,7 @@ use iceoryx2::active_request::ActiveRequest;
 use iceoryx2::port::server::Server;
 use iceoryx2::prelude::*;
 use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
 use voxmap_ipc::{ControlKind, ControlRequest, ControlResponse};
 
 type Request = ActiveRequest<ipc::Service, ControlRequest, (), ControlResponse, ()>;
@@ -118,7 +119,7 @@ impl Control {
             if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
-                s.stats.wire(s.mapper.map()),
+                s.stats.wire(&s.mapper),
             )) {
                 // The client may have gone; anything else is worth a line.
                 eprintln!("voxmap serve: control response not sent: {e:?}");
@@ -138,7 +139,10 @@ impl Control {
                 let Some(p) = r.path() else {
                     return Some(Answer::err("bad path".into()));
                 };
-                let path = p.into();
+                let path: PathBuf = p.into();
+                if let Some(dir) = s.mapper.store_dir().map(Path::to_path_buf) {
+                    return Some(store_file_request(kind, &path, &dir, s));
+                }
                 let job = if kind == ControlKind::Save {
                     let file = s.mapper.encode_file();
                     Job::Save { path, file }
@@ -178,12 +182,50 @@ impl Control {
             if let Err(e) = req.send_copy(ControlResponse::new(
                 answer.ok,
                 &answer.message,
-                s.stats.wire(s.mapper.map()),
+                s.stats.wire(&s.mapper),
             )) {
                 // The client may have gone; anything else is worth a line.
                 eprintln!("voxmap serve: control response not sent: {e:?}");
             }
         }
+    }
+}
+
+/// `save` and `load` when the map is kept in a tile store. `save` to the store's
+/// directory saves incrementally (the tiles changed since the last save, then the
+/// manifest); to another path it writes a map file of every tile, streamed. Both run in
+/// the loop: frames wait meanwhile. `load` is refused: the store is the map.
+fn store_file_request(kind: ControlKind, path: &Path, dir: &Path, s: &mut MapState) -> Answer {
+    if kind == ControlKind::Load {
+        return Answer::err(format!(
+            "{} not loaded: the map is kept in the tile store {}; restart with --load to change it",
+            path.display(),
+            dir.display()
+        ));
+    }
+    let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    };
+    if same(path, dir) {
+        return match s.mapper.save_store() {
+            Some(Ok(r)) => Answer::ok(
+                format!(
+                    "saved to the tile store {}: {} tiles written, generation {}, {:.1} ms",
+                    dir.display(),
+                    r.tiles_written,
+                    r.generation,
+                    r.time.as_secs_f64() * 1e3
+                ),
+                false,
+            ),
+            Some(Err(e)) => Answer::err(format!("saving the tile store: {e}")),
+            None => Answer::err("no tile store".into()),
+        };
+    }
+    match s.mapper.write_map_file(path) {
+        Ok(leaves) => Answer::ok(format!("saved to {} ({leaves} leaves)", path.display()), false),
+        Err(e) => Answer::err(format!("saving to {}: {e}", path.display())),
     }
 }
 

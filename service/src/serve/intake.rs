@@ -133,11 +133,21 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
             false
         }
         Ok(rep) => {
-            let (rep, field) = (rep.integrate, rep.field);
+            let (tiles, field, rep) = (rep.tiles, rep.field, rep.integrate);
             stats.integrated += 1;
             stats.points += rep.points;
             stats.skipped_points += rep.skipped_nonfinite;
-            let ms = rep.times.total().as_secs_f64() * 1e3;
+            // A frame's time includes the tiles it waited for and the evictions after it.
+            let mut ms = rep.times.total().as_secs_f64() * 1e3;
+            if let Some(t) = tiles {
+                ms += (t.load_time + t.evict_time).as_secs_f64() * 1e3;
+                for e in &t.refused {
+                    eprintln!("voxmap serve: tile store: {e}; its region reads as unknown");
+                }
+                if let Some(e) = &t.write_error {
+                    eprintln!("voxmap serve: tile store: {e}; no tile is evicted until it is fixed");
+                }
+            }
             Stats::record(&mut stats.integrate_ms, ms);
             if let Some(r) = field {
                 Stats::record(&mut stats.esdf_ms, r.time.as_secs_f64() * 1e3);

@@ -10,7 +10,7 @@ mod stats;
 
 use crate::config::{Config, Intake, MappingArgs};
 use crate::os::now_ns;
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use iceoryx2::prelude::*;
 use iceoryx2::waitset::WaitSetRunResult;
@@ -34,7 +34,8 @@ pub struct ServeArgs {
     /// Map name under the prefix.
     #[arg(long)]
     pub map: Option<String>,
-    /// Resume from this map file (its resolution and sensor model replace the configured).
+    /// Resume from this map file (its resolution and sensor model replace the configured),
+    /// or continue the tile store in this directory (as --store).
     #[arg(long)]
     pub load: Option<PathBuf>,
     /// Save the map here on SIGINT/SIGTERM.
@@ -74,6 +75,14 @@ impl ServeArgs {
     /// The configuration with this command's own flags applied.
     pub fn resolve(&self) -> Result<crate::config::Config> {
         let mut c = self.mapping.resolve()?;
+        // A tile store given to --load is continued as --store.
+        if let Some(p) = self.load.as_ref().filter(|p| p.is_dir()) {
+            if !c.store.is_empty() && std::path::Path::new(&c.store) != p.as_path() {
+                bail!("--load {} is a tile store and --store names another", p.display());
+            }
+            c.store = p.to_string_lossy().into_owned();
+            c.check()?;
+        }
         if let Some(p) = &self.prefix {
             c.prefix = p.clone();
         }
@@ -155,11 +164,19 @@ impl MapState {
         Ok(())
     }
 
-    /// What the next snapshot covers.
-    fn snapshot_scope(&self) -> Scope {
+    /// What the next snapshot covers. A window's tiles are brought back from the tile
+    /// store first; under a memory budget the whole map's snapshot holds the tiles in
+    /// memory.
+    fn snapshot_scope(&mut self) -> Scope {
         match self.scope.bounds(self.sensor()) {
             None => Scope::Whole,
-            Some((min, max)) => Scope::Box { min, max },
+            Some((min, max)) => {
+                let r = self.mapper.load_region(min.into(), max.into());
+                for e in r.iter().flat_map(|r| &r.refused) {
+                    eprintln!("voxmap serve: tile store: {e}; its region reads as unknown");
+                }
+                Scope::Box { min, max }
+            }
         }
     }
 }
@@ -241,7 +258,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
         stats: stats::Stats::default(),
     };
     s.stats.kernel = s.mapper.integrator().kernel().name();
-    if let Some(p) = &a.load {
+    if let Some(p) = a.load.as_ref().filter(|p| !p.is_dir()) {
+        if s.mapper.store_dir().is_some() {
+            bail!("--load {}: a map file does not load into a tile store; export the store, or start without --store", p.display());
+        }
         let (map, carried) = mapfile::load_map_with_field(p)?;
         s.load(map, carried)
             .with_context(|| format!("{} not loaded", p.display()))?;
@@ -322,7 +342,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         }
         if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
-            eprintln!("voxmap serve: {}", s.stats.log_line(s.mapper.map()));
+            eprintln!("voxmap serve: {}", s.stats.log_line(&s.mapper));
             if let Some(b) = &bridge {
                 eprintln!("voxmap serve: {}", b.counters.line());
             }
@@ -340,14 +360,22 @@ pub fn run(a: ServeArgs) -> Result<()> {
     });
     control.finish(&mut s);
     out.publish(&mut s);
+    if let Some(r) = s.mapper.save_store() {
+        let r = r.context("saving the tile store")?;
+        eprintln!(
+            "voxmap serve: tile store saved ({} tiles written, generation {})",
+            r.tiles_written, r.generation
+        );
+    }
     if let Some(p) = &a.save_on_exit {
-        mapfile::save_map_with_field(s.mapper.map(), s.mapper.field(), p)
+        s.mapper
+            .write_map_file(p)
             .with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
     eprintln!(
         "voxmap serve: exiting; {}",
-        s.stats.log_line(s.mapper.map())
+        s.stats.log_line(&s.mapper)
     );
     if let Some((end, line)) = bridge_end {
         eprintln!("voxmap serve: exiting; {line}");

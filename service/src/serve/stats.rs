@@ -2,7 +2,7 @@
 
 use crate::quantile::percentile;
 use voxmap_ipc::StatsWire;
-use voxmap_map::OccupancyMap;
+use voxmap_map::Mapper;
 
 /// Counters for the periodic log line and the `stats` request.
 #[derive(Default, Debug)]
@@ -37,7 +37,9 @@ impl Stats {
         window.push_back(x);
     }
 
-    pub(super) fn wire(&self, map: &OccupancyMap) -> StatsWire {
+    pub(super) fn wire(&self, mapper: &Mapper) -> StatsWire {
+        let map = mapper.map();
+        let tiles = mapper.tile_stats().unwrap_or_default();
         let sorted = |w: &std::collections::VecDeque<f64>| {
             let mut t: Vec<f64> = w.iter().copied().collect();
             t.sort_by(f64::total_cmp);
@@ -62,11 +64,23 @@ impl Stats {
             intake_us_p50: percentile(&intake, 0.5),
             intake_us_p99: percentile(&intake, 0.99),
             kernel: StatsWire::kernel_field(self.kernel),
+            memory_budget_bytes: tiles.memory_budget.unwrap_or(0),
+            resident_bytes: if mapper.tile_stats().is_some() {
+                tiles.resident_bytes
+            } else {
+                map.grid().live_bytes() as u64
+            },
+            tiles_resident: tiles.tiles_resident,
+            tiles_stored: tiles.tiles_stored,
+            tile_evictions: tiles.evictions,
+            tile_loads: tiles.loads,
+            tiles_refused: tiles.refused,
+            tile_wait_ms_max: tiles.worst_wait.as_secs_f64() * 1e3,
         }
     }
 
-    pub(super) fn log_line(&self, map: &OccupancyMap) -> String {
-        let w = self.wire(map);
+    pub(super) fn log_line(&self, mapper: &Mapper) -> String {
+        let w = self.wire(mapper);
         let by: Vec<String> = self
             .rejected_by
             .iter()
@@ -88,9 +102,23 @@ impl Stats {
                 percentile(&t, 0.99)
             )
         };
+        let store = match mapper.tile_stats() {
+            None => String::new(),
+            Some(t) => format!(
+                "; tiles {} in memory, {} stored, {} evicted, {} loaded, {} refused, worst wait {:.2} ms; resident {} bytes of {}",
+                t.tiles_resident,
+                t.tiles_stored,
+                t.evictions,
+                t.loads,
+                t.refused,
+                t.worst_wait.as_secs_f64() * 1e3,
+                t.resident_bytes,
+                t.memory_budget.map_or("unlimited".to_string(), |b| b.to_string())
+            ),
+        };
         format!(
             "frames received {} integrated {} dropped {} rejected {}{by}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}{esdf}; \
-             snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes",
+             snapshot {} bytes, encode {:.2} ms, {} not published; map {} leaves, {} bytes{store}",
             w.frames_received, w.frames_integrated, w.frames_dropped, w.frames_rejected, w.points_integrated, w.points_skipped,
             w.integrate_ms_p50, w.integrate_ms_p99, w.snapshot_bytes, w.encode_ms_last, self.publish_failures, w.map_leaves, w.map_memory_bytes
         )

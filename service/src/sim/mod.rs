@@ -1,5 +1,8 @@
 //! A procedural indoor scene and a simulated spinning LiDAR moving through it, for the
 //! demo: four rooms with doors, furniture, floor and ceiling, all axis-aligned boxes.
+//! [`city`] holds the long-mission benchmark's outdoor scene and route.
+
+pub mod city;
 
 use crate::rng::XorShift;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -12,7 +15,7 @@ pub struct Aabb {
 }
 
 impl Aabb {
-    fn new(min: [f64; 3], max: [f64; 3]) -> Self {
+    pub fn new(min: [f64; 3], max: [f64; 3]) -> Self {
         Self { min, max }
     }
 
@@ -33,6 +36,26 @@ impl Aabb {
     fn contains(&self, p: &[f64; 3]) -> bool {
         (0..3).all(|k| self.min[k] <= p[k] && p[k] <= self.max[k])
     }
+}
+
+/// A scene a LiDAR can see: the distance to the first surface along a ray.
+pub trait Surfaces {
+    /// Distance to the first surface along unit direction `d` from `o`, up to `max`.
+    fn cast(&self, o: &[f64; 3], d: &[f64; 3], max: f64) -> Option<f64>;
+}
+
+impl Surfaces for Scene {
+    fn cast(&self, o: &[f64; 3], d: &[f64; 3], max: f64) -> Option<f64> {
+        Scene::cast(self, o, d, max)
+    }
+}
+
+/// The nearest entry into any of `boxes` along `o + t d` (`inv_d` = 1 / d).
+fn first_hit(boxes: &[Aabb], o: &[f64; 3], inv_d: &[f64; 3]) -> Option<f64> {
+    boxes
+        .iter()
+        .filter_map(|b| b.hit(o, inv_d))
+        .fold(None, |m: Option<f64>, t| Some(m.map_or(t, |m| m.min(t))))
 }
 
 /// The scene: solid boxes.
@@ -113,11 +136,7 @@ impl Scene {
     /// Distance to the first surface along unit direction `d` from `o`, up to `max`.
     pub fn cast(&self, o: &[f64; 3], d: &[f64; 3], max: f64) -> Option<f64> {
         let inv = d.map(|c| 1.0 / c);
-        self.boxes
-            .iter()
-            .filter_map(|b| b.hit(o, &inv))
-            .fold(None, |m: Option<f64>, t| Some(m.map_or(t, |m| m.min(t))))
-            .filter(|&t| t <= max)
+        first_hit(&self.boxes, o, &inv).filter(|&t| t <= max)
     }
 
     /// Is `p` inside any solid?
@@ -201,7 +220,7 @@ impl Lidar {
     /// One scan from `pose`: points in the sensor frame, appended to `out` (cleared first).
     pub fn scan(
         &self,
-        scene: &Scene,
+        scene: &impl Surfaces,
         pose: &Isometry3<f64>,
         rng: &mut XorShift,
         out: &mut Vec<[f32; 3]>,
