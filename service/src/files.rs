@@ -238,7 +238,10 @@ pub fn export(mut a: ExportArgs) -> Result<()> {
         }
         a.input = out;
     } else if a.out.is_some() {
-        bail!("--out is for a tile store; {} holds none", a.input.display());
+        bail!(
+            "--out is for a tile store; {} holds none",
+            a.input.display()
+        );
     }
     if a.bt.is_none() && a.ply.is_none() && a.snapshot.is_none() {
         bail!("nothing to do: pass --bt OUT.bt, --ply OUT.ply and/or --snapshot OUT");
@@ -341,11 +344,27 @@ fn inspect_store(dir: &Path, check: bool) -> Result<()> {
         ("resolution", format!("{} m", p.resolution)),
         ("sensor model", format!("{:?}", p.model)),
         ("generation", m.generation.to_string()),
-        ("last frame", format!("sequence {}, stamp {} ns", m.last_frame.0, m.last_frame.1)),
+        (
+            "last frame",
+            format!("sequence {}, stamp {} ns", m.last_frame.0, m.last_frame.1),
+        ),
         ("tiles", m.tiles.len().to_string()),
         ("leaves", leaves.to_string()),
-        ("records", format!("{live} bytes ({raw} uncompressed, {:.1}x)", raw as f64 / live.max(1) as f64)),
-        ("segments", format!("{} with live records, {disk} bytes on disk ({:.0}% live)", segments.len(), 100.0 * live as f64 / disk.max(1) as f64)),
+        (
+            "records",
+            format!(
+                "{live} bytes ({raw} uncompressed, {:.1}x)",
+                raw as f64 / live.max(1) as f64
+            ),
+        ),
+        (
+            "segments",
+            format!(
+                "{} with live records, {disk} bytes on disk ({:.0}% live)",
+                segments.len(),
+                100.0 * live as f64 / disk.max(1) as f64
+            ),
+        ),
     ] {
         println!("  {k:<20} {v}");
     }
@@ -357,7 +376,11 @@ fn inspect_store(dir: &Path, check: bool) -> Result<()> {
                 bad += 1;
             }
         }
-        println!("  {:<20} {} records read, {bad} refused", "check", m.tiles.len());
+        println!(
+            "  {:<20} {} records read, {bad} refused",
+            "check",
+            m.tiles.len()
+        );
         if bad > 0 {
             bail!("{bad} tile records of {} refused", dir.display());
         }

@@ -38,6 +38,10 @@ pub struct ReplayArgs {
     /// Offline: write the map file here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Offline with --store: save the store (incrementally) every this many frames, so
+    /// that a replay cut short leaves the map as of its last save.
+    #[arg(long, value_name = "FRAMES", requires = "offline")]
+    pub save_every: Option<u64>,
     /// Service-name prefix of the running service.
     #[arg(long, default_value = "voxmap")]
     pub prefix: String,
@@ -206,6 +210,8 @@ struct Offline {
     field_ms: Vec<f64>,
     /// Integration time, seconds.
     integrate_s: f64,
+    /// Save the store every this many frames.
+    save_every: Option<u64>,
     /// Each frame's time (ms): integration, and with a tile store the tiles it waited for
     /// and the evictions after it.
     frame_ms: Vec<f64>,
@@ -471,6 +477,7 @@ impl Sink {
                 field_ms: Vec::new(),
                 integrate_s: 0.0,
                 frame_ms: Vec::new(),
+                save_every: a.save_every.filter(|&n| n > 0),
             })));
         }
         let control = MapControl::connect(&a.prefix, &a.map)
@@ -517,6 +524,24 @@ impl Sink {
                         }
                         off.integrate_s += t;
                         off.frame_ms.push(t * 1e3);
+                        if off
+                            .save_every
+                            .is_some_and(|n| (frames + 1).is_multiple_of(n))
+                        {
+                            let r = off
+                                .mapper
+                                .save_store()
+                                .context("--save-every needs --store")?;
+                            let r = r.context("saving the tile store")?;
+                            bar.suspend(|| {
+                                println!(
+                                    "store saved: frame {}, generation {}, {} tiles written",
+                                    frames + 1,
+                                    r.generation,
+                                    r.tiles_written
+                                )
+                            });
+                        }
                         if let Some(f) = &rep.field {
                             off.field_ms.push(f.time.as_secs_f64() * 1e3);
                         }
@@ -559,6 +584,7 @@ impl Sink {
                     mut field_ms,
                     integrate_s,
                     mut frame_ms,
+                    save_every: _,
                 } = *off;
                 frame_ms.sort_by(f64::total_cmp);
                 let q = |p| crate::quantile::percentile(&frame_ms, p);
@@ -574,7 +600,10 @@ impl Sink {
                     let leaves = mapper
                         .write_map_file(&out)
                         .with_context(|| format!("writing {}", out.display()))?;
-                    let saved = mapper.save_store().context("no store")?.context("saving the tile store")?;
+                    let saved = mapper
+                        .save_store()
+                        .context("no store")?
+                        .context("saving the tile store")?;
                     println!(
                         "tile store {}: {} tiles in memory, {} only stored, {} evictions, {} loads, {} refused, worst wait {:.2} ms; resident {} MiB, budget {}; saved ({} tiles written, generation {})",
                         mapper.store_dir().map_or(String::new(), |d| d.display().to_string()),

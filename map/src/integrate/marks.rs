@@ -122,6 +122,13 @@ pub(crate) struct Pool<T, const CHUNK: usize> {
     pub(crate) next: CachePadded<AtomicU32>,
 }
 
+impl<T, const CHUNK: usize> Pool<T, CHUNK> {
+    /// Bytes of the chunks made so far.
+    pub(crate) fn memory_bytes(&self) -> usize {
+        self.chunks.iter().filter(|c| c.get().is_some()).count() * CHUNK * std::mem::size_of::<T>()
+    }
+}
+
 impl<T, const CHUNK: usize> Default for Pool<T, CHUNK> {
     fn default() -> Self {
         Self {
@@ -273,6 +280,15 @@ pub(crate) fn leaf_cache_index(b: VoxelCoord) -> usize {
 }
 
 impl FrameMarks {
+    /// Bytes of the tables and pools, as allocated.
+    pub(crate) fn memory_bytes(&self) -> usize {
+        self.nodes.capacity() * 4
+            + self.taken.capacity()
+            + self.spare.capacity() * 8
+            + self.entries.memory_bytes()
+            + self.slots.memory_bytes()
+    }
+
     /// Prepare for a frame whose voxels lie in `[lo, hi]`, cast on `tables` threads.
     pub(crate) fn reset(&mut self, lo: VoxelCoord, hi: VoxelCoord, tables: usize) {
         let tables = tables.max(1);

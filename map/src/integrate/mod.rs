@@ -321,6 +321,24 @@ impl Integrator {
         &self.cfg
     }
 
+    /// Bytes of the buffers the integrator keeps from frame to frame (rays, marks, the ray
+    /// modes' and the dense walk's buffers), as allocated: what a memory budget leaves
+    /// out of the map's share.
+    pub fn memory_bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        let dense: usize = (self.dense.iter())
+            .map(|d| {
+                let d = d.lock().unwrap_or_else(|e| e.into_inner());
+                (d.free.capacity() + d.hit.capacity()) * 8
+            })
+            .sum();
+        self.rays.capacity() * std::mem::size_of::<Ray>()
+            + size_of_val(self.counts.as_slice())
+            + self.marks.memory_bytes()
+            + self.select.memory_bytes()
+            + dense
+    }
+
     /// The kernel this integrator runs: the CPU's best, or `VOXMAP_KERNEL`'s.
     pub fn kernel(&self) -> Kernel {
         self.kernels.kernel()

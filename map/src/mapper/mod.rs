@@ -184,7 +184,8 @@ impl Mapper {
             integ.install(|| f.update(map, integrate.bounds, Some(sensor)))
         });
         if let (Some(t), Some(r)) = (&mut self.tiles, &mut tiles) {
-            t.after_frame(&mut self.map, integrate.bounds, sensor, r);
+            let working = self.integrator.memory_bytes() as u64;
+            t.after_frame(&mut self.map, integrate.bounds, sensor, working, r);
         }
         Ok(InsertReport {
             integrate,

@@ -15,6 +15,8 @@ use hashbrown::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
 const TILE: i32 = 1 << INTERNAL_TOTAL_LOG2;
+/// Tiles evicted after one frame while the map is within its share.
+const EVICT_PER_FRAME: usize = 4;
 
 /// How a mapper keeps its store: where, and the memory budget (bytes) its map stays under.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -71,6 +73,8 @@ pub struct TileStats {
     pub tiles_resident: u64,
     /// Tiles only in the store.
     pub tiles_stored: u64,
+    /// The integrator's buffers, which the budget holds besides the map.
+    pub working_bytes: u64,
     pub evictions: u64,
     pub loads: u64,
     pub refused: u64,
@@ -221,9 +225,11 @@ impl Tiles {
         map: &mut OccupancyMap,
         bounds: Option<(VoxelCoord, VoxelCoord)>,
         sensor: WorldPoint,
+        working: u64,
         report: &mut TileReport,
     ) {
         self.clock += 1;
+        self.stats.working_bytes = working;
         if let Some((lo, hi)) = bounds {
             let (a, b) = (tile_of(lo), tile_of(hi));
             for z in (a.z..=b.z).step_by(TILE as usize) {
@@ -241,7 +247,7 @@ impl Tiles {
             }
         }
         self.adopt_new_nodes(map);
-        self.evict_over_budget(map, sensor, report);
+        self.evict_over_budget(map, sensor, working, report);
     }
 
     /// Nodes the grid has and the list lacks (made by the frame) become resident tiles,
@@ -262,20 +268,31 @@ impl Tiles {
         (map.grid().live_bytes() + self.store.pending_bytes()) as u64
     }
 
+    /// Near or over the budget (the map's resident bytes and the integrator's `working`
+    /// buffers), evict tiles toward seven eighths of the map's share.
     fn evict_over_budget(
         &mut self,
         map: &mut OccupancyMap,
         sensor: WorldPoint,
+        working: u64,
         report: &mut TileReport,
     ) {
         let Some(budget) = self.budget else { return };
-        if self.write_failed || self.resident_bytes(map) <= budget {
+        let share = budget.saturating_sub(working);
+        let low = share / 8 * 7;
+        let bytes = self.resident_bytes(map);
+        if self.write_failed || bytes <= low {
             return;
         }
+        // Between seven eighths of the share and the share, a few tiles a frame: the map
+        // grows by about a tile a frame, so eviction keeps pace in small steps, not in a
+        // batch that stalls one frame. Over the share, as many as it takes.
+        let most = if bytes <= share {
+            EVICT_PER_FRAME
+        } else {
+            usize::MAX
+        };
         let start = Instant::now();
-        // Down to three quarters of the budget, so that eviction comes in batches, not
-        // after every frame.
-        let low = budget / 4 * 3;
         let s = map.transform().point_to_units(&sensor);
         let far = |k: &VoxelCoord| {
             let c = k.to_array().map(|v| f64::from(v) + f64::from(TILE) / 2.0);
@@ -287,7 +304,7 @@ impl Tiles {
             .collect();
         // Least recently observed first; among those, farthest first.
         order.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
-        for (_, _, k) in order {
+        for (_, _, k) in order.into_iter().take(most) {
             if self.resident_bytes(map) <= low {
                 break;
             }

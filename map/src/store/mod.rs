@@ -395,10 +395,7 @@ impl TileStore {
     }
 
     /// The tile's leaves from its latest record, checked; `None` where it has none.
-    pub fn get(
-        &mut self,
-        tile: VoxelCoord,
-    ) -> Result<Option<TileLeaves>, StoreError> {
+    pub fn get(&mut self, tile: VoxelCoord) -> Result<Option<TileLeaves>, StoreError> {
         Ok(self.fetch(tile)?.map(|(_, leaves)| leaves))
     }
 
@@ -408,10 +405,7 @@ impl TileStore {
     }
 
     #[allow(clippy::type_complexity)]
-    fn fetch(
-        &mut self,
-        tile: VoxelCoord,
-    ) -> Result<Option<(Vec<u8>, TileLeaves)>, StoreError> {
+    fn fetch(&mut self, tile: VoxelCoord) -> Result<Option<(Vec<u8>, TileLeaves)>, StoreError> {
         let (pending, loc) = {
             let s = self.lock();
             (

@@ -99,7 +99,10 @@ fn md5_hex(p: &Path) -> String {
 
 /// A child: one drive, its numbers on one line.
 pub(super) fn child(a: &BenchArgs) -> Result<()> {
-    let dir = a.mission_dir.clone().context("--mission-child needs --mission-dir")?;
+    let dir = a
+        .mission_dir
+        .clone()
+        .context("--mission-child needs --mission-dir")?;
     let budget = crate::config::parse_bytes(&a.memory_budget)?;
     let cfg = MapperConfig {
         resolution: 0.1,
@@ -134,10 +137,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     for k in 0..a.mission_frames {
         let pose = route.pose(k as f64 * route.length() / a.mission_frames as f64);
         lidar.scan(&city, &pose, &mut rng, &mut pts);
-        let frame = Frame {
-            pose,
-            points: &pts,
-        };
+        let frame = Frame { pose, points: &pts };
         let stamp = FrameStamp {
             sequence: k as u64 + 1,
             stamp_ns: k as u64 * 100_000_000,
@@ -158,7 +158,10 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     let rss_drive = peak_rss().unwrap_or(0);
     let resident = mapper
         .tile_stats()
-        .map_or(mapper.map().grid().live_bytes() as u64, |t| t.resident_bytes);
+        .map_or(mapper.map().grid().live_bytes() as u64, |t| {
+            t.resident_bytes
+        });
+    let working = mapper.integrator().memory_bytes() as u64;
     let worst_wait = mapper
         .tile_stats()
         .map_or(0.0, |t| t.worst_wait.as_secs_f64() * 1e3);
@@ -170,7 +173,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     let q = |p| crate::quantile::percentile(&sorted, p);
     let total: f64 = ms.iter().sum();
     println!(
-        "frames {} p50 {:.2} ms p99 {:.2} ms max {:.2} ms, {:.2} Mpoints/s; peak RSS {} MiB (drive), {} MiB (with the export); map {} MiB resident, {} leaves; tiles loaded {loaded} evicted {evicted}, worst wait {worst_wait:.2} ms; export {export_s:.1} s; wall {wall:.0} s",
+        "frames {} p50 {:.2} ms p99 {:.2} ms max {:.2} ms, {:.2} Mpoints/s; peak RSS {} MiB (drive), {} MiB (with the export); map {} MiB resident, integrator {} MiB, {} leaves; tiles loaded {loaded} evicted {evicted}, worst wait {worst_wait:.2} ms; export {export_s:.1} s; wall {wall:.0} s",
         ms.len(),
         q(0.5),
         q(0.99),
@@ -179,6 +182,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
         rss_drive >> 20,
         peak_rss().unwrap_or(0) >> 20,
         resident >> 20,
+        working >> 20,
         leaves
     );
     Ok(())

@@ -2,8 +2,8 @@
 //! side by side with the paper's numbers.
 
 mod e2e;
-mod mission;
 mod esdf;
+mod mission;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;

@@ -224,7 +224,10 @@ fn store_file_request(kind: ControlKind, path: &Path, dir: &Path, s: &mut MapSta
         };
     }
     match s.mapper.write_map_file(path) {
-        Ok(leaves) => Answer::ok(format!("saved to {} ({leaves} leaves)", path.display()), false),
+        Ok(leaves) => Answer::ok(
+            format!("saved to {} ({leaves} leaves)", path.display()),
+            false,
+        ),
         Err(e) => Answer::err(format!("saving to {}: {e}", path.display())),
     }
 }

@@ -145,7 +145,9 @@ fn integrate(sample: FrameSample, s: &mut MapState) -> bool {
                     eprintln!("voxmap serve: tile store: {e}; its region reads as unknown");
                 }
                 if let Some(e) = &t.write_error {
-                    eprintln!("voxmap serve: tile store: {e}; no tile is evicted until it is fixed");
+                    eprintln!(
+                        "voxmap serve: tile store: {e}; no tile is evicted until it is fixed"
+                    );
                 }
             }
             Stats::record(&mut stats.integrate_ms, ms);

@@ -78,7 +78,10 @@ impl ServeArgs {
         // A tile store given to --load is continued as --store.
         if let Some(p) = self.load.as_ref().filter(|p| p.is_dir()) {
             if !c.store.is_empty() && std::path::Path::new(&c.store) != p.as_path() {
-                bail!("--load {} is a tile store and --store names another", p.display());
+                bail!(
+                    "--load {} is a tile store and --store names another",
+                    p.display()
+                );
             }
             c.store = p.to_string_lossy().into_owned();
             c.check()?;
@@ -373,10 +376,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
             .with_context(|| format!("saving map to {}", p.display()))?;
         eprintln!("voxmap serve: map saved to {}", p.display());
     }
-    eprintln!(
-        "voxmap serve: exiting; {}",
-        s.stats.log_line(&s.mapper)
-    );
+    eprintln!("voxmap serve: exiting; {}", s.stats.log_line(&s.mapper));
     if let Some((end, line)) = bridge_end {
         eprintln!("voxmap serve: exiting; {line}");
         end.context("the ROS 2 bridge failed")?;

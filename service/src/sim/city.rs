@@ -14,14 +14,20 @@ use std::sync::Mutex;
 pub const PITCH: f64 = 48.0;
 const STREET: f64 = 12.0;
 
+/// A block's boxes, shared by the rays that test them.
+type Block = std::sync::Arc<Vec<Aabb>>;
+
 /// The city: blocks made on demand and kept.
 pub struct City {
     seed: u64,
-    blocks: Mutex<std::collections::HashMap<(i64, i64), std::sync::Arc<Vec<Aabb>>>>,
+    blocks: Mutex<std::collections::HashMap<(i64, i64), Block>>,
 }
 
 fn hash(seed: u64, a: i64, b: i64, k: u64) -> u64 {
-    let mut x = seed ^ (a as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (b as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ k.wrapping_mul(0x1656_67B1_9E37_79F9);
+    let mut x = seed
+        ^ (a as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (b as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ k.wrapping_mul(0x1656_67B1_9E37_79F9);
     x ^= x >> 33;
     x = x.wrapping_mul(0xFF51_AFD7_ED55_8CCD);
     x ^= x >> 33;
@@ -43,7 +49,7 @@ impl City {
     }
 
     /// The boxes of block (i, j), whose streets run along x = i * PITCH and y = j * PITCH.
-    fn block(&self, i: i64, j: i64) -> std::sync::Arc<Vec<Aabb>> {
+    fn block(&self, i: i64, j: i64) -> Block {
         let mut blocks = self.blocks.lock().unwrap_or_else(|e| e.into_inner());
         blocks
             .entry((i, j))
@@ -53,7 +59,10 @@ impl City {
 
     fn make_block(&self, i: i64, j: i64) -> Vec<Aabb> {
         let h = |k: u64| hash(self.seed, i, j, k);
-        let (x0, y0) = (i as f64 * PITCH + STREET / 2.0, j as f64 * PITCH + STREET / 2.0);
+        let (x0, y0) = (
+            i as f64 * PITCH + STREET / 2.0,
+            j as f64 * PITCH + STREET / 2.0,
+        );
         let side = PITCH - STREET;
         let mut b = Vec::new();
         // Buildings: the block cut into 1 to 3 lots along x and y, each built or a yard.
@@ -69,7 +78,11 @@ impl City {
                 let height = unit(h(k + 200), 4.0, 28.0);
                 b.push(Aabb::new(
                     [x0 + a as f64 * lx + inset, y0 + c as f64 * ly + inset, 0.0],
-                    [x0 + (a + 1) as f64 * lx - inset, y0 + (c + 1) as f64 * ly - inset, height],
+                    [
+                        x0 + (a + 1) as f64 * lx - inset,
+                        y0 + (c + 1) as f64 * ly - inset,
+                        height,
+                    ],
                 ));
             }
         }
@@ -77,7 +90,10 @@ impl City {
         for p in 0..3 {
             let t = 6.0 + 12.0 * p as f64;
             for (px, py) in [(x0 + t, y0 - 0.6), (x0 - 0.6, y0 + t)] {
-                b.push(Aabb::new([px - 0.15, py - 0.15, 0.0], [px + 0.15, py + 0.15, 4.5]));
+                b.push(Aabb::new(
+                    [px - 0.15, py - 0.15, 0.0],
+                    [px + 0.15, py + 0.15, 4.5],
+                ));
             }
         }
         // Parked cars along the curb.
@@ -160,7 +176,10 @@ mod tests {
             let p = r.pose(k as f64 * r.length() / 200.0);
             let o: [f64; 3] = p.translation.vector.into();
             // Nothing solid at the sensor: straight up is open sky or a far roof.
-            assert!(city.cast(&o, &[0.0, 0.0, 1.0], 0.5).is_none(), "inside a box at {o:?}");
+            assert!(
+                city.cast(&o, &[0.0, 0.0, 1.0], 0.5).is_none(),
+                "inside a box at {o:?}"
+            );
             for az in 0..8 {
                 let a = f64::from(az) * std::f64::consts::FRAC_PI_4;
                 let d = [a.cos() * 0.99, a.sin() * 0.99, -0.141];

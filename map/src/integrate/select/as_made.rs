@@ -28,6 +28,16 @@ pub(crate) struct AsMade {
     placed: Vec<u32>,
 }
 
+impl AsMade {
+    /// Bytes of the sets and notes, as allocated.
+    pub(crate) fn memory_bytes(&self) -> usize {
+        self.placed.capacity() * 4
+            + (self.runs.iter())
+                .map(|r| r.set.capacity() * 8 + r.marked.capacity() * 4)
+                .sum::<usize>()
+    }
+}
+
 /// A run's bit set: all zeros but for the bits of the first `count` of `marked`.
 #[derive(Default)]
 struct RunSet {

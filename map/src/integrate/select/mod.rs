@@ -106,6 +106,18 @@ pub(crate) struct Buffers {
 }
 
 impl Buffers {
+    /// Bytes of the buffers, as allocated.
+    pub(crate) fn memory_bytes(&self) -> usize {
+        self.keys.capacity() * 8
+            + self.orders.capacity() * std::mem::size_of::<ChunkOrder>()
+            + self.bits.capacity() * 4
+            + self.sorted.capacity() * 8
+            + self.keep.capacity()
+            + self.places.capacity() * 2
+            + self.sets.iter().map(|s| s.capacity() * 8).sum::<usize>()
+            + self.as_made.memory_bytes()
+    }
+
     /// Room for the notes of a frame of `n` points: a key per ray and an order per chunk.
     pub(crate) fn notes(&mut self, n: usize) -> (&mut [u64], &mut [ChunkOrder]) {
         sized(&mut self.keys, n, || NO_CELL);

@@ -1,0 +1,292 @@
+//! The tile store through the tools: `replay --offline` under a memory budget gives the
+//! unbudgeted map; `export` and `inspect` read a store; and crash trials: a replay that
+//! evicts after every frame and saves every few frames, killed with SIGKILL at random
+//! moments, leaves a store that opens, checks whole, and holds exactly the map of the
+//! frames its last save covered, never less than the last save it reported.
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use std::io::Read;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+use voxmap_map::io::pcd;
+use voxmap_map::{Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig};
+use voxmap_tests::{ok, tmpdir, voxmap, voxmap_bin, TestRng};
+
+const FRAMES: usize = 40;
+const SAVE_EVERY: usize = 4;
+const MAPPING: [&str; 6] = ["--resolution", "0.1", "--max-range", "7", "--threads", "2"];
+
+/// A sensor moving 1.6 m a frame down a corridor with pillars: it leaves each tile
+/// (12.8 m) behind within a few frames.
+fn frames() -> Vec<(Isometry3<f64>, Vec<[f32; 3]>)> {
+    let mut rng = TestRng(3);
+    (0..FRAMES)
+        .map(|i| {
+            let x = 1.6 * i as f64;
+            let pose = Isometry3::from_parts(
+                Translation3::new(x, 0.3 * (i % 2) as f64, 1.2),
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.1 * i as f64),
+            );
+            let pts = (0..6000)
+                .map(|_| {
+                    // World points on the corridor's walls (y = +-3), floor and pillars.
+                    let w = match rng.below(3) {
+                        0 => [
+                            x + 12.0 * rng.f() - 6.0,
+                            if rng.f() < 0.5 { -3.0 } else { 3.0 },
+                            3.0 * rng.f(),
+                        ],
+                        1 => [x + 12.0 * rng.f() - 6.0, 6.0 * rng.f() - 3.0, 0.0],
+                        _ => {
+                            let px = (x / 4.0).round() * 4.0 + 0.2 * rng.f();
+                            [px, 1.5 + 0.2 * rng.f(), 3.0 * rng.f()]
+                        }
+                    };
+                    let v = pose.inverse_transform_point(&w.into());
+                    [v.x as f32, v.y as f32, v.z as f32]
+                })
+                .collect();
+            (pose, pts)
+        })
+        .collect()
+}
+
+fn write_frames(dir: &Path) -> Vec<(Isometry3<f64>, Vec<[f32; 3]>)> {
+    std::fs::create_dir_all(dir).unwrap();
+    let f = frames();
+    for (i, (pose, points)) in f.iter().enumerate() {
+        let cloud = pcd::PointCloud {
+            points: points.clone(),
+            pose: *pose,
+        };
+        pcd::write(&dir.join(format!("frame_{i:03}.pcd")), &cloud).unwrap();
+    }
+    f
+}
+
+/// The map file of the first `n` frames, mapped without a store, as bytes.
+fn reference(frames: &[(Isometry3<f64>, Vec<[f32; 3]>)], n: usize, dir: &Path) -> Vec<u8> {
+    let mut m = Mapper::new(&MapperConfig {
+        resolution: 0.1,
+        integrator: IntegratorConfig {
+            threads: 2,
+            max_range: 7.0,
+            pin_threads: false,
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    for (i, (pose, pts)) in frames[..n].iter().enumerate() {
+        let frame = Frame {
+            pose: *pose,
+            points: pts,
+        };
+        m.insert(
+            &frame,
+            FrameStamp {
+                sequence: i as u64 + 1,
+                stamp_ns: 0,
+            },
+        )
+        .unwrap();
+    }
+    let p = dir.join(format!("ref-{n}.vxm"));
+    m.write_map_file(&p).unwrap();
+    std::fs::read(p).unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn replay_under_a_budget_equals_replay_without_and_the_store_exports_it() {
+    let dir = tmpdir("store_replay");
+    let scans = dir.join("scans");
+    let f = write_frames(&scans);
+    let free = dir.join("free.vxm");
+    ok(&[
+        &["replay", "--offline", "--out", s(&free)],
+        &MAPPING[..],
+        &[s(&scans)],
+    ]
+    .concat());
+    let store = dir.join("store");
+    let budgeted = dir.join("budget.vxm");
+    let out = ok(&[
+        &[
+            "replay",
+            "--offline",
+            "--out",
+            s(&budgeted),
+            "--store",
+            s(&store),
+            "--memory-budget",
+            "2M",
+        ],
+        &MAPPING[..],
+        &[s(&scans)],
+    ]
+    .concat());
+    assert!(
+        out.contains("evictions") && out.contains("peak RSS"),
+        "{out}"
+    );
+    let want = std::fs::read(&free).unwrap();
+    assert_eq!(std::fs::read(&budgeted).unwrap(), want, "{out}");
+    assert_eq!(reference(&f, FRAMES, &dir), want);
+    let exported = dir.join("export.vxm");
+    ok(&["export", s(&store), "--out", s(&exported)]);
+    assert_eq!(std::fs::read(&exported).unwrap(), want);
+    let inspect = ok(&["inspect", s(&store), "--check"]);
+    assert!(
+        inspect.contains("0 refused") && inspect.contains("generation"),
+        "{inspect}"
+    );
+
+    // Bad settings are refused with a clear error.
+    for (args, why) in [
+        (vec!["--memory-budget", "64M"], "needs a store"),
+        (
+            vec!["--memory-budget", "lots", "--store", s(&store)],
+            "suffix must be",
+        ),
+        (
+            vec!["--memory-budget", "x12M", "--store", s(&store)],
+            "not a whole number",
+        ),
+        (vec!["--store", s(&store), "--esdf"], "not supported yet"),
+    ] {
+        let o = voxmap(
+            &[
+                &["replay", "--offline", "--out", s(&budgeted)],
+                &args[..],
+                &[s(&scans)],
+            ]
+            .concat(),
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(why), "{args:?}: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_store_killed_at_any_moment_holds_its_last_save_exactly() {
+    let dir = tmpdir("store_crash");
+    let scans = dir.join("scans");
+    let f = write_frames(&scans);
+    let refs: Vec<Vec<u8>> = (0..=FRAMES / SAVE_EVERY)
+        .map(|k| reference(&f, k * SAVE_EVERY, &dir))
+        .collect();
+    let replay = |store: &Path| {
+        Command::new(voxmap_bin())
+            .args([
+                "replay",
+                "--offline",
+                "--out",
+                s(&dir.join("unused.vxm")),
+                "--store",
+                s(store),
+            ])
+            .args([
+                "--memory-budget",
+                "1M",
+                "--save-every",
+                &SAVE_EVERY.to_string(),
+            ])
+            .args(MAPPING)
+            .arg(s(&scans))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    // One run to its end: the store of all frames.
+    let whole = dir.join("store-whole");
+    assert!(replay(&whole).wait().unwrap().success());
+    assert_eq!(
+        voxmap_map::store::read_manifest(&whole)
+            .unwrap()
+            .last_frame
+            .0 as usize,
+        FRAMES
+    );
+    let mut rng = TestRng(99);
+    let (mut mid_run, trials) = (0, 24);
+    for trial in 0..trials {
+        let store = dir.join(format!("store-{trial}"));
+        let mut child = replay(&store);
+        // Killed a random few milliseconds after a random save (or at start-up): in the
+        // evictions of the frames after it, or in the next save.
+        let after = rng.below((FRAMES / SAVE_EVERY) as u64) as usize * SAVE_EVERY;
+        let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
+        let mut said = String::new();
+        if after > 0 {
+            let mark = format!("store saved: frame {after},");
+            let mut line = String::new();
+            while std::io::BufRead::read_line(&mut out, &mut line).unwrap() > 0 {
+                said.push_str(&line);
+                if line.starts_with(&mark) {
+                    break;
+                }
+                line.clear();
+            }
+        }
+        std::thread::sleep(Duration::from_micros(rng.below(8000)));
+        let _ = child.kill(); // SIGKILL
+        let status = child.wait().unwrap();
+        out.read_to_string(&mut said).unwrap();
+        // The last save the replay reported before it died.
+        let acknowledged = said
+            .lines()
+            .filter_map(|l| {
+                l.strip_prefix("store saved: frame ")?
+                    .split(',')
+                    .next()?
+                    .parse::<usize>()
+                    .ok()
+            })
+            .max()
+            .unwrap_or(0);
+        if !status.success() {
+            mid_run += 1;
+        }
+        if !voxmap_map::store::exists(&store) {
+            assert_eq!(
+                acknowledged, 0,
+                "trial {trial}: no store, yet a save was reported"
+            );
+            continue;
+        }
+        let manifest = voxmap_map::store::read_manifest(&store)
+            .unwrap_or_else(|e| panic!("trial {trial}: the store does not open: {e}"));
+        let saved = manifest.last_frame.0 as usize;
+        assert!(
+            saved >= acknowledged,
+            "trial {trial}: saved frame {saved} < acknowledged {acknowledged}"
+        );
+        assert!(
+            saved.is_multiple_of(SAVE_EVERY),
+            "trial {trial}: frame {saved}"
+        );
+        let inspect = ok(&["inspect", s(&store), "--check"]);
+        assert!(inspect.contains(" 0 refused"), "trial {trial}: {inspect}");
+        let out = dir.join(format!("export-{trial}.vxm"));
+        ok(&["export", s(&store), "--out", s(&out)]);
+        assert!(
+            std::fs::read(&out).unwrap() == refs[saved / SAVE_EVERY],
+            "trial {trial}: the store's map is not the map of its first {saved} frames"
+        );
+        // And it goes on: a replay resumes the store where it stopped.
+        let _ = std::fs::remove_dir_all(&store);
+    }
+    eprintln!("{mid_run} of {trials} kills landed mid-run");
+    assert!(
+        mid_run >= trials * 2 / 3,
+        "only {mid_run} of {trials} kills landed mid-run"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
