@@ -15,7 +15,7 @@
 //! which refuses a kernel the CPU cannot run. That check is what makes each entry's
 //! `unsafe` call sound.
 
-use crate::field::tile::{self, Region, Scratch};
+use crate::field::patch::{self, Region, Scratch};
 use crate::grid::Leaf;
 use crate::integrate::marks::{FrameMarks, Slot};
 use crate::integrate::ray::{CellKeys, ChunkOrder, ExtentSum, Ray, RayMaker, Sides};
@@ -226,7 +226,7 @@ pub struct Kernels {
     pub(crate) walk_sparse: fn(&FrameMarks, [f64; 3], &[Ray]) -> u64,
     /// One leaf's marks observed into the map's leaf (see `integrate::update::observe_leaf`).
     pub(crate) observe_leaf: fn(&mut Leaf<i8>, &Slot, &QuantizedModel, bool) -> u64,
-    /// The distance field's three passes over one tile (see `field::tile::passes`).
+    /// The distance field's three passes over one patch (see `field::patch::passes`).
     pub(crate) field_passes: fn(&mut Scratch, usize, usize, Region),
     /// The snapshot records of one piece of leaves (see `snapshot::encode::encode_piece`).
     pub(crate) encode_piece: fn(&mut [PlannedLeaf<'_>], &[Mask512]) -> Encoded,
@@ -283,7 +283,7 @@ static SCALAR: Kernels = Kernels {
     },
     walk_sparse: sparse::walk_rays,
     observe_leaf: update::observe_leaf::<update::Scalar>,
-    field_passes: tile::passes,
+    field_passes: patch::passes,
     encode_piece: encode::encode_piece,
 };
 
@@ -315,7 +315,7 @@ static AVX2: Kernels = Kernels {
     observe_leaf: |leaf, slot, q, fresh| unsafe {
         update::avx2::observe_leaf(leaf, slot, q, fresh)
     },
-    field_passes: |s, n, r, region| unsafe { tile::passes_avx2(s, n, r, region) },
+    field_passes: |s, n, r, region| unsafe { patch::passes_avx2(s, n, r, region) },
     encode_piece: |piece, keeps| unsafe { encode::encode_piece_avx2(piece, keeps) },
 };
 
@@ -348,7 +348,7 @@ static AVX512: Kernels = Kernels {
     observe_leaf: |leaf, slot, q, fresh| unsafe {
         update::avx512::observe_leaf(leaf, slot, q, fresh)
     },
-    field_passes: |s, n, r, region| unsafe { tile::passes_avx512(s, n, r, region) },
+    field_passes: |s, n, r, region| unsafe { patch::passes_avx512(s, n, r, region) },
     encode_piece: |piece, keeps| unsafe { encode::encode_piece_avx512(piece, keeps) },
 };
 

@@ -1,15 +1,15 @@
 //! [`DistanceField`]: a band-limited exact distance field kept beside an occupancy map.
 //!
-//! The field is recomputed tile by tile (32³ voxels, `tile.rs`). After a frame,
+//! The field is recomputed patch by patch (32³ voxels, `patch.rs`). After a frame,
 //! [`DistanceField::update`] compares the obstacles of the map's leaves in the frame's box
-//! with the copy it kept of them; a tile is transformed again when an obstacle changed
+//! with the copy it kept of them; a patch is transformed again when an obstacle changed
 //! within the radius of it, when it holds a leaf the field has not seen, or when a moving
 //! window newly covers it. Each transform is exact and depends only on the obstacles, so
 //! the field after any sequence of updates equals the field built from scratch, and does
-//! not depend on the thread count: tiles run in parallel on the current rayon pool and
-//! their results are stored in tile order.
+//! not depend on the thread count: patches run in parallel on the current rayon pool and
+//! their results are stored in patch order.
 
-use super::tile::{self, Region, Scratch, TILE, TILE_LOG2};
+use super::patch::{self, Region, Scratch, PATCH, PATCH_LOG2};
 use super::{check_bands, leaf_in_window, Band, FieldConfig};
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
 use crate::mask::Mask512;
@@ -26,8 +26,8 @@ pub struct FieldReport {
     /// Map leaves whose obstacles changed, and leaves the field had not seen.
     pub changed_leaves: u64,
     pub new_leaves: u64,
-    /// Tiles transformed.
-    pub tiles: u64,
+    /// Patches transformed.
+    pub patches: u64,
     pub time: Duration,
 }
 
@@ -278,7 +278,7 @@ impl DistanceField {
         let n = leaves.len();
         let bands: HashMap<VoxelCoord, LeafBand> = leaves.into_iter().collect();
         let policy = cfg.unknown;
-        let map_leaves = (map.grid().leaves()).map(|(o, leaf)| (o, tile::obstacles(leaf, policy)));
+        let map_leaves = (map.grid().leaves()).map(|(o, leaf)| (o, patch::obstacles(leaf, policy)));
         let is_leaf = |o| map.grid().leaf_index(o).is_some();
         check_bands(
             &bands,
@@ -296,7 +296,7 @@ impl DistanceField {
         for (o, leaf) in map.grid().leaves() {
             f.leaves.entry(o).or_insert(None);
             if !leaf_in_window(window, o) {
-                let obstacles = tile::obstacles(leaf, policy);
+                let obstacles = patch::obstacles(leaf, policy);
                 if !obstacles.is_empty() {
                     f.outside.insert(o, obstacles);
                 }
@@ -353,10 +353,10 @@ impl DistanceField {
             VoxelCoord::new(i32::MAX, i32::MAX, i32::MAX),
         ));
         let (leaves, outside) = (&self.leaves, &self.outside);
-        let absent = tile::absent_obstacles(policy);
+        let absent = patch::absent_obstacles(policy);
         let changes: Vec<(VoxelCoord, Mask512, Option<Mask512>)> =
             map.grid().filter_map_leaves_in_box(lo, hi, |origin, leaf| {
-                let now = tile::obstacles(leaf, policy);
+                let now = patch::obstacles(leaf, policy);
                 let was = match leaves.get(&origin) {
                     None => return Some((origin, now, None)),
                     Some(Some(band)) => band.obstacles,
@@ -365,20 +365,20 @@ impl DistanceField {
                 (was != now).then_some((origin, now, Some(was)))
             });
         let mut report = FieldReport::default();
-        // Per tile to transform again, the box of its voxels that may have changed (in
-        // leaves, tile-local, inclusive).
+        // Per patch to transform again, the box of its voxels that may have changed (in
+        // leaves, patch-local, inclusive).
         let mut dirty: hashbrown::HashMap<VoxelCoord, ([i32; 3], [i32; 3])> =
             hashbrown::HashMap::new();
-        let tile_of = |v: VoxelCoord| v.shr(TILE_LOG2);
+        let patch_of = |v: VoxelCoord| v.shr(PATCH_LOG2);
         // Mark the voxels [lo, hi] (global, inclusive) as to be transformed again.
         let mut mark = |lo: VoxelCoord, hi: VoxelCoord| {
-            let (a, b) = (tile_of(lo), tile_of(hi));
+            let (a, b) = (patch_of(lo), patch_of(hi));
             for z in a.z..=b.z {
                 for y in a.y..=b.y {
                     for x in a.x..=b.x {
                         let t = VoxelCoord::new(x, y, z);
-                        let o = t.shl(TILE_LOG2).to_array();
-                        let last = TILE as i32 - 1;
+                        let o = t.shl(PATCH_LOG2).to_array();
+                        let last = PATCH as i32 - 1;
                         let (l, h) = (lo.to_array(), hi.to_array());
                         let blo = [0, 1, 2].map(|k| (l[k] - o[k]).clamp(0, last) & !7);
                         let bhi = [0, 1, 2].map(|k| (h[k] - o[k]).clamp(0, last) | 7);
@@ -399,7 +399,7 @@ impl DistanceField {
             }
             if was != now {
                 report.changed_leaves += 1;
-                // The tiles within the radius of a voxel whose obstacle changed.
+                // The patches within the radius of a voxel whose obstacle changed.
                 let flipped = Mask512 {
                     words: std::array::from_fn(|w| was.words[w] ^ now.words[w]),
                 };
@@ -417,7 +417,7 @@ impl DistanceField {
                     ),
                 );
             }
-            // A leaf in the window gets its obstacles with its band (its tile is
+            // A leaf in the window gets its obstacles with its band (its patch is
             // transformed); one outside keeps them apart.
             self.leaves.entry(origin).or_insert(None);
             if !self.overlaps_window(origin) {
@@ -430,17 +430,17 @@ impl DistanceField {
         // A window that moved: transform what it newly covers.
         if self.window != old_window {
             if let Some((wlo, whi)) = self.window {
-                let (a, b) = (tile_of(wlo), tile_of(whi));
+                let (a, b) = (patch_of(wlo), patch_of(whi));
                 for z in a.z..=b.z {
                     for y in a.y..=b.y {
                         for x in a.x..=b.x {
                             let t = VoxelCoord::new(x, y, z);
                             let covered = old_window.is_some_and(|(olo, ohi)| {
-                                let (tlo, thi) = tile_box(t);
+                                let (tlo, thi) = patch_box(t);
                                 inside(tlo, olo, ohi) && inside(thi, olo, ohi)
                             });
                             if !covered {
-                                let (tlo, thi) = tile_box(t);
+                                let (tlo, thi) = patch_box(t);
                                 mark(tlo, thi);
                             }
                         }
@@ -448,25 +448,25 @@ impl DistanceField {
                 }
             }
         }
-        let mut tiles: Vec<(VoxelCoord, Region)> = dirty
+        let mut patches: Vec<(VoxelCoord, Region)> = dirty
             .into_iter()
             .filter(|&(t, _)| {
                 self.window.is_none_or(|(wlo, whi)| {
-                    let (tlo, thi) = tile_box(t);
+                    let (tlo, thi) = patch_box(t);
                     overlaps(tlo, thi, wlo, whi)
                 })
             })
             .map(|(t, (lo, hi))| (t, (lo.map(|c| c as usize), hi.map(|c| c as usize + 1))))
             .collect();
-        tiles.sort_unstable_by_key(|(t, _)| (t.z, t.y, t.x));
-        report.tiles = tiles.len() as u64;
-        self.transform_tiles(map, &tiles);
+        patches.sort_unstable_by_key(|(t, _)| (t.z, t.y, t.x));
+        report.patches = patches.len() as u64;
+        self.transform_patches(map, &patches);
         report.time = t0.elapsed();
         report
     }
 
-    /// Transform `tiles` in parallel and store their leaves' bands.
-    fn transform_tiles(&mut self, map: &OccupancyMap, tiles: &[(VoxelCoord, Region)]) {
+    /// Transform `patches` in parallel and store their leaves' bands.
+    fn transform_patches(&mut self, map: &OccupancyMap, patches: &[(VoxelCoord, Region)]) {
         let threads = rayon::current_num_threads();
         while self.scratch.len() < threads {
             self.scratch.push(Mutex::new(Scratch::default()));
@@ -479,13 +479,13 @@ impl DistanceField {
             self.window,
         );
         let grid = map.grid();
-        let results: Vec<Vec<(VoxelCoord, Option<LeafBand>)>> = tiles
+        let results: Vec<Vec<(VoxelCoord, Option<LeafBand>)>> = patches
             .par_iter()
             .map(|&(t, region)| {
-                let origin = t.shl(TILE_LOG2);
-                // The map's leaves in the tile's region (in the window): only they get a
+                let origin = t.shl(PATCH_LOG2);
+                // The map's leaves in the patch's region (in the window): only they get a
                 // band.
-                let per = TILE / 8;
+                let per = PATCH / 8;
                 let mut leaves = Vec::with_capacity(per * per * per);
                 let (lo, hi) = (region.0.map(|c| c / 8), region.1.map(|c| c.div_ceil(8)));
                 for z in lo[2]..hi[2] {
@@ -504,10 +504,10 @@ impl DistanceField {
                 }
                 let slot = rayon::current_thread_index().unwrap_or(0) % scratch.len();
                 let mut s = scratch[slot].lock().unwrap_or_else(|e| e.into_inner());
-                if !tile::transform(&mut s, grid, policy, origin, radius, kernels, region) {
+                if !patch::transform(&mut s, grid, policy, origin, radius, kernels, region) {
                     return leaves.into_iter().map(|(o, _)| (o, None)).collect();
                 }
-                let far = tile::far_key(radius);
+                let far = patch::far_key(radius);
                 leaves
                     .into_iter()
                     .map(|(o, [lx, ly, lz])| {
@@ -516,12 +516,12 @@ impl DistanceField {
                         let mut n = 0;
                         for z in 0..8 {
                             for y in 0..8 {
-                                let row = ((8 * lz + z) * TILE + 8 * ly + y) * TILE + 8 * lx;
+                                let row = ((8 * lz + z) * PATCH + 8 * ly + y) * PATCH + 8 * lx;
                                 for x in 0..8 {
                                     let key = s.keys[row + x];
                                     if key < far {
                                         mask.set(x | y << 3 | z << 6);
-                                        offsets[n] = tile::decode(key);
+                                        offsets[n] = patch::decode(key);
                                         n += 1;
                                     }
                                 }
@@ -580,10 +580,10 @@ fn window_around(
     Some((lo, hi))
 }
 
-/// Inclusive voxel box of a tile.
-fn tile_box(t: VoxelCoord) -> (VoxelCoord, VoxelCoord) {
-    let lo = t.shl(TILE_LOG2);
-    let e = TILE as i32 - 1;
+/// Inclusive voxel box of a patch.
+fn patch_box(t: VoxelCoord) -> (VoxelCoord, VoxelCoord) {
+    let lo = t.shl(PATCH_LOG2);
+    let e = PATCH as i32 - 1;
     (lo, lo + VoxelCoord::new(e, e, e))
 }
 

@@ -1,13 +1,13 @@
 //! The distance field beside a map: [`DistanceField`] builds and maintains, for each voxel
 //! within `max_distance` of an obstacle, the exact offset to the nearest one (`esdf.rs`),
-//! tile by tile with an exact separable transform (`tile.rs`). What the field means and
+//! patch by patch with an exact separable transform (`patch.rs`). What the field means and
 //! how snapshots carry it is in `voxmap-reader`'s `field` and `snapshot::field`,
 //! re-exported here.
 
 pub use voxmap_reader::field::*;
 
 mod esdf;
-pub(crate) mod tile;
+pub(crate) mod patch;
 
 #[cfg(test)]
 mod tests;

@@ -202,7 +202,7 @@ fn incremental_updates_equal_a_rebuild_for_any_thread_count() {
                 let report = integ.integrate(&mut map, &frame).unwrap();
                 let fr = integ.install(|| field.update(&map, report.bounds, None));
                 if k > 0 {
-                    assert!(fr.tiles > 0 && fr.changed_leaves > 0, "{fr:?}");
+                    assert!(fr.patches > 0 && fr.changed_leaves > 0, "{fr:?}");
                 }
             }
             let mut fresh = DistanceField::new(cfg, 0.1).unwrap();
@@ -402,7 +402,7 @@ fn a_leaf_the_window_leaves_keeps_its_obstacles_for_the_next_update() {
     let mut field = DistanceField::new(cfg, 0.1).unwrap();
     field.update(&map, None, Some(WorldPoint::new(0.0, 0.0, 0.0)));
     assert_eq!(field.nearest(edge), Some([-4, 0, 0]));
-    // The window moves so that `b`'s leaf falls out of it while the tile of `edge` stays
+    // The window moves so that `b`'s leaf falls out of it while the patch of `edge` stays
     // covered (no transform for the move alone), and `b` goes in the same frame.
     map.set_value(b, -10);
     field.update(&map, Some((b, b)), Some(WorldPoint::new(0.8, 0.0, 0.0)));

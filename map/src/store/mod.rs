@@ -689,10 +689,13 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, StoreError> {
         return Err(StoreError::Missing(dir.into()));
     }
     let bytes = std::fs::read(&path).map_err(io_err(&path))?;
-    let bad = |problem: String| StoreError::Manifest {
-        path: path.clone(),
-        problem,
-    };
+    decode_manifest(&bytes).map_err(|problem| StoreError::Manifest { path, problem })
+}
+
+/// A manifest's bytes, checked (magic, version, length, CRC, parameters); what is wrong
+/// with them otherwise.
+pub fn decode_manifest(bytes: &[u8]) -> Result<Manifest, String> {
+    let bad = |problem: String| problem;
     if bytes.len() < 24 || bytes[..8] != MANIFEST_MAGIC {
         return Err(bad("not a voxmap store manifest".into()));
     }
@@ -705,18 +708,17 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, StoreError> {
     let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
     if len > MAX_MANIFEST as u64 || bytes.len() as u64 != 24 + len {
         return Err(bad(format!(
-            "{} bytes where the head says {}",
-            bytes.len(),
-            24 + len
+            "{} bytes where the head says {len} and 24 more",
+            bytes.len()
         )));
     }
     let (head, crc) = bytes.split_at(bytes.len() - 4);
     if crc32fast::hash(head) != u32::from_le_bytes(crc.try_into().expect("4 bytes")) {
         return Err(bad("checksum mismatch".into()));
     }
-    let (m, used): (Manifest, usize) =
-        bincode::serde::decode_from_slice(&head[20..], bincode::config::standard())
-            .map_err(|e| bad(format!("does not decode: {e}")))?;
+    let config = bincode::config::standard().with_limit::<MAX_MANIFEST>();
+    let (m, used): (Manifest, usize) = bincode::serde::decode_from_slice(&head[20..], config)
+        .map_err(|e| bad(format!("does not decode: {e}")))?;
     if used != head.len() - 20 {
         return Err(bad("trailing bytes".into()));
     }
@@ -724,8 +726,18 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, StoreError> {
         .model
         .quantize()
         .map_err(|e| bad(format!("sensor model: {e}")))?;
-    if !(m.params.resolution.is_finite() && m.params.resolution > 0.0) {
-        return Err(bad(format!("resolution {}", m.params.resolution)));
+    crate::coord::GridTransform::new(m.params.resolution)
+        .map_err(|e| bad(format!("resolution: {e}")))?;
+    for e in &m.tiles {
+        let t = VoxelCoord::from_array(e.tile);
+        if record::tile_of(t) != t
+            || e.leaves as usize > crate::grid::INTERNAL_CHILDREN
+            || (e.len as usize) < record::HEAD
+            || e.len as usize > record::MAX_RECORD
+            || e.offset < SEGMENT_HEAD
+        {
+            return Err(bad(format!("tile entry {e:?} is not a tile record's")));
+        }
     }
     Ok(m)
 }

@@ -23,6 +23,10 @@ pub const RECORD_MAGIC: [u8; 4] = *b"VXTR";
 pub const RECORD_VERSION: u32 = 1;
 /// Bytes of a record's head.
 pub const HEAD: usize = 48;
+/// The longest record a tile can have: its head and the compression bound of all its
+/// leaves.
+pub const MAX_RECORD: usize =
+    HEAD + INTERNAL_CHILDREN * RECORD + INTERNAL_CHILDREN * RECORD / 128 + (64 << 10);
 /// The zstd level tile records are written with (see docs/file-formats.md for the sizes).
 pub const ZSTD_LEVEL: i32 = 1;
 

@@ -42,7 +42,7 @@ pub(super) fn run(a: &BenchArgs, files: &[PathBuf]) -> Result<()> {
     );
     println!(
         "{:<22} {:>8} {:>10} {:>9} {:>8} {:>8} {:>6} {:>6} {:>6} | {:>10} {:>10} {:>6} {:>7} {:>7} | {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "map of", "leaves", "band vox", "build ms", "min", "max", "tiles", "B/bv", "used", "snap B", "+field B", "B/bv", "enc ms", "+field",
+        "map of", "leaves", "band vox", "build ms", "min", "max", "patches", "B/bv", "used", "snap B", "+field B", "B/bv", "enc ms", "+field",
         "state", "dist", "d+grad", "near", "ratio"
     );
     let mut maps: Vec<(String, OccupancyMap, WorldPoint)> = Vec::new();
@@ -130,14 +130,14 @@ fn bulk_row(
 ) -> Result<()> {
     let mut times = Vec::new();
     let mut field = DistanceField::new(cfg, map.resolution())?;
-    let mut tiles = 0;
+    let mut patches = 0;
     for run in 0..=a.runs {
         let t = Instant::now();
         let r = integ.install(|| field.rebuild(map, Some(*sensor)));
         if run > 0 {
             times.push(ms(t.elapsed()));
         }
-        tiles = r.tiles;
+        patches = r.patches;
     }
     let med = median(&mut times);
     let band = field.band_voxels();
@@ -170,7 +170,7 @@ fn bulk_row(
     let q = query_ns(&view, &f, &points);
     println!(
         "{:<22} {:>8} {:>10} {:>9.2} {:>8.2} {:>8.2} {:>6} {:>6.2} {:>6.2} | {:>10} {:>10} {:>6.2} {:>7.2} {:>7.2} | {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>6.2}",
-        name, map.counts().leaves, band, med, times[0], times[times.len() - 1], tiles, mem_per, used_per,
+        name, map.counts().leaves, band, med, times[0], times[times.len() - 1], patches, mem_per, used_per,
         plain.len(), with.len(), section_per, enc_plain, enc_with, q[0], q[1], q[2], q[3], q[1] / q[0]
     );
     Ok(())
@@ -300,8 +300,8 @@ fn sequence(a: &BenchArgs, threads: usize, cfg: FieldConfig) -> Result<()> {
             if run == 0 {
                 let band = mapper.field().map_or(0, |f| f.band_voxels());
                 println!(
-                    "tum frame {:>2} {}: {:>7} points, integrate {:>7.2} ms, field {:>7.2} ms ({} leaves changed, {} new, {} tiles; {} voxels in the band)",
-                    i + 1, f.stamp, f.points.len(), ms(r.times.total()), ms(fr.time), fr.changed_leaves, fr.new_leaves, fr.tiles, band
+                    "tum frame {:>2} {}: {:>7} points, integrate {:>7.2} ms, field {:>7.2} ms ({} leaves changed, {} new, {} patches; {} voxels in the band)",
+                    i + 1, f.stamp, f.points.len(), ms(r.times.total()), ms(fr.time), fr.changed_leaves, fr.new_leaves, fr.patches, band
                 );
                 rows.push((ms(r.times.total()), ms(fr.time)));
             } else {

@@ -158,9 +158,9 @@ impl MapState {
                 "voxmap serve: distance field read with the map ({band_voxels} voxels in the band)"
             ),
             FieldAfterLoad::Rebuilt(r) => eprintln!(
-                "voxmap serve: distance field built in {:.1} ms ({} tiles, {} voxels in the band)",
+                "voxmap serve: distance field built in {:.1} ms ({} patches, {} voxels in the band)",
                 r.time.as_secs_f64() * 1e3,
-                r.tiles,
+                r.patches,
                 self.mapper.field().map_or(0, |f| f.band_voxels())
             ),
         }

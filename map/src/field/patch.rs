@@ -1,6 +1,6 @@
-//! The exact distance transform of one tile of 32³ voxels: the separable transform of
+//! The exact distance transform of one patch of 32³ voxels: the separable transform of
 //! Saito and Toriwaki (one axis at a time, each pass a lower envelope of parabolas), cut to
-//! the band, on a dense copy of the obstacles within `radius` of the tile.
+//! the band, on a dense copy of the obstacles within `radius` of the patch.
 //!
 //! Each cell carries a `u32` key that orders candidates by squared distance first and then
 //! by offset, so that the minimum of keys is the nearest obstacle with a fixed tie-break:
@@ -26,10 +26,10 @@ use crate::grid::{Grid, Leaf};
 use crate::kernel::Kernels;
 use crate::mask::Mask512;
 
-/// log2 of a tile's edge in voxels.
-pub(super) const TILE_LOG2: u32 = 5;
-/// A tile's edge in voxels.
-pub(super) const TILE: usize = 1 << TILE_LOG2;
+/// log2 of a patch's edge in voxels.
+pub(super) const PATCH_LOG2: u32 = 5;
+/// A patch's edge in voxels.
+pub(super) const PATCH: usize = 1 << PATCH_LOG2;
 
 const D2_SHIFT: u32 = 15;
 
@@ -86,7 +86,7 @@ pub(super) fn absent_obstacles(policy: UnknownPolicy) -> Mask512 {
     }
 }
 
-/// Per-thread buffers of the transform, reused from tile to tile.
+/// Per-thread buffers of the transform, reused from patch to patch.
 #[derive(Default)]
 pub(crate) struct Scratch {
     obs: Vec<u8>,
@@ -96,17 +96,17 @@ pub(crate) struct Scratch {
     keyy: Vec<u32>,
     /// Per row of `keyz`: whether any key is in the band.
     live: Vec<bool>,
-    /// The result: keys of the tile's voxels, x fastest, then y, then z.
+    /// The result: keys of the patch's voxels, x fastest, then y, then z.
     pub(super) keys: Vec<u32>,
 }
 
-/// A box of a tile's voxels, `(lo, hi)` per axis x, y, z, hi exclusive.
+/// A box of a patch's voxels, `(lo, hi)` per axis x, y, z, hi exclusive.
 pub(crate) type Region = ([usize; 3], [usize; 3]);
 
-/// Transform the tile with minimum corner `origin` (a multiple of [`TILE`]) where it is
+/// Transform the patch with minimum corner `origin` (a multiple of [`PATCH`]) where it is
 /// needed: fills `scratch.keys` for the voxels of `region` (their whole rows along x).
 /// Returns false, leaving the keys unset, when no obstacle lies within the radius of the
-/// tile (every key would be far).
+/// patch (every key would be far).
 pub(super) fn transform(
     scratch: &mut Scratch,
     map: &Grid<i8>,
@@ -116,7 +116,7 @@ pub(super) fn transform(
     kernels: &Kernels,
     region: Region,
 ) -> bool {
-    let (r, t) = (radius as usize, TILE);
+    let (r, t) = (radius as usize, PATCH);
     let n = t + 2 * r;
     if !fill_obstacles(&mut scratch.obs, map, policy, origin, radius) {
         return false;
@@ -130,7 +130,7 @@ pub(super) fn transform(
     true
 }
 
-/// Write the obstacles of the region `origin - radius .. origin + TILE + radius` as one
+/// Write the obstacles of the region `origin - radius .. origin + PATCH + radius` as one
 /// byte per voxel (x fastest); false when there is none.
 fn fill_obstacles(
     obs: &mut Vec<u8>,
@@ -140,7 +140,7 @@ fn fill_obstacles(
     radius: u32,
 ) -> bool {
     let r = radius as i32;
-    let n = TILE as i32 + 2 * r;
+    let n = PATCH as i32 + 2 * r;
     let g0 = VoxelCoord::new(origin.x - r, origin.y - r, origin.z - r);
     let absent = absent_obstacles(policy);
     obs.clear();
@@ -179,11 +179,11 @@ fn fill_obstacles(
     any
 }
 
-/// The three passes over a filled scratch (`n = TILE + 2r`). Written as loops over
+/// The three passes over a filled scratch (`n = PATCH + 2r`). Written as loops over
 /// fixed-length rows with no branches, so that each inlined copy vectorizes.
 #[inline(always)]
 pub(crate) fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
-    let t = TILE;
+    let t = PATCH;
     let ([_, y0, z0], [_, y1, z1]) = b;
     let plane = n * n;
     let cap = (r + 1) as u8;
@@ -198,7 +198,7 @@ pub(crate) fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
         live,
     } = s;
     // Along z: per column, the distance to the nearest obstacle at or below z (capped at
-    // r + 1), then at or above; only the tile's planes are kept, for all of the region's
+    // r + 1), then at or above; only the patch's planes are kept, for all of the region's
     // x and y.
     let run = &mut run[..plane];
     run.fill(cap);
@@ -227,7 +227,7 @@ pub(crate) fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
     {
         *l = row.iter().fold(far, |m, &k| m.min(k)) < far;
     }
-    // Along y: for the tile's (y, z), every x of the region, 32 x at a time held in
+    // Along y: for the patch's (y, z), every x of the region, 32 x at a time held in
     // registers over the rows with anything in the band (listed once per output row).
     const LANES: usize = 32;
     let mut rows = [(0usize, 0u32); 2 * MAX_RADIUS as usize + 1];
@@ -277,16 +277,16 @@ pub(crate) fn passes(s: &mut Scratch, n: usize, r: usize, b: Region) {
             }
         }
     }
-    // Along x: the tile's voxels, a row of TILE at a time in registers; rows with nothing
+    // Along x: the patch's voxels, a row of PATCH at a time in registers; rows with nothing
     // in the band stay far.
     for row in (z0..z1).flat_map(|z| (y0..y1).map(move |y| z * t + y)) {
         let src = &keyy[row * n..][..n];
-        let mut acc = [far; TILE];
+        let mut acc = [far; PATCH];
         if src.iter().fold(far, |m, &k| m.min(k)) < far {
             for k in 0..=2 * r {
                 let c = add_x(k as i32 - r as i32);
-                let s: &[u32; TILE] = src[k..k + TILE].try_into().expect("n >= TILE + 2r");
-                for i in 0..TILE {
+                let s: &[u32; PATCH] = src[k..k + PATCH].try_into().expect("n >= PATCH + 2r");
+                for i in 0..PATCH {
                     acc[i] = acc[i].min(s[i] + c);
                 }
             }
