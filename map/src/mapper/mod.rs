@@ -574,7 +574,7 @@ mod tests {
         let mut m = Mapper::new(&other).unwrap();
         let (loaded, carried) = mapfile::decode_map_with_field(&bytes).unwrap();
         let (_, after) = m.replace_map(loaded, carried).unwrap();
-        assert!(matches!(after, FieldAfterLoad::Rebuilt(r) if r.tiles > 0));
+        assert!(matches!(after, FieldAfterLoad::Rebuilt(r) if r.patches > 0));
         assert_eq!(mapfile::encode_map(m.map()), mapfile::encode_map(&map));
 
         // A map the integrator cannot work at is refused, and the mapper keeps its own.
