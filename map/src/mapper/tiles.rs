@@ -67,8 +67,8 @@ struct Resident {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TileStats {
     pub memory_budget: Option<u64>,
-    /// The map's resident bytes: leaves and nodes in use, and records waiting for the
-    /// store's writer.
+    /// The map's resident bytes: leaves and nodes in use, records waiting for the store's
+    /// writer, tiles its loader decoded ahead.
     pub resident_bytes: u64,
     pub tiles_resident: u64,
     /// Tiles only in the store.
@@ -93,6 +93,10 @@ pub(crate) struct Tiles {
     stats: TileStats,
     /// The store's writer failed: no more evictions (told once, in that frame's report).
     write_failed: bool,
+    /// The last frame's box (world) and the sensor positions of the last two frames: the
+    /// next frame's box is guessed from them, to load its tiles ahead.
+    frame_box: Option<([f64; 3], [f64; 3])>,
+    sensors: [Option<WorldPoint>; 2],
 }
 
 impl Tiles {
@@ -104,6 +108,8 @@ impl Tiles {
             stored,
             clock: 0,
             write_failed: false,
+            frame_box: None,
+            sensors: [None; 2],
             stats: TileStats {
                 memory_budget: budget,
                 ..Default::default()
@@ -120,9 +126,6 @@ impl Tiles {
         max_range: f64,
         report: &mut TileReport,
     ) {
-        if self.stored.is_empty() {
-            return;
-        }
         let o = frame.pose.translation.vector;
         let (mut lo, mut hi) = ([o.x, o.y, o.z], [o.x, o.y, o.z]);
         for p in frame.points {
@@ -142,6 +145,7 @@ impl Tiles {
                 hi[k] = hi[k].max(w[k]);
             }
         }
+        self.frame_box = Some((lo, hi));
         self.load_box(map, lo, hi, report);
     }
 
@@ -156,8 +160,19 @@ impl Tiles {
         if self.stored.is_empty() {
             return;
         }
+        let start = Instant::now();
+        for k in self.stored_in(map, lo, hi) {
+            self.load(map, k, report);
+        }
+        let waited = start.elapsed();
+        report.load_time += waited;
+        self.stats.worst_wait = self.stats.worst_wait.max(report.load_time);
+    }
+
+    /// The stored tiles overlapping the world box [lo, hi], with a voxel of slack each way
+    /// (a ray's last voxel may round across a face).
+    fn stored_in(&self, map: &OccupancyMap, lo: [f64; 3], hi: [f64; 3]) -> Vec<VoxelCoord> {
         let t = map.transform();
-        // One voxel of slack each way: a ray's last voxel may round across a face.
         let corner = |p: [f64; 3], s: f64| {
             let u = t.point_to_units(&WorldPoint::new(p[0], p[1], p[2]));
             let c = |k: usize| {
@@ -168,7 +183,20 @@ impl Tiles {
             tile_of(VoxelCoord::new(c(0), c(1), c(2)))
         };
         let (a, b) = (corner(lo, -1.0), corner(hi, 1.0));
-        let start = Instant::now();
+        let span = |k: usize| {
+            (i64::from(b.to_array()[k]) - i64::from(a.to_array()[k])) / i64::from(TILE) + 1
+        };
+        let keys = span(0).saturating_mul(span(1)).saturating_mul(span(2));
+        let inside = |k: &VoxelCoord| {
+            (0..3).all(|i| (a.to_array()[i]..=b.to_array()[i]).contains(&k.to_array()[i]))
+        };
+        // A box with more tiles than the store has (a huge query): go through the store.
+        if keys > self.stored.len() as i64 {
+            let mut v: Vec<VoxelCoord> =
+                self.stored.iter().filter(|k| inside(k)).copied().collect();
+            v.sort_unstable_by_key(|k| (k.z, k.y, k.x));
+            return v;
+        }
         let mut want = Vec::new();
         for z in (a.z..=b.z).step_by(TILE as usize) {
             for y in (a.y..=b.y).step_by(TILE as usize) {
@@ -180,12 +208,7 @@ impl Tiles {
                 }
             }
         }
-        for k in want {
-            self.load(map, k, report);
-        }
-        let waited = start.elapsed();
-        report.load_time += waited;
-        self.stats.worst_wait = self.stats.worst_wait.max(report.load_time);
+        want
     }
 
     fn load(&mut self, map: &mut OccupancyMap, tile: VoxelCoord, report: &mut TileReport) {
@@ -248,6 +271,27 @@ impl Tiles {
         }
         self.adopt_new_nodes(map);
         self.evict_over_budget(map, sensor, working, report);
+        self.sensors = [self.sensors[1], Some(sensor)];
+        self.load_ahead(map);
+    }
+
+    /// Ask the store's loader for the stored tiles the next two frames will likely reach:
+    /// the last frame's box moved on by the sensor's last step, once and twice.
+    fn load_ahead(&mut self, map: &OccupancyMap) {
+        let (Some((lo, hi)), [Some(a), Some(b)]) = (self.frame_box, self.sensors) else {
+            return;
+        };
+        if self.stored.is_empty() {
+            return;
+        }
+        let step = b - a;
+        let (mut lo2, mut hi2) = (lo, hi);
+        for k in 0..3 {
+            lo2[k] = (lo[k] + step[k]).min(lo[k] + 2.0 * step[k]);
+            hi2[k] = (hi[k] + step[k]).max(hi[k] + 2.0 * step[k]);
+        }
+        let tiles = self.stored_in(map, lo2, hi2);
+        self.store.prefetch(tiles);
     }
 
     /// Nodes the grid has and the list lacks (made by the frame) become resident tiles,
@@ -265,7 +309,7 @@ impl Tiles {
     }
 
     pub(crate) fn resident_bytes(&self, map: &OccupancyMap) -> u64 {
-        (map.grid().live_bytes() + self.store.pending_bytes()) as u64
+        (map.grid().live_bytes() + self.store.pending_bytes() + self.store.ready_bytes()) as u64
     }
 
     /// Near or over the budget (the map's resident bytes and the integrator's `working`

@@ -181,6 +181,9 @@ struct Shared {
     live: HashMap<u32, u64>,
     /// The segment being written and its length.
     active: (u32, u64),
+    /// Tiles the loader thread decoded ahead of need.
+    ready: HashMap<VoxelCoord, Prefetched>,
+    ready_bytes: usize,
 }
 
 enum Job {
@@ -214,6 +217,8 @@ pub struct TileStore {
     shared: Arc<Mutex<Shared>>,
     jobs: Option<mpsc::Sender<Job>>,
     writer: Option<std::thread::JoinHandle<()>>,
+    loads: Option<mpsc::Sender<Vec<VoxelCoord>>>,
+    loader: Option<std::thread::JoinHandle<()>>,
     puts: u64,
     generation: u64,
     /// Open segment files for reading.
@@ -296,6 +301,8 @@ impl TileStore {
             shared: Arc::new(Mutex::new(Shared::default())),
             jobs: None,
             writer: None,
+            loads: None,
+            loader: None,
             puts: 0,
             generation: manifest.generation,
             readers: HashMap::new(),
@@ -322,9 +329,19 @@ impl TileStore {
                 .spawn(move || write_records(&at, seg, &shared, &rx))
                 .map_err(io_err(dir))?
         };
+        let (ltx, lrx) = mpsc::channel();
+        let loader = {
+            let (shared, at, q) = (shared.clone(), dir.to_path_buf(), q);
+            std::thread::Builder::new()
+                .name("voxmap-load".into())
+                .spawn(move || load_ahead(&at, &q, &shared, &lrx))
+                .map_err(io_err(dir))?
+        };
         store.shared = shared;
         store.jobs = Some(tx);
         store.writer = Some(writer);
+        store.loads = Some(ltx);
+        store.loader = Some(loader);
         Ok(store)
     }
 
@@ -396,6 +413,15 @@ impl TileStore {
 
     /// The tile's leaves from its latest record, checked; `None` where it has none.
     pub fn get(&mut self, tile: VoxelCoord) -> Result<Option<TileLeaves>, StoreError> {
+        {
+            let mut s = self.lock();
+            if let Some(p) = s.ready.remove(&tile) {
+                s.ready_bytes -= p.bytes;
+                if Some(p.source) == source_of(&s, tile) {
+                    return Ok(Some(p.leaves));
+                }
+            }
+        }
         Ok(self.fetch(tile)?.map(|(_, leaves)| leaves))
     }
 
@@ -404,7 +430,6 @@ impl TileStore {
         Ok(self.fetch(tile)?.map(|(raw, _)| raw))
     }
 
-    #[allow(clippy::type_complexity)]
     fn fetch(&mut self, tile: VoxelCoord) -> Result<Option<(Vec<u8>, TileLeaves)>, StoreError> {
         let (pending, loc) = {
             let s = self.lock();
@@ -424,34 +449,34 @@ impl TileStore {
             return Ok(Some((raw.to_vec(), leaves)));
         }
         let Some(loc) = loc else { return Ok(None) };
-        let path = self.dir.join(segment_name(loc.segment));
-        let refused = |source| StoreError::Tile {
-            tile: tile.to_array(),
-            segment: path.clone(),
-            offset: loc.offset,
-            source,
-        };
-        let file = match self.readers.entry(loc.segment) {
-            hashbrown::hash_map::Entry::Occupied(f) => f.into_mut(),
-            hashbrown::hash_map::Entry::Vacant(v) => {
-                v.insert(File::open(&path).map_err(io_err(&path))?)
-            }
-        };
-        let mut bytes = vec![0u8; loc.len as usize];
-        let got = read_at_most(file, &mut bytes, loc.offset).map_err(io_err(&path))?;
-        bytes.truncate(got);
-        let (head, raw) = record::decode(&bytes).map_err(refused)?;
-        let leaves = record::leaves_of(&raw, tile, &self.q).map_err(refused)?;
-        if head.tile != tile || head.leaves != loc.leaves || bytes.len() != loc.len as usize {
-            return Err(refused(RecordError::Corrupt(format!(
-                "the record is of tile {:?} with {} leaves, the manifest says {:?} with {}",
-                head.tile.to_array(),
-                head.leaves,
-                tile.to_array(),
-                loc.leaves
-            ))));
+        read_record(&self.dir, &self.q, &mut self.readers, tile, loc).map(Some)
+    }
+
+    /// Decode the stored tiles listed (those the next frames will likely reach) on the
+    /// loader thread, so that [`Self::get`] finds them ready. Tiles made ready for an
+    /// earlier list and not in this one are dropped.
+    pub fn prefetch(&mut self, tiles: Vec<VoxelCoord>) {
+        {
+            let mut s = self.lock();
+            let Shared {
+                ready, ready_bytes, ..
+            } = &mut *s;
+            ready.retain(|k, p| {
+                let keep = tiles.contains(k);
+                if !keep {
+                    *ready_bytes -= p.bytes;
+                }
+                keep
+            });
         }
-        Ok(Some((raw, leaves)))
+        if let Some(l) = &self.loads {
+            let _ = l.send(tiles);
+        }
+    }
+
+    /// Bytes of tiles decoded ahead of need.
+    pub fn ready_bytes(&self) -> usize {
+        self.lock().ready_bytes
     }
 
     /// Drop the tile's record from the store (a refused tile, a cleared map); the next
@@ -572,8 +597,128 @@ impl Drop for TileStore {
     /// The writer finishes what it was handed (nothing is committed).
     fn drop(&mut self) {
         self.jobs = None;
+        self.loads = None;
         if let Some(w) = self.writer.take() {
             let _ = w.join();
+        }
+        if let Some(l) = self.loader.take() {
+            let _ = l.join();
+        }
+    }
+}
+
+/// Which record of a tile a copy was decoded from: one waiting for the writer (its put's
+/// number) or one written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Source {
+    Pending(u64),
+    Written(Loc),
+}
+
+/// The latest record of `tile`, if any.
+fn source_of(s: &Shared, tile: VoxelCoord) -> Option<Source> {
+    match (s.pending.get(&tile), s.index.get(&tile)) {
+        (Some((put, _)), _) => Some(Source::Pending(*put)),
+        (None, Some(loc)) => Some(Source::Written(*loc)),
+        (None, None) => None,
+    }
+}
+
+/// A tile decoded ahead of need.
+struct Prefetched {
+    source: Source,
+    leaves: TileLeaves,
+    bytes: usize,
+}
+
+/// Tiles kept decoded ahead of need at most.
+const MAX_READY: usize = 24;
+
+/// The record at `loc`, read and checked: its raw leaf records and its leaves.
+fn read_record(
+    dir: &Path,
+    q: &QuantizedModel,
+    files: &mut HashMap<u32, File>,
+    tile: VoxelCoord,
+    loc: Loc,
+) -> Result<(Vec<u8>, TileLeaves), StoreError> {
+    let path = dir.join(segment_name(loc.segment));
+    let refused = |source| StoreError::Tile {
+        tile: tile.to_array(),
+        segment: path.clone(),
+        offset: loc.offset,
+        source,
+    };
+    let file = match files.entry(loc.segment) {
+        hashbrown::hash_map::Entry::Occupied(f) => f.into_mut(),
+        hashbrown::hash_map::Entry::Vacant(v) => {
+            v.insert(File::open(&path).map_err(io_err(&path))?)
+        }
+    };
+    let mut bytes = vec![0u8; loc.len as usize];
+    let got = read_at_most(file, &mut bytes, loc.offset).map_err(io_err(&path))?;
+    bytes.truncate(got);
+    let (head, raw) = record::decode(&bytes).map_err(refused)?;
+    let leaves = record::leaves_of(&raw, tile, q).map_err(refused)?;
+    if head.tile != tile || head.leaves != loc.leaves || bytes.len() != loc.len as usize {
+        return Err(refused(RecordError::Corrupt(format!(
+            "the record is of tile {:?} with {} leaves, the manifest says {:?} with {}",
+            head.tile.to_array(),
+            head.leaves,
+            tile.to_array(),
+            loc.leaves
+        ))));
+    }
+    Ok((raw, leaves))
+}
+
+/// The loader thread: decode each listed tile's latest record into the ready set, unless
+/// it is there or the set is full. A record it cannot read is left for
+/// [`TileStore::get`] to refuse.
+fn load_ahead(
+    dir: &Path,
+    q: &QuantizedModel,
+    shared: &Mutex<Shared>,
+    lists: &mpsc::Receiver<Vec<VoxelCoord>>,
+) {
+    let lock = || shared.lock().unwrap_or_else(|e| e.into_inner());
+    let mut files = HashMap::new();
+    while let Ok(mut tiles) = lists.recv() {
+        // Only the newest list matters.
+        while let Ok(newer) = lists.try_recv() {
+            tiles = newer;
+        }
+        for tile in tiles {
+            let (source, pending) = {
+                let s = lock();
+                if s.ready.len() >= MAX_READY || s.ready.contains_key(&tile) {
+                    continue;
+                }
+                (
+                    source_of(&s, tile),
+                    s.pending.get(&tile).map(|p| p.1.clone()),
+                )
+            };
+            let leaves = match (source, pending) {
+                (Some(Source::Pending(_)), Some(raw)) => record::leaves_of(&raw, tile, q).ok(),
+                (Some(Source::Written(loc)), _) => {
+                    read_record(dir, q, &mut files, tile, loc).ok().map(|r| r.1)
+                }
+                _ => None,
+            };
+            if let (Some(source), Some(leaves)) = (source, leaves) {
+                let bytes = leaves.len() * std::mem::size_of::<(VoxelCoord, Leaf<i8>)>();
+                let mut s = lock();
+                let p = Prefetched {
+                    source,
+                    leaves,
+                    bytes,
+                };
+                if let Some(old) = s.ready.insert(tile, p) {
+                    s.ready_bytes -= old.bytes;
+                }
+                s.ready_bytes += bytes;
+            }
         }
     }
 }
