@@ -168,6 +168,10 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     let t = Instant::now();
     let leaves = mapper.write_map_file(&dir.join("map.vxm"))?;
     let export_s = t.elapsed().as_secs_f64();
+    // The store committed, for `voxmap inspect` (not timed).
+    if let Some(r) = mapper.save_store() {
+        r?;
+    }
     let mut sorted = ms.clone();
     sorted.sort_by(f64::total_cmp);
     let q = |p| crate::quantile::percentile(&sorted, p);
