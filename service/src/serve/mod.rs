@@ -396,8 +396,19 @@ fn log_start(cfg: &Config, names: &ServiceNames, s: &MapState) {
                 .map_or(String::new(), |w| format!(", window ±{w:?} m"))
         ),
     };
+    let store = match (s.mapper.store_dir(), s.mapper.tile_stats()) {
+        (Some(d), Some(t)) => format!(
+            ", tile store {} ({} tiles stored, last frame {}), memory budget {}",
+            d.display(),
+            t.tiles_stored,
+            s.mapper.last_frame().sequence,
+            t.memory_budget
+                .map_or("unlimited".to_string(), |b| format!("{} MiB", b >> 20))
+        ),
+        _ => String::new(),
+    };
     eprintln!(
-        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}{field}; frames on '{}'",
+        "voxmap serve: prefix '{}', map '{}', resolution {} m, max range {} m, mode {}, {} threads, kernel {}, intake {}{field}{store}; frames on '{}'",
         cfg.prefix,
         cfg.map,
         s.mapper.map().resolution(),
