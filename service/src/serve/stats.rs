@@ -27,6 +27,9 @@ pub(super) struct Stats {
     pub publish_failures: u64,
     /// The integrator's kernel name.
     pub kernel: &'static str,
+    /// When the last log line was made, with the tile evictions and loads then: the line
+    /// gives their rates since.
+    pub tiles_logged: Option<(std::time::Instant, u64, u64)>,
 }
 
 impl Stats {
@@ -79,7 +82,7 @@ impl Stats {
         }
     }
 
-    pub(super) fn log_line(&self, mapper: &Mapper) -> String {
+    pub(super) fn log_line(&mut self, mapper: &Mapper) -> String {
         let w = self.wire(mapper);
         let by: Vec<String> = self
             .rejected_by
@@ -102,10 +105,20 @@ impl Stats {
                 percentile(&t, 0.99)
             )
         };
+        let now = std::time::Instant::now();
         let store = match mapper.tile_stats() {
             None => String::new(),
-            Some(t) => format!(
-                "; tiles {} in memory, {} stored, {} evicted, {} loaded, {} refused, worst wait {:.2} ms; resident {} bytes of {}",
+            Some(t) => {
+                let (ev_s, ld_s) = match self.tiles_logged {
+                    Some((at, ev, ld)) => {
+                        let dt = now.duration_since(at).as_secs_f64().max(1e-3);
+                        ((t.evictions - ev) as f64 / dt, (t.loads - ld) as f64 / dt)
+                    }
+                    None => (0.0, 0.0),
+                };
+                self.tiles_logged = Some((now, t.evictions, t.loads));
+                format!(
+                "; tiles {} in memory, {} stored, {} evicted ({ev_s:.1}/s), {} loaded ({ld_s:.1}/s), {} refused, worst wait {:.2} ms; resident {} bytes of {}",
                 t.tiles_resident,
                 t.tiles_stored,
                 t.evictions,
@@ -114,7 +127,8 @@ impl Stats {
                 t.worst_wait.as_secs_f64() * 1e3,
                 t.resident_bytes,
                 t.memory_budget.map_or("unlimited".to_string(), |b| b.to_string())
-            ),
+            )
+            }
         };
         format!(
             "frames received {} integrated {} dropped {} rejected {}{by}; points {} (skipped {}); integrate ms p50 {:.2} p99 {:.2}{esdf}; \
