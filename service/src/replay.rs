@@ -605,16 +605,10 @@ impl Sink {
                         .context("no store")?
                         .context("saving the tile store")?;
                     println!(
-                        "tile store {}: {} tiles in memory, {} only stored, {} evictions, {} loads, {} refused, worst wait {:.2} ms; resident {} MiB, budget {}; saved ({} tiles written, generation {})",
-                        mapper.store_dir().map_or(String::new(), |d| d.display().to_string()),
-                        t.tiles_resident,
-                        t.tiles_stored,
-                        t.evictions,
-                        t.loads,
-                        t.refused,
-                        t.worst_wait.as_secs_f64() * 1e3,
-                        t.resident_bytes >> 20,
-                        t.memory_budget.map_or("unlimited".into(), |b| format!("{} MiB", b >> 20)),
+                        "tile store {}: {t}; saved ({} tiles written, generation {})",
+                        mapper
+                            .store_dir()
+                            .map_or(String::new(), |d| d.display().to_string()),
                         saved.tiles_written,
                         saved.generation
                     );

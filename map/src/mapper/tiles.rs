@@ -83,6 +83,26 @@ pub struct TileStats {
     pub store: StoreCounters,
 }
 
+impl std::fmt::Display for TileStats {
+    /// One line for a person: tiles in memory and stored, evictions, loads, refusals,
+    /// the worst wait, resident bytes against the budget.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "tiles {} in memory, {} only stored, {} evicted, {} loaded, {} refused, worst wait {:.2} ms; resident {:.1} MiB of {}",
+            self.tiles_resident,
+            self.tiles_stored,
+            self.evictions,
+            self.loads,
+            self.refused,
+            self.worst_wait.as_secs_f64() * 1e3,
+            self.resident_bytes as f64 / f64::from(1 << 20),
+            self.memory_budget
+                .map_or("unlimited".to_string(), |b| format!("{:.0} MiB", b as f64 / f64::from(1 << 20)))
+        )
+    }
+}
+
 pub(crate) struct Tiles {
     pub(crate) store: TileStore,
     budget: Option<u64>,

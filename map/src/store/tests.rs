@@ -73,6 +73,18 @@ fn config() -> MapperConfig {
     }
 }
 
+/// A mapper keeping a new store in `dir`.
+fn with_new_store(dir: &Path, memory_budget: Option<u64>) -> Mapper {
+    let mut m = Mapper::new(&config()).unwrap();
+    m.open_store(&StoreConfig {
+        dir: dir.into(),
+        memory_budget,
+        resume: false,
+    })
+    .unwrap();
+    m
+}
+
 fn insert_all(m: &mut Mapper, frames: &[(Isometry3<f64>, Vec<[f32; 3]>)]) -> (u32, u32) {
     let (mut loaded, mut evicted) = (0, 0);
     for (i, (pose, pts)) in frames.iter().enumerate() {
@@ -112,13 +124,7 @@ fn a_map_under_a_budget_equals_the_unbudgeted_map_byte_for_byte() {
     // which are never evicted, so the map exceeds it, and still equals.
     for budget in [full / 2, full / 8] {
         let dir = Scratch::new("budget");
-        let mut m = Mapper::new(&config()).unwrap();
-        m.open_store(&StoreConfig {
-            dir: dir.0.clone(),
-            memory_budget: Some(budget),
-            resume: false,
-        })
-        .unwrap();
+        let mut m = with_new_store(&dir.0, Some(budget));
         let (loaded, evicted) = insert_all(&mut m, &frames);
         assert!(
             evicted > 4 && loaded > 2,
@@ -198,13 +204,7 @@ fn a_resumed_store_loads_lazily_and_goes_on_as_if_never_stopped() {
 fn a_damaged_tile_is_refused_by_name_and_its_region_reads_unknown() {
     let frames = route();
     let dir = Scratch::new("damaged");
-    let mut m = Mapper::new(&config()).unwrap();
-    m.open_store(&StoreConfig {
-        dir: dir.0.clone(),
-        memory_budget: None,
-        resume: false,
-    })
-    .unwrap();
+    let mut m = with_new_store(&dir.0, None);
     insert_all(&mut m, &frames[..10]);
     m.save_store().unwrap().unwrap();
     drop(m);
@@ -280,13 +280,7 @@ fn records_refuse_truncation_bit_flips_and_other_versions() {
 #[test]
 fn a_damaged_manifest_is_refused() {
     let dir = Scratch::new("manifest");
-    let mut m = Mapper::new(&config()).unwrap();
-    m.open_store(&StoreConfig {
-        dir: dir.0.clone(),
-        memory_budget: None,
-        resume: false,
-    })
-    .unwrap();
+    let mut m = with_new_store(&dir.0, None);
     insert_all(&mut m, &route()[..2]);
     m.save_store().unwrap().unwrap();
     drop(m);

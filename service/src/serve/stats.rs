@@ -117,17 +117,7 @@ impl Stats {
                     None => (0.0, 0.0),
                 };
                 self.tiles_logged = Some((now, t.evictions, t.loads));
-                format!(
-                "; tiles {} in memory, {} stored, {} evicted ({ev_s:.1}/s), {} loaded ({ld_s:.1}/s), {} refused, worst wait {:.2} ms; resident {} bytes of {}",
-                t.tiles_resident,
-                t.tiles_stored,
-                t.evictions,
-                t.loads,
-                t.refused,
-                t.worst_wait.as_secs_f64() * 1e3,
-                t.resident_bytes,
-                t.memory_budget.map_or("unlimited".to_string(), |b| b.to_string())
-            )
+                format!("; {t} (evicted {ev_s:.1}/s, loaded {ld_s:.1}/s)")
             }
         };
         format!(
