@@ -131,7 +131,7 @@ fn replay_under_a_budget_equals_replay_without_and_the_store_exports_it() {
     ]
     .concat());
     assert!(
-        out.contains("evictions") && out.contains("peak RSS"),
+        out.contains("evicted") && out.contains("peak RSS"),
         "{out}"
     );
     let want = std::fs::read(&free).unwrap();
