@@ -105,6 +105,21 @@ typedef struct voxmap_stats {
   double intake_us_p99;
   // The integrator's kernel (`scalar`, `avx2`, `avx512`), NUL-terminated.
   char kernel[17];
+  // The memory budget (bytes; 0 = unlimited).
+  uint64_t memory_budget_bytes;
+  // The map's resident bytes (with a tile store: leaves, nodes, records waiting to be written).
+  uint64_t resident_bytes;
+  // Tiles (128^3 voxels) in memory, with a tile store.
+  uint64_t tiles_resident;
+  // Tiles only in the tile store.
+  uint64_t tiles_stored;
+  // Tiles evicted to the store and loaded back from it since the start.
+  uint64_t tile_evictions;
+  uint64_t tile_loads;
+  // Tiles whose store record was refused (damaged); their regions read as unknown.
+  uint64_t tiles_refused;
+  // The longest a frame waited for its tiles to load, ms.
+  double tile_wait_ms_max;
 } voxmap_stats;
 
 #ifdef __cplusplus
