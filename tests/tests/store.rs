@@ -130,10 +130,7 @@ fn replay_under_a_budget_equals_replay_without_and_the_store_exports_it() {
         &[s(&scans)],
     ]
     .concat());
-    assert!(
-        out.contains("evicted") && out.contains("peak RSS"),
-        "{out}"
-    );
+    assert!(out.contains("evicted") && out.contains("peak RSS"), "{out}");
     let want = std::fs::read(&free).unwrap();
     assert_eq!(std::fs::read(&budgeted).unwrap(), want, "{out}");
     assert_eq!(reference(&f, FRAMES, &dir), want);
