@@ -15,6 +15,8 @@ use hashbrown::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
 const TILE: i32 = 1 << INTERNAL_TOTAL_LOG2;
+/// Bytes of raw records a save lets wait for the store's writer before it waits too.
+const SAVE_BACKLOG: usize = 16 << 20;
 /// Tiles evicted after one frame while the map is within its share.
 const EVICT_PER_FRAME: usize = 4;
 
@@ -416,6 +418,11 @@ impl Tiles {
                 r.dirty = false;
             }
             written += 1;
+            // Raw records wait uncompressed for the writer: a save of a whole resident
+            // map would otherwise hold a second copy of it.
+            if self.store.pending_bytes() > SAVE_BACKLOG {
+                self.store.flush()?;
+            }
         }
         let generation = self.store.commit(last_frame)?;
         Ok(SaveReport {

@@ -81,7 +81,11 @@ pub fn tile_of(v: VoxelCoord) -> VoxelCoord {
 /// The tile at `tile` as uncompressed leaf records (its leaves with a known voxel, in
 /// block order) and their count.
 pub fn raw_tile(grid: &Grid<i8>, tile: VoxelCoord) -> (Vec<u8>, u32) {
-    let mut raw = Vec::new();
+    // Sized once, not grown by doubling: thousands of evictions and exports allocate it.
+    let known = (grid.leaves_of_node(tile))
+        .filter(|(_, l)| !l.active.is_empty())
+        .count();
+    let mut raw = Vec::with_capacity(known * RECORD);
     let mut n = 0;
     for (o, leaf) in grid.leaves_of_node(tile) {
         if leaf.active.is_empty() {
