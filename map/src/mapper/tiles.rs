@@ -105,6 +105,14 @@ impl std::fmt::Display for TileStats {
     }
 }
 
+/// The tile origins from tile `a` to tile `b` (inclusive, each axis), z slowest.
+fn tiles_between(a: VoxelCoord, b: VoxelCoord) -> impl Iterator<Item = VoxelCoord> {
+    let axis = |lo: i32, hi: i32| (lo..=hi).step_by(TILE as usize);
+    axis(a.z, b.z).flat_map(move |z| {
+        axis(a.y, b.y).flat_map(move |y| axis(a.x, b.x).map(move |x| VoxelCoord::new(x, y, z)))
+    })
+}
+
 pub(crate) struct Tiles {
     pub(crate) store: TileStore,
     budget: Option<u64>,
@@ -219,18 +227,9 @@ impl Tiles {
             v.sort_unstable_by_key(|k| (k.z, k.y, k.x));
             return v;
         }
-        let mut want = Vec::new();
-        for z in (a.z..=b.z).step_by(TILE as usize) {
-            for y in (a.y..=b.y).step_by(TILE as usize) {
-                for x in (a.x..=b.x).step_by(TILE as usize) {
-                    let k = VoxelCoord::new(x, y, z);
-                    if self.stored.contains(&k) {
-                        want.push(k);
-                    }
-                }
-            }
-        }
-        want
+        tiles_between(a, b)
+            .filter(|k| self.stored.contains(k))
+            .collect()
     }
 
     fn load(&mut self, map: &mut OccupancyMap, tile: VoxelCoord, report: &mut TileReport) {
@@ -276,18 +275,12 @@ impl Tiles {
         self.clock += 1;
         self.stats.working_bytes = working;
         if let Some((lo, hi)) = bounds {
-            let (a, b) = (tile_of(lo), tile_of(hi));
-            for z in (a.z..=b.z).step_by(TILE as usize) {
-                for y in (a.y..=b.y).step_by(TILE as usize) {
-                    for x in (a.x..=b.x).step_by(TILE as usize) {
-                        let k = VoxelCoord::new(x, y, z);
-                        if let Some(r) = self.resident.get_mut(&k) {
-                            *r = Resident {
-                                last_observed: self.clock,
-                                dirty: true,
-                            };
-                        }
-                    }
+            for k in tiles_between(tile_of(lo), tile_of(hi)) {
+                if let Some(r) = self.resident.get_mut(&k) {
+                    *r = Resident {
+                        last_observed: self.clock,
+                        dirty: true,
+                    };
                 }
             }
         }

@@ -314,11 +314,7 @@ impl TileStore {
         // A new segment for this process: never append after a tail a crash may have cut.
         let id = manifest.next_segment;
         let path = dir.join(segment_name(id));
-        let mut seg = File::create(&path).map_err(io_err(&path))?;
-        let mut head = SEGMENT_MAGIC.to_vec();
-        head.extend_from_slice(&SEGMENT_VERSION.to_le_bytes());
-        head.extend_from_slice(&0u32.to_le_bytes());
-        seg.write_all(&head).map_err(io_err(&path))?;
+        let seg = new_segment(&path).map_err(io_err(&path))?;
         shared.active = (id, SEGMENT_HEAD);
         let shared = Arc::new(Mutex::new(shared));
         let (tx, rx) = mpsc::channel();
@@ -567,12 +563,8 @@ impl TileStore {
     }
 
     pub fn counters(&self) -> StoreCounters {
+        let tiles = self.tiles().len();
         let s = self.lock();
-        let tiles = s.index.len()
-            + s.pending
-                .keys()
-                .filter(|k| !s.index.contains_key(*k))
-                .count();
         let disk_bytes = std::fs::read_dir(&self.dir)
             .map(|d| {
                 d.flatten()
@@ -723,6 +715,17 @@ fn load_ahead(
     }
 }
 
+/// A new segment file at `path`, its head written.
+fn new_segment(path: &Path) -> std::io::Result<File> {
+    let mut seg = File::create(path)?;
+    let mut head = SEGMENT_MAGIC.to_vec();
+    head.extend_from_slice(&SEGMENT_VERSION.to_le_bytes());
+    head.extend_from_slice(&0u32.to_le_bytes());
+    debug_assert_eq!(head.len() as u64, SEGMENT_HEAD);
+    seg.write_all(&head)?;
+    Ok(seg)
+}
+
 /// Read into `buf` from `at` until it is full or the file ends; returns the bytes read.
 fn read_at_most(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<usize> {
     let mut got = 0;
@@ -767,12 +770,7 @@ fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc:
                     if len + bytes.len() as u64 > SEGMENT_MAX && len > SEGMENT_HEAD {
                         seg.sync_data()?;
                         id += 1;
-                        let path = dir.join(segment_name(id));
-                        seg = File::create(&path)?;
-                        let mut head = SEGMENT_MAGIC.to_vec();
-                        head.extend_from_slice(&SEGMENT_VERSION.to_le_bytes());
-                        head.extend_from_slice(&0u32.to_le_bytes());
-                        seg.write_all(&head)?;
+                        seg = new_segment(&dir.join(segment_name(id)))?;
                         len = SEGMENT_HEAD;
                     }
                     seg.write_all(&bytes)
