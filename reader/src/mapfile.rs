@@ -247,36 +247,48 @@ pub type BandRecord = (VoxelCoord, Mask512, Vec<[i8; 3]>);
 /// The distance field records of a version 2 file: origin, band mask, offsets. Only their
 /// framing is checked here; [`check_bands`] checks them against the map.
 pub fn field_records(fh: &FieldFileHeader, mut rec: &[u8]) -> Result<Vec<BandRecord>, Decode> {
-    let bad = |s: &str| Decode::Corrupt(format!("distance field: {s}"));
     if fh.leaf_count > u64::from(u32::MAX) {
-        return Err(bad("leaf count out of range"));
+        return Err(Decode::Corrupt(
+            "distance field: leaf count out of range".into(),
+        ));
     }
     let mut out = Vec::with_capacity(fh.leaf_count.min(1 << 20) as usize);
     for _ in 0..fh.leaf_count {
-        if rec.len() < 76 {
-            return Err(bad("records truncated"));
-        }
-        let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
-        let origin = VoxelCoord::new(c(0), c(1), c(2));
-        let mut mask = Mask512::EMPTY;
-        for (w, word) in mask.words.iter_mut().enumerate() {
-            *word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
-        }
-        let n = 3 * mask.count() as usize;
-        let offsets_bytes = rec
-            .get(76..76 + n)
-            .ok_or_else(|| bad("records truncated"))?;
-        let offsets = (offsets_bytes.chunks_exact(3))
-            .map(|o| [o[0] as i8, o[1] as i8, o[2] as i8])
-            .collect();
-        out.push((origin, mask, offsets));
-        rec = &rec[76 + n..];
+        let (band, rest) = band_record(rec)?;
+        out.push(band);
+        rec = rest;
     }
     if !rec.is_empty() {
-        return Err(bad("bytes after the last record"));
+        return Err(Decode::Corrupt(
+            "distance field: bytes after the last record".into(),
+        ));
     }
     Ok(out)
 }
+
+/// The first band record of `rec` (origin, band mask, one offset per band voxel: what a
+/// map file's field section and a tile record's band section hold) and the bytes after it.
+pub fn band_record(rec: &[u8]) -> Result<(BandRecord, &[u8]), Decode> {
+    let truncated = || Decode::Corrupt("distance field: records truncated".into());
+    if rec.len() < BAND_HEAD {
+        return Err(truncated());
+    }
+    let c = |k: usize| i32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+    let origin = VoxelCoord::new(c(0), c(1), c(2));
+    let mut mask = Mask512::EMPTY;
+    for (w, word) in mask.words.iter_mut().enumerate() {
+        *word = u64::from_le_bytes(rec[12 + 8 * w..20 + 8 * w].try_into().expect("8 bytes"));
+    }
+    let n = 3 * mask.count() as usize;
+    let offsets_bytes = rec.get(BAND_HEAD..BAND_HEAD + n).ok_or_else(truncated)?;
+    let offsets = (offsets_bytes.chunks_exact(3))
+        .map(|o| [o[0] as i8, o[1] as i8, o[2] as i8])
+        .collect();
+    Ok(((origin, mask, offsets), &rec[BAND_HEAD + n..]))
+}
+
+/// Bytes of a band record before its offsets: origin and band mask.
+pub const BAND_HEAD: usize = 76;
 
 /// The place of the leaf at `origin` in block order: internal nodes (128³ voxels) by
 /// origin (z, y, x), within a node its blocks (64³) by origin, within a block its leaves by

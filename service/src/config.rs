@@ -286,9 +286,6 @@ impl Config {
         if budget.is_some() && self.store.is_empty() {
             bail!("memory_budget needs a store (--store DIR) to keep what it evicts");
         }
-        if !self.store.is_empty() && self.esdf.enabled {
-            bail!("a tile store (--store) with the distance field (--esdf) is not supported yet");
-        }
         // The map, integrator and field check the rest with their own messages.
         self.new_map()?;
         self.integrator()?;

@@ -343,6 +343,15 @@ fn inspect_store(dir: &Path, check: bool) -> Result<()> {
     for (k, v) in [
         ("resolution", format!("{} m", p.resolution)),
         ("sensor model", format!("{:?}", p.model)),
+        (
+            "distance field",
+            p.field.map_or("none".into(), |f| {
+                format!(
+                    "to {} m, unknown as {:?}, window {:?} (bands stored with the tiles)",
+                    f.max_distance, f.unknown, f.window
+                )
+            }),
+        ),
         ("generation", m.generation.to_string()),
         (
             "last frame",
@@ -352,10 +361,13 @@ fn inspect_store(dir: &Path, check: bool) -> Result<()> {
         ("leaves", leaves.to_string()),
         (
             "records",
-            format!(
-                "{live} bytes ({raw} uncompressed, {:.1}x)",
-                raw as f64 / live.max(1) as f64
-            ),
+            match p.field {
+                None => format!(
+                    "{live} bytes ({raw} uncompressed, {:.1}x)",
+                    raw as f64 / live.max(1) as f64
+                ),
+                Some(_) => format!("{live} bytes (leaf records alone {raw} uncompressed)"),
+            },
         ),
         (
             "segments",

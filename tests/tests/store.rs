@@ -143,6 +143,34 @@ fn replay_under_a_budget_equals_replay_without_and_the_store_exports_it() {
         "{inspect}"
     );
 
+    // With the distance field: the same map file, field and all.
+    let esdf = ["--esdf", "--esdf-max-distance", "1.0"];
+    let free_field = dir.join("free-field.vxm");
+    ok(&[
+        &["replay", "--offline", "--out", s(&free_field)],
+        &MAPPING[..],
+        &esdf[..],
+        &[s(&scans)],
+    ]
+    .concat());
+    let field_store = dir.join("field-store");
+    let budgeted_field = dir.join("budget-field.vxm");
+    let out = ok(&[
+        &["replay", "--offline", "--out", s(&budgeted_field)],
+        &["--store", s(&field_store), "--memory-budget", "3M"],
+        &MAPPING[..],
+        &esdf[..],
+        &[s(&scans)],
+    ]
+    .concat());
+    assert!(out.contains("evicted"), "{out}");
+    let want_field = std::fs::read(&free_field).unwrap();
+    assert!(want_field.len() > want.len() + 10_000);
+    assert!(
+        std::fs::read(&budgeted_field).unwrap() == want_field,
+        "{out}"
+    );
+
     // Bad settings are refused with a clear error.
     for (args, why) in [
         (vec!["--memory-budget", "64M"], "needs a store"),
@@ -154,7 +182,6 @@ fn replay_under_a_budget_equals_replay_without_and_the_store_exports_it() {
             vec!["--memory-budget", "x12M", "--store", s(&store)],
             "not a whole number",
         ),
-        (vec!["--store", s(&store), "--esdf"], "not supported yet"),
     ] {
         let o = voxmap(
             &[

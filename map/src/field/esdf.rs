@@ -12,6 +12,7 @@
 use super::patch::{self, Region, Scratch, PATCH, PATCH_LOG2};
 use super::{check_bands, leaf_in_window, Band, FieldConfig};
 use crate::coord::{ConfigError, VoxelCoord, WorldPoint};
+use crate::grid::Leaf;
 use crate::mask::Mask512;
 use crate::occupancy::OccupancyMap;
 use crate::tree::{leaf_offset, leaf_origin, LEAF_VOXELS};
@@ -19,6 +20,7 @@ use hashbrown::HashMap;
 use rayon::prelude::*;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
+use voxmap_reader::mapfile::BandRecord;
 
 /// What one update did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -28,6 +30,9 @@ pub struct FieldReport {
     pub new_leaves: u64,
     /// Patches transformed.
     pub patches: u64,
+    /// The voxel box (inclusive) of the patches transformed, whose leaves' bands may have
+    /// changed.
+    pub transformed: Option<(VoxelCoord, VoxelCoord)>,
     pub time: Duration,
 }
 
@@ -141,6 +146,8 @@ pub struct DistanceField {
     outside: HashMap<VoxelCoord, Mask512>,
     /// Voxels in the band.
     band_count: u64,
+    /// Heap bytes of the bands (as [`LeafBand::heap_bytes`] counts them).
+    band_heap: usize,
     /// The voxels covered (inclusive), when a window is set and placed.
     window: Option<(VoxelCoord, VoxelCoord)>,
     /// Per pool thread: the transform's buffers.
@@ -170,6 +177,7 @@ impl DistanceField {
             leaves: HashMap::new(),
             outside: HashMap::new(),
             band_count: 0,
+            band_heap: 0,
             window: None,
             scratch: Vec::new(),
             kernels: crate::kernel::Kernels::process_or_scalar(),
@@ -213,11 +221,22 @@ impl DistanceField {
     /// obstacles outside the window, and each band's allocations as the allocator rounds
     /// them. The transform's per-thread buffers are not counted.
     pub fn memory_bytes(&self) -> usize {
-        table_bytes(&self.leaves)
-            + table_bytes(&self.outside)
-            + (self.leaves.values().flatten())
-                .map(|b| b.heap_bytes())
-                .sum::<usize>()
+        table_bytes(&self.leaves) + table_bytes(&self.outside) + self.band_heap
+    }
+
+    /// How far (voxels) beyond a voxel whose obstacle changed an update may read the map:
+    /// the radius to the patches it marks, a patch, and the radius those patches read
+    /// around them. A map with a tile store keeps the tiles within this reach of a frame's
+    /// box in memory while the field follows the frame, and those within the radius and a
+    /// patch of the window's box.
+    pub fn reach(&self) -> u32 {
+        2 * self.radius + PATCH as u32
+    }
+
+    /// How far (voxels) beyond the window's box an update may read the map: the patches
+    /// a moved window newly covers read the radius around them.
+    pub fn window_reach(&self) -> u32 {
+        self.radius + PATCH as u32
     }
 
     /// Bytes of the bands themselves: two 64-byte masks (the band's and the obstacles')
@@ -258,10 +277,85 @@ impl DistanceField {
     /// Store `band` as the band of the map leaf at `origin` (none: it has no voxel in it).
     fn set_band(&mut self, origin: VoxelCoord, band: Option<LeafBand>) {
         let new = band.map(Box::new);
-        self.band_count += new.as_ref().map_or(0, |b| b.offsets.len() as u64);
-        if let Some(Some(old)) = self.leaves.insert(origin, new) {
-            self.band_count -= old.offsets.len() as u64;
+        if let Some(b) = &new {
+            self.band_count += b.offsets.len() as u64;
+            self.band_heap += b.heap_bytes();
         }
+        if let Some(Some(old)) = self.leaves.insert(origin, new) {
+            self.uncount(&old);
+        }
+    }
+
+    /// Take a band that leaves the field out of the counters.
+    fn uncount(&mut self, band: &LeafBand) {
+        self.band_count -= band.offsets.len() as u64;
+        self.band_heap -= band.heap_bytes();
+    }
+
+    /// Forget the leaves at `origins` (a tile going to the store, its bands with it):
+    /// their bands and the obstacles kept of them.
+    pub fn forget_leaves(&mut self, origins: impl IntoIterator<Item = VoxelCoord>) {
+        for o in origins {
+            if let Some(Some(band)) = self.leaves.remove(&o) {
+                self.uncount(&band);
+            }
+            self.outside.remove(&o);
+        }
+        // Tables that emptied by far give their memory back (a map under a budget).
+        if self.leaves.len() * 4 < self.leaves.capacity() && self.leaves.capacity() > 1024 {
+            self.leaves.shrink_to_fit();
+        }
+        if self.outside.len() * 4 < self.outside.capacity() && self.outside.capacity() > 1024 {
+            self.outside.shrink_to_fit();
+        }
+    }
+
+    /// Take back the leaves of a tile from the store (`leaves`, now in the map) with the
+    /// bands stored with them. Bands outside the window are dropped, and all of them while
+    /// a window is asked for and not yet placed (the first update places it and
+    /// transforms all it covers); those in it must pass `field::check_bands` against the
+    /// leaves, or the whole tile is refused, changing nothing. The caller keeps the
+    /// invariant that makes the bands current: a tile was in memory whenever an update
+    /// could change its bands (see [`Self::reach`]).
+    pub fn restore_tile(
+        &mut self,
+        leaves: &[(VoxelCoord, Leaf<i8>)],
+        bands: Vec<BandRecord>,
+    ) -> Result<(), String> {
+        let n = bands.len();
+        let mut kept: HashMap<VoxelCoord, LeafBand> = HashMap::with_capacity(n);
+        for (o, mask, offsets) in bands {
+            let band = LeafBand::new(mask, offsets)
+                .ok_or_else(|| format!("band of leaf {o:?}: offsets do not match its mask"))?;
+            if self.holds_band(o) && kept.insert(o, band).is_some() {
+                return Err(format!("band of leaf {o:?} stored twice"));
+            }
+        }
+        let policy = self.cfg.unknown;
+        let origins: hashbrown::HashSet<VoxelCoord> = leaves.iter().map(|(o, _)| *o).collect();
+        let obstacles = leaves
+            .iter()
+            .map(|(o, l)| (*o, patch::obstacles(l, policy)));
+        let unplaced = self.cfg.window.is_some() && self.window.is_none();
+        check_bands(
+            &kept,
+            false,
+            self.radius,
+            self.window,
+            |o| origins.contains(&o),
+            obstacles.filter(|_| !unplaced),
+        )?;
+        for (o, leaf) in leaves {
+            let band = kept.remove(o);
+            if !self.holds_band(*o) {
+                let obstacles = patch::obstacles(leaf, policy);
+                if !obstacles.is_empty() {
+                    self.outside.insert(*o, obstacles);
+                }
+            }
+            self.set_band(*o, band);
+        }
+        Ok(())
     }
 
     /// A field read back from a file (see `io::mapfile`) for `map`, covering `window`:
@@ -305,6 +399,12 @@ impl DistanceField {
         Ok(f)
     }
 
+    /// Whether the field holds a band for the leaf at `origin` when it has one: the leaf
+    /// reaches into the window, which is placed if one is asked for.
+    pub fn holds_band(&self, origin: VoxelCoord) -> bool {
+        self.overlaps_window(origin) && (self.cfg.window.is_none() || self.window.is_some())
+    }
+
     /// Whether the leaf at `origin` reaches into the window (or there is none).
     fn overlaps_window(&self, origin: VoxelCoord) -> bool {
         leaf_in_window(self.window, origin)
@@ -315,6 +415,7 @@ impl DistanceField {
         self.leaves = HashMap::new();
         self.outside = HashMap::new();
         self.band_count = 0;
+        self.band_heap = 0;
     }
 
     /// Build the field of the whole map from scratch (after a load), around `sensor` when
@@ -460,6 +561,12 @@ impl DistanceField {
             .collect();
         patches.sort_unstable_by_key(|(t, _)| (t.z, t.y, t.x));
         report.patches = patches.len() as u64;
+        report.transformed = patches.iter().fold(None, |acc, &(t, _)| {
+            let (lo, hi) = patch_box(t);
+            Some(acc.map_or((lo, hi), |(a, b): (VoxelCoord, VoxelCoord)| {
+                (a.min(lo), b.max(hi))
+            }))
+        });
         self.transform_patches(map, &patches);
         report.time = t0.elapsed();
         report
@@ -550,7 +657,7 @@ impl DistanceField {
             .collect();
         for o in out {
             if let Some(band) = self.leaves.get_mut(&o).and_then(Option::take) {
-                self.band_count -= band.offsets.len() as u64;
+                self.uncount(&band);
                 let obstacles = band.obstacles;
                 if !obstacles.is_empty() {
                     self.outside.insert(o, obstacles);

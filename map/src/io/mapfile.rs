@@ -225,19 +225,12 @@ pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) 
             field: Vec::new(),
         };
     };
+    // In block order, as the leaves: a tile store streams both tile by tile.
     let mut leaves: Vec<_> = f.leaves().collect();
-    leaves.sort_unstable_by_key(|(o, _)| (o.z, o.y, o.x));
+    leaves.sort_unstable_by_key(|(o, _)| format::block_order(*o));
     let mut records = Vec::new();
     for (o, band) in &leaves {
-        for c in o.to_array() {
-            records.extend_from_slice(&c.to_le_bytes());
-        }
-        for w in band.mask().words {
-            records.extend_from_slice(&w.to_le_bytes());
-        }
-        for o in band.offsets() {
-            records.extend(o.map(|c| c as u8));
-        }
+        write_band_record(&mut records, *o, band);
     }
     let header = FileHeaderWithField {
         map: header,
@@ -253,6 +246,20 @@ pub fn encode_map_parts_with(map: &OccupancyMap, field: Option<&DistanceField>) 
         head: encode_head(&header, MAP_VERSION),
         body,
         field: records,
+    }
+}
+
+/// Append the band record of the leaf at `origin` (origin, band mask, offsets): what the
+/// map file's field section and the tile store's band sections hold.
+pub fn write_band_record(out: &mut Vec<u8>, origin: VoxelCoord, band: &LeafBand) {
+    for c in origin.to_array() {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    for w in band.mask().words {
+        out.extend_from_slice(&w.to_le_bytes());
+    }
+    for o in band.offsets() {
+        out.extend(o.map(|c| c as u8));
     }
 }
 
@@ -276,14 +283,69 @@ pub fn write_leaf_record(rec: &mut [u8], origin: VoxelCoord, leaf: &Leaf<i8>) {
     }
 }
 
-/// A plain map file (no distance field) written from its body in pieces, in order, each
-/// whole leaf records: the body goes to a temporary file as it comes (its length and
-/// checksum counted), then the head and the body to `path` atomically. For maps larger
-/// than memory (a tile store's). Returns the leaves written.
+/// Where [`write_map_streamed`]'s pieces go: leaf records to the body, band records to
+/// the distance field's section, each to a temporary file as they come, their lengths and
+/// checksums counted.
+pub struct StreamSink {
+    parts: [Part; 2],
+    bands: u64,
+}
+
+struct Part {
+    path: PathBuf,
+    out: std::io::BufWriter<std::fs::File>,
+    crc: crc32fast::Hasher,
+    len: u64,
+}
+
+impl Part {
+    fn create(path: PathBuf) -> Result<Self, MapFileError> {
+        let file = std::fs::File::create(&path).map_err(io_err(&path))?;
+        Ok(Self {
+            out: std::io::BufWriter::new(file),
+            path,
+            crc: crc32fast::Hasher::new(),
+            len: 0,
+        })
+    }
+
+    fn put(&mut self, bytes: &[u8]) -> Result<(), MapFileError> {
+        self.crc.update(bytes);
+        self.len += bytes.len() as u64;
+        self.out.write_all(bytes).map_err(io_err(&self.path))
+    }
+}
+
+impl StreamSink {
+    /// Whole leaf records, in block order.
+    pub fn leaves(&mut self, records: &[u8]) -> Result<(), MapFileError> {
+        self.parts[0].put(records)
+    }
+
+    /// `count` whole band records (a field's), in block order of their leaves.
+    pub fn bands(&mut self, records: &[u8], count: u64) -> Result<(), MapFileError> {
+        self.bands += count;
+        self.parts[1].put(records)
+    }
+}
+
+/// The distance field's settings and window a streamed map file carries with its bands.
+#[derive(Clone, Copy, Debug)]
+pub struct StreamedField {
+    pub config: crate::field::FieldConfig,
+    pub window: Option<(VoxelCoord, VoxelCoord)>,
+}
+
+/// A map file written from its leaf records (and, with `field`, its band records) in
+/// pieces: they go to temporary files as they come, then the head, the body and the
+/// field's section to `path` atomically. For maps larger than memory (a tile store's).
+/// Without a field it is a plain (version 1) file; band records given then are dropped.
+/// Returns the leaves written.
 pub fn write_map_streamed<E: From<MapFileError>>(
     path: &Path,
     map: &OccupancyMap,
-    mut pieces: impl FnMut(&mut dyn FnMut(&[u8]) -> Result<(), MapFileError>) -> Result<(), E>,
+    field: Option<StreamedField>,
+    mut pieces: impl FnMut(&mut StreamSink) -> Result<(), E>,
 ) -> Result<u64, E> {
     let dir = path
         .parent()
@@ -292,34 +354,66 @@ pub fn write_map_streamed<E: From<MapFileError>>(
     let name = path
         .file_name()
         .map_or("map".into(), |n| n.to_string_lossy());
-    let body_path = dir.join(format!(".{name}.body.{}", std::process::id()));
+    let temp = |what: &str| dir.join(format!(".{name}.{what}.{}", std::process::id()));
+    let paths = [temp("body"), temp("field")];
     let result = (|| {
-        let file = std::fs::File::create(&body_path).map_err(io_err(&body_path))?;
-        let mut body = std::io::BufWriter::new(file);
-        let (mut crc, mut len) = (crc32fast::Hasher::new(), 0u64);
-        pieces(&mut |piece: &[u8]| {
-            crc.update(piece);
-            len += piece.len() as u64;
-            body.write_all(piece).map_err(io_err(&body_path))
-        })?;
-        body.flush().map_err(io_err(&body_path))?;
-        drop(body);
+        let mut sink = StreamSink {
+            parts: [
+                Part::create(paths[0].clone())?,
+                Part::create(paths[1].clone())?,
+            ],
+            bands: 0,
+        };
+        pieces(&mut sink)?;
+        let mut done = Vec::new();
+        for part in sink.parts {
+            let Part {
+                path,
+                mut out,
+                crc,
+                len,
+            } = part;
+            out.flush().map_err(io_err(&path))?;
+            done.push((path, crc.finalize(), len));
+        }
         let header = FileHeader {
             resolution: map.resolution(),
             model: *map.model(),
             frac_bits: map.quantized().frac_bits,
-            leaf_count: len / RECORD as u64,
-            body_crc32: crc.finalize(),
+            leaf_count: done[0].2 / RECORD as u64,
+            body_crc32: done[0].1,
         };
-        let head = encode_head(&header, MAP_VERSION_PLAIN);
-        let mut body = std::fs::File::open(&body_path).map_err(io_err(&body_path))?;
+        let head = match field {
+            None => encode_head(&header, MAP_VERSION_PLAIN),
+            Some(f) => encode_head(
+                &FileHeaderWithField {
+                    map: header.clone(),
+                    field: FieldFileHeader {
+                        config: f.config,
+                        window: f.window.map(|(lo, hi)| (lo.to_array(), hi.to_array())),
+                        leaf_count: sink.bands,
+                        body_len: done[1].2,
+                        body_crc32: done[1].1,
+                    },
+                },
+                MAP_VERSION,
+            ),
+        };
+        let open = |p: &PathBuf| std::fs::File::open(p).map_err(io_err(p));
+        let (mut body, mut bands) = (open(&paths[0])?, open(&paths[1])?);
         write_atomic_with(path, |f| {
             f.write_all(&head)?;
-            std::io::copy(&mut body, f).map(|_| ())
+            std::io::copy(&mut body, f)?;
+            if field.is_some() {
+                std::io::copy(&mut bands, f)?;
+            }
+            Ok(())
         })?;
         Ok(header.leaf_count)
     })();
-    let _ = std::fs::remove_file(&body_path);
+    for p in &paths {
+        let _ = std::fs::remove_file(p);
+    }
     result
 }
 

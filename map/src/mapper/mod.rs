@@ -173,7 +173,7 @@ impl Mapper {
         let mut tiles = self.tiles.as_ref().map(|_| TileReport::default());
         if let (Some(t), Some(r)) = (&mut self.tiles, &mut tiles) {
             let max_range = self.integrator.config().max_range;
-            t.load_for_frame(&mut self.map, frame, max_range, r);
+            t.load_for_frame(&mut self.map, self.field.as_mut(), frame, max_range, r);
         }
         let integrate = self.integrator.integrate(&mut self.map, frame)?;
         self.last = stamp;
@@ -185,7 +185,12 @@ impl Mapper {
         });
         if let (Some(t), Some(r)) = (&mut self.tiles, &mut tiles) {
             let working = self.integrator.memory_bytes() as u64;
-            t.after_frame(&mut self.map, integrate.bounds, sensor, working, r);
+            let changed = tiles::Changed {
+                bounds: integrate.bounds,
+                banded: field.and_then(|f| f.transformed),
+                sensor,
+            };
+            t.after_frame(&mut self.map, self.field.as_mut(), changed, working, r);
         }
         Ok(InsertReport {
             integrate,
@@ -200,17 +205,13 @@ impl Mapper {
     /// resident bytes are kept under it after each frame by evicting tiles to the store.
     /// Refused, changing nothing, where the mapper keeps a distance field (not yet
     /// supported with a store), its map is not empty, or the store's map parameters are
-    /// not the mapper's.
+    /// not the mapper's (with its distance field's settings, or none: the field's bands
+    /// are stored with the tiles).
     pub fn open_store(&mut self, cfg: &StoreConfig) -> Result<(), StoreError> {
         let refuse = |problem: String| StoreError::Params {
             path: cfg.dir.clone(),
             problem,
         };
-        if self.field.is_some() {
-            return Err(refuse(
-                "a tile store with a distance field is not supported yet".into(),
-            ));
-        }
         if self.map.grid().leaf_count() > 0 || self.tiles.is_some() {
             return Err(refuse(
                 "a tile store is opened for an empty mapper only".into(),
@@ -220,13 +221,14 @@ impl Mapper {
             resolution: self.map.resolution(),
             model: *self.map.model(),
             frac_bits: self.map.quantized().frac_bits,
+            field: self.field.as_ref().map(|f| *f.config()),
         };
         let (store, stored, last) = if cfg.resume {
             let (store, manifest) = TileStore::open(&cfg.dir)?;
             if manifest.params != params {
                 return Err(refuse(format!(
-                    "the store's map has resolution {} m and sensor model {:?}; this mapper's {} m and {:?}",
-                    manifest.params.resolution, manifest.params.model, params.resolution, params.model
+                    "the store's map has {}; this mapper's {}",
+                    manifest.params, params
                 )));
             }
             let stored = (manifest.tiles.iter())
@@ -254,7 +256,14 @@ impl Mapper {
     pub fn load_region(&mut self, lo: WorldPoint, hi: WorldPoint) -> Option<TileReport> {
         let t = self.tiles.as_mut()?;
         let mut r = TileReport::default();
-        t.load_box(&mut self.map, lo.coords.into(), hi.coords.into(), &mut r);
+        let field = self.field.as_mut();
+        t.load_box(
+            &mut self.map,
+            field,
+            lo.coords.into(),
+            hi.coords.into(),
+            &mut r,
+        );
         t.adopt_new_nodes(&self.map);
         Some(r)
     }
@@ -264,15 +273,17 @@ impl Mapper {
     pub fn save_store(&mut self) -> Option<Result<SaveReport, StoreError>> {
         let last = (self.last.sequence, self.last.stamp_ns);
         let t = self.tiles.as_mut()?;
-        Some(self.integrator.install(|| t.save(&self.map, last)))
+        let (map, field) = (&self.map, self.field.as_ref());
+        Some(self.integrator.install(|| t.save(map, field, last)))
     }
 
-    /// Write the map as a map file at `path` (atomically): with a tile store, every tile,
-    /// in memory or only in the store, streamed tile by tile; otherwise as
-    /// [`Mapper::encode_file`] (with the field). Returns the leaves written.
+    /// Write the map and its field as a map file at `path` (atomically): with a tile
+    /// store, every tile, in memory or only in the store, streamed tile by tile; otherwise
+    /// as [`Mapper::encode_file`]. The same map and field give the same bytes either way.
+    /// Returns the leaves written.
     pub fn write_map_file(&mut self, path: &Path) -> Result<u64, ExportError> {
         match &mut self.tiles {
-            Some(t) => t.export(&self.map, path),
+            Some(t) => t.export(&self.map, self.field.as_ref(), path),
             None => {
                 let file = self.encode_file();
                 file.write(path)?;
@@ -288,7 +299,7 @@ impl Mapper {
 
     /// The tiles' counters, when the mapper keeps a store.
     pub fn tile_stats(&self) -> Option<TileStats> {
-        Some(self.tiles.as_ref()?.stats(&self.map))
+        Some(self.tiles.as_ref()?.stats(&self.map, self.field.as_ref()))
     }
 
     /// The tile store's directory, when the mapper keeps one.

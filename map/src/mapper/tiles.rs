@@ -5,11 +5,13 @@
 //! first. A tile is one internal node of the grid (128³ voxels).
 
 use crate::coord::{VoxelCoord, WorldPoint};
+use crate::field::DistanceField;
 use crate::grid::INTERNAL_TOTAL_LOG2;
 use crate::integrate::Frame;
+use crate::io::mapfile::StreamedField;
 use crate::occupancy::OccupancyMap;
 use crate::store::export::write_tiles;
-use crate::store::record::{raw_tile, tile_of};
+use crate::store::record::{raw_tile, tile_of, RecordError};
 use crate::store::{ExportError, StoreCounters, StoreError, TileStore};
 use hashbrown::{HashMap, HashSet};
 use std::time::{Duration, Instant};
@@ -105,6 +107,15 @@ impl std::fmt::Display for TileStats {
     }
 }
 
+/// What one frame changed, for [`Tiles::after_frame`].
+pub(crate) struct Changed {
+    /// The voxel box (inclusive) the frame's rays touched.
+    pub bounds: Option<(VoxelCoord, VoxelCoord)>,
+    /// The voxel box of the patches whose bands the field transformed.
+    pub banded: Option<(VoxelCoord, VoxelCoord)>,
+    pub sensor: WorldPoint,
+}
+
 /// The tile origins from tile `a` to tile `b` (inclusive, each axis), z slowest.
 fn tiles_between(a: VoxelCoord, b: VoxelCoord) -> impl Iterator<Item = VoxelCoord> {
     let axis = |lo: i32, hi: i32| (lo..=hi).step_by(TILE as usize);
@@ -148,10 +159,14 @@ impl Tiles {
     }
 
     /// Load the stored tiles the frame's rays can reach: those overlapping the box of the
-    /// sensor and its points (cut at `max_range`).
+    /// sensor and its points (cut at `max_range`); with a distance field, also those its
+    /// update after the frame may read or change (its reach around that box, and the
+    /// window's box around the sensor with the radius and a patch), so that every band is
+    /// computed, and stays, from the whole map.
     pub(crate) fn load_for_frame(
         &mut self,
         map: &mut OccupancyMap,
+        field: Option<&mut DistanceField>,
         frame: &Frame<'_>,
         max_range: f64,
         report: &mut TileReport,
@@ -175,14 +190,28 @@ impl Tiles {
                 hi[k] = hi[k].max(w[k]);
             }
         }
+        if let Some(f) = field.as_deref() {
+            let res = map.resolution();
+            let reach = f64::from(f.reach()) * res;
+            lo = lo.map(|c| c - reach);
+            hi = hi.map(|c| c + reach);
+            if let Some(half) = f.config().window {
+                let around = f64::from(f.window_reach()) * res;
+                for k in 0..3 {
+                    lo[k] = lo[k].min(o[k] - half[k] - around);
+                    hi[k] = hi[k].max(o[k] + half[k] + around);
+                }
+            }
+        }
         self.frame_box = Some((lo, hi));
-        self.load_box(map, lo, hi, report);
+        self.load_box(map, field, lo, hi, report);
     }
 
     /// Load the stored tiles overlapping the world box [lo, hi].
     pub(crate) fn load_box(
         &mut self,
         map: &mut OccupancyMap,
+        mut field: Option<&mut DistanceField>,
         lo: [f64; 3],
         hi: [f64; 3],
         report: &mut TileReport,
@@ -192,7 +221,7 @@ impl Tiles {
         }
         let start = Instant::now();
         for k in self.stored_in(map, lo, hi) {
-            self.load(map, k, report);
+            self.load(map, field.as_deref_mut(), k, report);
         }
         let waited = start.elapsed();
         report.load_time += waited;
@@ -232,13 +261,29 @@ impl Tiles {
             .collect()
     }
 
-    fn load(&mut self, map: &mut OccupancyMap, tile: VoxelCoord, report: &mut TileReport) {
+    fn load(
+        &mut self,
+        map: &mut OccupancyMap,
+        field: Option<&mut DistanceField>,
+        tile: VoxelCoord,
+        report: &mut TileReport,
+    ) {
         self.stored.remove(&tile);
-        match self.store.get(tile) {
+        let got = self.store.get(tile).and_then(|record| {
+            let record = record.unwrap_or_default();
+            if let Some(f) = field {
+                (f.restore_tile(&record.leaves, record.bands)).map_err(|problem| {
+                    let why = format!("its distance field bands: {problem}");
+                    self.store.refusal(tile, RecordError::Corrupt(why))
+                })?;
+            }
+            Ok(record.leaves)
+        });
+        match got {
             Ok(leaves) => {
                 let grid = map.grid_mut();
                 let mut hint = (VoxelCoord::new(i32::MIN, 0, 0), u32::MAX);
-                for (o, leaf) in leaves.into_iter().flatten() {
+                for (o, leaf) in leaves {
                     let i = grid.leaf_index_or_insert(o, Some(&mut hint));
                     *grid.leaf_mut(i) = leaf;
                 }
@@ -262,16 +307,21 @@ impl Tiles {
         }
     }
 
-    /// After a frame that touched the voxel box `bounds`: its tiles are observed now and
-    /// changed; then, over the budget, evict.
+    /// After a frame: the tiles its rays touched are observed now and changed, and those
+    /// whose bands the field transformed changed; then, over the budget, evict.
     pub(crate) fn after_frame(
         &mut self,
         map: &mut OccupancyMap,
-        bounds: Option<(VoxelCoord, VoxelCoord)>,
-        sensor: WorldPoint,
+        field: Option<&mut DistanceField>,
+        changed: Changed,
         working: u64,
         report: &mut TileReport,
     ) {
+        let Changed {
+            bounds,
+            banded,
+            sensor,
+        } = changed;
         self.clock += 1;
         self.stats.working_bytes = working;
         if let Some((lo, hi)) = bounds {
@@ -284,8 +334,15 @@ impl Tiles {
                 }
             }
         }
+        if let Some((lo, hi)) = banded {
+            for k in tiles_between(tile_of(lo), tile_of(hi)) {
+                if let Some(r) = self.resident.get_mut(&k) {
+                    r.dirty = true;
+                }
+            }
+        }
         self.adopt_new_nodes(map);
-        self.evict_over_budget(map, sensor, working, report);
+        self.evict_over_budget(map, field, sensor, working, report);
         self.sensors = [self.sensors[1], Some(sensor)];
         self.load_ahead(map);
     }
@@ -323,8 +380,13 @@ impl Tiles {
         }
     }
 
-    pub(crate) fn resident_bytes(&self, map: &OccupancyMap) -> u64 {
-        (map.grid().live_bytes() + self.store.pending_bytes() + self.store.ready_bytes()) as u64
+    /// The map's resident bytes: its leaves and nodes, its field's, the records waiting
+    /// for the writer and those its loader decoded ahead.
+    pub(crate) fn resident_bytes(&self, map: &OccupancyMap, field: Option<&DistanceField>) -> u64 {
+        (map.grid().live_bytes()
+            + field.map_or(0, DistanceField::memory_bytes)
+            + self.store.pending_bytes()
+            + self.store.ready_bytes()) as u64
     }
 
     /// Near or over the budget (the map's resident bytes and the integrator's `working`
@@ -332,6 +394,7 @@ impl Tiles {
     fn evict_over_budget(
         &mut self,
         map: &mut OccupancyMap,
+        mut field: Option<&mut DistanceField>,
         sensor: WorldPoint,
         working: u64,
         report: &mut TileReport,
@@ -339,7 +402,7 @@ impl Tiles {
         let Some(budget) = self.budget else { return };
         let share = budget.saturating_sub(working);
         let low = share / 8 * 7;
-        let bytes = self.resident_bytes(map);
+        let bytes = self.resident_bytes(map, field.as_deref());
         if self.write_failed || bytes <= low {
             return;
         }
@@ -364,10 +427,10 @@ impl Tiles {
         // Least recently observed first; among those, farthest first.
         order.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
         for (_, _, k) in order.into_iter().take(most) {
-            if self.resident_bytes(map) <= low {
+            if self.resident_bytes(map, field.as_deref()) <= low {
                 break;
             }
-            if let Err(e) = self.evict(map, k) {
+            if let Err(e) = self.evict(map, field.as_deref_mut(), k) {
                 self.write_failed = true;
                 report.write_error = Some(e.to_string());
                 break;
@@ -377,12 +440,20 @@ impl Tiles {
         report.evict_time = start.elapsed();
     }
 
-    /// Write the tile to the store if changed, then drop it from memory.
-    fn evict(&mut self, map: &mut OccupancyMap, tile: VoxelCoord) -> Result<(), StoreError> {
+    /// Write the tile (with its bands) to the store if changed, then drop it from memory.
+    fn evict(
+        &mut self,
+        map: &mut OccupancyMap,
+        field: Option<&mut DistanceField>,
+        tile: VoxelCoord,
+    ) -> Result<(), StoreError> {
         let r = self.resident[&tile];
         if r.dirty || !self.store.has(tile) {
-            let (raw, _) = raw_tile(map.grid(), tile);
+            let raw = raw_tile(map.grid(), tile, field.as_deref());
             self.store.put(tile, r.last_observed, raw)?;
+        }
+        if let Some(f) = field {
+            f.forget_leaves(map.grid().leaves_of_node(tile).map(|(o, _)| o));
         }
         map.grid_mut().remove_node(tile);
         self.resident.remove(&tile);
@@ -395,6 +466,7 @@ impl Tiles {
     pub(crate) fn save(
         &mut self,
         map: &OccupancyMap,
+        field: Option<&DistanceField>,
         last_frame: (u64, u64),
     ) -> Result<SaveReport, StoreError> {
         let start = Instant::now();
@@ -405,7 +477,7 @@ impl Tiles {
             .collect();
         dirty.sort_unstable_by_key(|k| (k.z, k.y, k.x));
         for k in dirty {
-            let (raw, _) = raw_tile(map.grid(), k);
+            let raw = raw_tile(map.grid(), k, field);
             self.store.put(k, self.resident[&k].last_observed, raw)?;
             if let Some(r) = self.resident.get_mut(&k) {
                 r.dirty = false;
@@ -434,25 +506,35 @@ impl Tiles {
         self.stored.clear();
     }
 
-    /// The map file of every tile, in memory or only in the store, at `path`.
+    /// The map file of every tile, in memory or only in the store, at `path`, with the
+    /// bands of `field` (its window's).
     pub(crate) fn export(
         &mut self,
         map: &OccupancyMap,
+        field: Option<&DistanceField>,
         path: &std::path::Path,
     ) -> Result<u64, ExportError> {
         let tiles: Vec<VoxelCoord> = self.resident.keys().chain(&self.stored).copied().collect();
         let (resident, store) = (&self.resident, &mut self.store);
-        write_tiles(path, map, tiles, |k| {
+        let keep = |o| field.is_some_and(|f| f.holds_band(o));
+        let streamed = field.map(|f| {
+            let s = StreamedField {
+                config: *f.config(),
+                window: f.window(),
+            };
+            (s, &keep as &dyn Fn(VoxelCoord) -> bool)
+        });
+        write_tiles(path, map, streamed, tiles, |k| {
             if resident.contains_key(&k) {
-                return Ok(raw_tile(map.grid(), k).0);
+                return Ok(raw_tile(map.grid(), k, field));
             }
             Ok(store.get_raw(k)?.unwrap_or_default())
         })
     }
 
-    pub(crate) fn stats(&self, map: &OccupancyMap) -> TileStats {
+    pub(crate) fn stats(&self, map: &OccupancyMap, field: Option<&DistanceField>) -> TileStats {
         TileStats {
-            resident_bytes: self.resident_bytes(map),
+            resident_bytes: self.resident_bytes(map, field),
             tiles_resident: self.resident.len() as u64,
             tiles_stored: self.stored.len() as u64,
             store: self.store.counters(),

@@ -22,10 +22,10 @@ pub mod record;
 pub use export::{export, ExportError};
 
 use crate::coord::VoxelCoord;
-use crate::grid::Leaf;
+use crate::field::FieldConfig;
 use crate::model::{QuantizedModel, SensorModel};
 use hashbrown::HashMap;
-use record::RecordError;
+use record::{RawTile, RecordError, TileRecord};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::io::Write;
@@ -36,7 +36,7 @@ use std::sync::{Arc, Mutex};
 
 pub const MANIFEST_MAGIC: [u8; 8] = *b"VXMSTORE";
 /// The manifest version this build reads and writes.
-pub const MANIFEST_VERSION: u32 = 1;
+pub const MANIFEST_VERSION: u32 = 2;
 pub const SEGMENT_MAGIC: [u8; 8] = *b"VXMSEG\0\0";
 pub const SEGMENT_VERSION: u32 = 1;
 const SEGMENT_HEAD: u64 = 16;
@@ -52,10 +52,27 @@ pub struct StoreParams {
     pub resolution: f64,
     pub model: SensorModel,
     pub frac_bits: u8,
+    /// The distance field whose bands the tiles hold, if any.
+    pub field: Option<FieldConfig>,
 }
 
-/// A tile's leaves with their origins, in block order.
-pub type TileLeaves = Vec<(VoxelCoord, Leaf<i8>)>;
+impl std::fmt::Display for StoreParams {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "resolution {} m, sensor model {:?}, ",
+            self.resolution, self.model
+        )?;
+        match &self.field {
+            None => write!(f, "no distance field"),
+            Some(c) => write!(
+                f,
+                "a distance field to {} m (unknown as {:?}, window {:?})",
+                c.max_distance, c.unknown, c.window
+            ),
+        }
+    }
+}
 
 /// Where a tile's live record is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -170,7 +187,7 @@ struct Shared {
     index: HashMap<VoxelCoord, Loc>,
     /// Raw records handed to the writer and not yet written, with the put's number: the
     /// latest put of a tile wins.
-    pending: HashMap<VoxelCoord, (u64, Arc<Vec<u8>>)>,
+    pending: HashMap<VoxelCoord, (u64, Arc<RawTile>)>,
     pending_bytes: usize,
     /// The writer's first failure, reported by the next put or commit.
     error: Option<String>,
@@ -191,7 +208,7 @@ enum Job {
         tile: VoxelCoord,
         put: u64,
         last_observed: u64,
-        raw: Arc<Vec<u8>>,
+        raw: Arc<RawTile>,
     },
     Flush(mpsc::Sender<Result<(), String>>),
 }
@@ -373,13 +390,13 @@ impl TileStore {
         self.lock().pending_bytes
     }
 
-    /// Hand a tile's raw leaf records ([`record::raw_tile`]) to the writer thread, as the
+    /// Hand a tile's raw records ([`record::raw_tile`]) to the writer thread, as the
     /// tile's latest record. Fails, keeping nothing, where the writer has failed before.
     pub fn put(
         &mut self,
         tile: VoxelCoord,
         last_observed: u64,
-        raw: Vec<u8>,
+        raw: RawTile,
     ) -> Result<(), StoreError> {
         let raw = Arc::new(raw);
         self.puts += 1;
@@ -388,9 +405,9 @@ impl TileStore {
             if let Some(e) = &s.error {
                 return Err(StoreError::Write(e.clone()));
             }
-            s.pending_bytes += raw.len();
+            s.pending_bytes += raw.bytes.len();
             if let Some((_, old)) = s.pending.insert(tile, (self.puts, raw.clone())) {
-                s.pending_bytes -= old.len();
+                s.pending_bytes -= old.bytes.len();
             }
         }
         let job = Job::Put {
@@ -407,8 +424,9 @@ impl TileStore {
             })
     }
 
-    /// The tile's leaves from its latest record, checked; `None` where it has none.
-    pub fn get(&mut self, tile: VoxelCoord) -> Result<Option<TileLeaves>, StoreError> {
+    /// The tile's leaves and bands from its latest record, checked; `None` where it has
+    /// none.
+    pub fn get(&mut self, tile: VoxelCoord) -> Result<Option<TileRecord>, StoreError> {
         {
             let mut s = self.lock();
             if let Some(p) = s.ready.remove(&tile) {
@@ -421,12 +439,25 @@ impl TileStore {
         Ok(self.fetch(tile)?.map(|(_, leaves)| leaves))
     }
 
-    /// The tile's raw leaf records from its latest record, checked as [`Self::get`] does.
-    pub fn get_raw(&mut self, tile: VoxelCoord) -> Result<Option<Vec<u8>>, StoreError> {
+    /// The error refusing `tile`'s latest record for `source`, naming where it lies.
+    pub fn refusal(&self, tile: VoxelCoord, source: RecordError) -> StoreError {
+        let loc = self.lock().index.get(&tile).copied();
+        StoreError::Tile {
+            tile: tile.to_array(),
+            segment: loc.map_or(PathBuf::from("(memory)"), |l| {
+                self.dir.join(segment_name(l.segment))
+            }),
+            offset: loc.map_or(0, |l| l.offset),
+            source,
+        }
+    }
+
+    /// The tile's raw records from its latest record, checked as [`Self::get`] does.
+    pub fn get_raw(&mut self, tile: VoxelCoord) -> Result<Option<RawTile>, StoreError> {
         Ok(self.fetch(tile)?.map(|(raw, _)| raw))
     }
 
-    fn fetch(&mut self, tile: VoxelCoord) -> Result<Option<(Vec<u8>, TileLeaves)>, StoreError> {
+    fn fetch(&mut self, tile: VoxelCoord) -> Result<Option<(RawTile, TileRecord)>, StoreError> {
         let (pending, loc) = {
             let s = self.lock();
             (
@@ -435,14 +466,15 @@ impl TileStore {
             )
         };
         if let Some(raw) = pending {
-            let leaves =
-                record::leaves_of(&raw, tile, &self.q).map_err(|source| StoreError::Tile {
+            let decoded = raw
+                .decode(tile, &self.q)
+                .map_err(|source| StoreError::Tile {
                     tile: tile.to_array(),
                     segment: PathBuf::from("(memory)"),
                     offset: 0,
                     source,
                 })?;
-            return Ok(Some((raw.to_vec(), leaves)));
+            return Ok(Some(((*raw).clone(), decoded)));
         }
         let Some(loc) = loc else { return Ok(None) };
         read_record(&self.dir, &self.q, &mut self.readers, tile, loc).map(Some)
@@ -483,7 +515,7 @@ impl TileStore {
             *s.live.entry(loc.segment).or_default() -= u64::from(loc.len);
         }
         if let Some((_, raw)) = s.pending.remove(&tile) {
-            s.pending_bytes -= raw.len();
+            s.pending_bytes -= raw.bytes.len();
         }
     }
 
@@ -619,21 +651,21 @@ fn source_of(s: &Shared, tile: VoxelCoord) -> Option<Source> {
 /// A tile decoded ahead of need.
 struct Prefetched {
     source: Source,
-    leaves: TileLeaves,
+    leaves: TileRecord,
     bytes: usize,
 }
 
 /// Tiles kept decoded ahead of need at most.
 const MAX_READY: usize = 24;
 
-/// The record at `loc`, read and checked: its raw leaf records and its leaves.
+/// The record at `loc`, read and checked: its raw records, decoded.
 fn read_record(
     dir: &Path,
     q: &QuantizedModel,
     files: &mut HashMap<u32, File>,
     tile: VoxelCoord,
     loc: Loc,
-) -> Result<(Vec<u8>, TileLeaves), StoreError> {
+) -> Result<(RawTile, TileRecord), StoreError> {
     let path = dir.join(segment_name(loc.segment));
     let refused = |source| StoreError::Tile {
         tile: tile.to_array(),
@@ -651,7 +683,7 @@ fn read_record(
     let got = read_at_most(file, &mut bytes, loc.offset).map_err(io_err(&path))?;
     bytes.truncate(got);
     let (head, raw) = record::decode(&bytes).map_err(refused)?;
-    let leaves = record::leaves_of(&raw, tile, q).map_err(refused)?;
+    let decoded = raw.decode(tile, q).map_err(refused)?;
     if head.tile != tile || head.leaves != loc.leaves || bytes.len() != loc.len as usize {
         return Err(refused(RecordError::Corrupt(format!(
             "the record is of tile {:?} with {} leaves, the manifest says {:?} with {}",
@@ -661,7 +693,7 @@ fn read_record(
             loc.leaves
         ))));
     }
-    Ok((raw, leaves))
+    Ok((raw, decoded))
 }
 
 /// The loader thread: decode each listed tile's latest record into the ready set, unless
@@ -692,14 +724,14 @@ fn load_ahead(
                 )
             };
             let leaves = match (source, pending) {
-                (Some(Source::Pending(_)), Some(raw)) => record::leaves_of(&raw, tile, q).ok(),
+                (Some(Source::Pending(_)), Some(raw)) => raw.decode(tile, q).ok(),
                 (Some(Source::Written(loc)), _) => {
                     read_record(dir, q, &mut files, tile, loc).ok().map(|r| r.1)
                 }
                 _ => None,
             };
             if let (Some(source), Some(leaves)) = (source, leaves) {
-                let bytes = leaves.len() * std::mem::size_of::<(VoxelCoord, Leaf<i8>)>();
+                let bytes = leaves.heap_bytes();
                 let mut s = lock();
                 let p = Prefetched {
                     source,
@@ -785,7 +817,7 @@ fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc:
                     segment: id,
                     offset: len,
                     len: bytes.len() as u32,
-                    leaves: (raw.len() / crate::io::mapfile::RECORD) as u32,
+                    leaves: raw.leaves,
                 };
                 s.active = (id, len + bytes.len() as u64);
                 s.records_written += 1;
@@ -796,7 +828,7 @@ fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc:
                 *s.live.entry(id).or_default() += u64::from(loc.len);
                 if s.pending.get(&tile).is_some_and(|p| p.0 == put) {
                     s.pending.remove(&tile);
-                    s.pending_bytes -= raw.len();
+                    s.pending_bytes -= raw.bytes.len();
                 }
             }
         }

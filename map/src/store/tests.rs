@@ -4,6 +4,7 @@
 
 use super::record::{self, RecordError};
 use super::*;
+use crate::coord::WorldPoint;
 use crate::integrate::{Frame, IntegratorConfig};
 use crate::mapper::{FrameStamp, Mapper, MapperConfig, StoreConfig};
 use crate::test_rng::Rng;
@@ -251,14 +252,22 @@ fn records_refuse_truncation_bit_flips_and_other_versions() {
     insert_all(&mut m, &frames[..3]);
     let grid = m.map().grid();
     let tile = grid.node_origins().next().unwrap();
-    let (raw, n) = record::raw_tile(grid, tile);
+    let raw = record::raw_tile(grid, tile, None);
+    let n = raw.leaves;
     assert!(n > 10);
     let rec = record::encode(tile, 7, &raw);
     let (head, back) = record::decode(&rec).unwrap();
     assert_eq!((head.tile, head.last_observed, head.leaves), (tile, 7, n));
     assert_eq!(back, raw);
-    let leaves = record::leaves_of(&back, tile, &q).unwrap();
-    assert_eq!(leaves.len(), n as usize);
+    let decoded = back.decode(tile, &q).unwrap();
+    assert_eq!(decoded.leaves.len(), n as usize);
+    assert!(decoded.bands.is_empty());
+    // A version 1 record (the same bytes, no bands) still reads.
+    let mut v1 = rec.clone();
+    v1[4] = 1;
+    let crc = crc32fast::hash(&v1[..record::HEAD - 4]);
+    v1[record::HEAD - 4..record::HEAD].copy_from_slice(&crc.to_le_bytes());
+    assert_eq!(record::decode(&v1).unwrap().1, raw);
     for cut in [0, 10, record::HEAD - 1, record::HEAD, rec.len() - 1] {
         assert!(record::decode(&rec[..cut]).is_err(), "cut at {cut}");
     }
@@ -267,14 +276,14 @@ fn records_refuse_truncation_bit_flips_and_other_versions() {
         bad[at] ^= 1;
         assert!(record::decode(&bad).is_err(), "bit flip at {at}");
     }
-    let mut v2 = rec.clone();
-    v2[4] = 2;
-    let crc = crc32fast::hash(&v2[..record::HEAD - 4]);
-    v2[record::HEAD - 4..record::HEAD].copy_from_slice(&crc.to_le_bytes());
-    assert_eq!(record::decode(&v2).unwrap_err(), RecordError::Version(2));
+    let mut v3 = rec.clone();
+    v3[4] = 3;
+    let crc = crc32fast::hash(&v3[..record::HEAD - 4]);
+    v3[record::HEAD - 4..record::HEAD].copy_from_slice(&crc.to_le_bytes());
+    assert_eq!(record::decode(&v3).unwrap_err(), RecordError::Version(3));
     // Leaves of another tile are refused.
     let other = tile + VoxelCoord::new(128, 0, 0);
-    assert!(record::leaves_of(&raw, other, &q).is_err());
+    assert!(raw.decode(other, &q).is_err());
 }
 
 #[test]
@@ -301,4 +310,124 @@ fn a_damaged_manifest_is_refused() {
             .unwrap_or_else(|| panic!("{what} opened"));
         assert!(matches!(e, StoreError::Manifest { .. }), "{what}: {e}");
     }
+}
+
+/// [`config`] with a distance field of `window`.
+fn field_config(window: Option<[f64; 3]>) -> MapperConfig {
+    MapperConfig {
+        field: Some(crate::field::FieldConfig {
+            window,
+            ..Default::default()
+        }),
+        ..config()
+    }
+}
+
+/// The map and field of every tile, the mapper's and its store's, as one map file.
+fn whole_with_field(m: &mut Mapper) -> Vec<u8> {
+    let far = WorldPoint::new(1e4, 1e4, 1e4);
+    let r = m.load_region(-far, far).unwrap();
+    assert!(r.refused.is_empty(), "{:?}", r.refused);
+    m.encode_file().into_bytes()
+}
+
+#[test]
+fn a_distance_field_under_a_budget_equals_the_unbudgeted_field() {
+    let frames = route();
+    // The whole map, then a window that moves with the sensor.
+    for window in [None, Some([5.0, 5.0, 2.0])] {
+        let cfg = field_config(window);
+        let mut free = Mapper::new(&cfg).unwrap();
+        insert_all(&mut free, &frames);
+        let want = free.encode_file().into_bytes();
+        let bands = free.field().unwrap().band_voxels();
+        assert!(bands > 10_000, "{bands}");
+        let full = (free.map().grid().live_bytes() + free.field().unwrap().memory_bytes()) as u64;
+        let dir = Scratch::new("field");
+        let mut m = Mapper::new(&cfg).unwrap();
+        m.open_store(&StoreConfig {
+            dir: dir.0.clone(),
+            memory_budget: Some(full / 3),
+            resume: false,
+        })
+        .unwrap();
+        let (loaded, evicted) = insert_all(&mut m, &frames);
+        assert!(
+            evicted > 4 && loaded > 2,
+            "window {window:?}: evicted {evicted}, loaded {loaded}"
+        );
+        let s = m.tile_stats().unwrap();
+        assert!(s.resident_bytes < full, "{s:?} of {full}");
+        // Streamed from memory and store, the map file with the field is the same bytes.
+        let out = Scratch::new("field-out");
+        assert!(file_of(&mut m, &out.0, "b.vxm") == file_of(&mut free, &out.0, "f.vxm"));
+        assert!(whole_with_field(&mut m) == want, "window {window:?}");
+        assert_eq!(m.field().unwrap().band_voxels(), bands);
+        drop(m);
+
+        // Saved half way and resumed with the same field: the rest of the frames from the
+        // store's state reach the same map and field.
+        let dir = Scratch::new("field-resume");
+        let store = |resume| StoreConfig {
+            dir: dir.0.clone(),
+            memory_budget: Some(full / 3),
+            resume,
+        };
+        let mut m = Mapper::new(&cfg).unwrap();
+        m.open_store(&store(false)).unwrap();
+        insert_all(&mut m, &frames[..30]);
+        m.save_store().unwrap().unwrap();
+        drop(m);
+        let mut back = Mapper::new(&cfg).unwrap();
+        back.open_store(&store(true)).unwrap();
+        insert_all(&mut back, &frames[30..]);
+        assert!(whole_with_field(&mut back) == want, "window {window:?}");
+        let resume = store(true);
+        // Another field, or none, is refused: the stored bands are this field's.
+        for other in [config(), field_config(Some([9.0, 9.0, 9.0]))] {
+            let mut m = Mapper::new(&other).unwrap();
+            let e = m.open_store(&resume).unwrap_err();
+            assert!(e.to_string().contains("distance field"), "{e}");
+        }
+    }
+}
+
+#[test]
+fn a_band_record_of_a_leaf_the_record_lacks_is_refused() {
+    let q = crate::model::SensorModel::default().quantize().unwrap();
+    let mut m = Mapper::new(&field_config(None)).unwrap();
+    insert_all(&mut m, &route()[..3]);
+    let (grid, field) = (m.map().grid(), m.field().unwrap());
+    let tile = (grid.node_origins())
+        .max_by_key(|&k| record::raw_tile(grid, k, Some(field)).bytes.len())
+        .unwrap();
+    let raw = record::raw_tile(grid, tile, Some(field));
+    let rec = raw.decode(tile, &q).unwrap();
+    assert!(!rec.bands.is_empty());
+    // Restored into a new field: the same bands.
+    let mut f = crate::field::DistanceField::new(*field.config(), 0.1).unwrap();
+    f.restore_tile(&rec.leaves, rec.bands.clone()).unwrap();
+    for (o, b) in f.leaves() {
+        assert_eq!(Some(b), field.leaf(o));
+    }
+    // Without its first leaf, the first band (or one out of order) is refused.
+    let mut fewer = raw.clone();
+    fewer.bytes.drain(..crate::io::mapfile::RECORD);
+    fewer.leaves -= 1;
+    let first_band = rec.bands[0].0;
+    if rec.leaves[0].0 == first_band {
+        assert!(fewer.decode(tile, &q).is_err());
+    }
+    // A band whose obstacles disagree with its leaf (now all free) is refused, changing
+    // nothing.
+    let mut leaves = rec.leaves.clone();
+    let (with_obstacle, ..) = (rec.bands.iter())
+        .find(|(_, _, offsets)| offsets.contains(&[0, 0, 0]))
+        .unwrap();
+    let at = leaves.iter().position(|(o, _)| o == with_obstacle).unwrap();
+    leaves[at].1.marked = crate::mask::Mask512::EMPTY;
+    let mut g = crate::field::DistanceField::new(*field.config(), 0.1).unwrap();
+    let e = g.restore_tile(&leaves, rec.bands).unwrap_err();
+    assert!(e.contains("obstacles"), "{e}");
+    assert_eq!((g.leaves().count(), g.band_voxels()), (0, 0));
 }

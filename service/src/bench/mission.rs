@@ -12,6 +12,7 @@ use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
+use voxmap_map::field::FieldConfig;
 use voxmap_map::mapper::StoreConfig;
 use voxmap_map::{Frame, FrameStamp, IntegratorConfig, Mapper, MapperConfig, RayMode};
 
@@ -31,10 +32,11 @@ pub(super) fn run(a: &BenchArgs) -> Result<()> {
         height: HEIGHT,
     };
     println!(
-        "voxmap bench --mission: {} frames of a 64-beam LiDAR (65,536 rays, seen to 30 m) along a {:.0} m loop of the city's streets, back to the start; 0.1 m, max range {MAX_RANGE} m, exact, {} threads; budget {}; scratch {}",
+        "voxmap bench --mission: {} frames of a 64-beam LiDAR (65,536 rays, seen to 30 m) along a {:.0} m loop of the city's streets, back to the start; 0.1 m, max range {MAX_RANGE} m, exact, {} threads{}; budget {}; scratch {}",
         a.mission_frames,
         route.length(),
         threads(a)?,
+        if a.mission_esdf { ", a 2 m distance field" } else { "" },
         a.memory_budget,
         dir.display()
     );
@@ -52,6 +54,11 @@ pub(super) fn run(a: &BenchArgs) -> Result<()> {
                 .args(["--mission-blocks", &a.mission_blocks.to_string()])
                 .args(["--threads", &threads(a)?.to_string()])
                 .args(["--pin-threads", &a.pin_threads.to_string()])
+                .args(if a.mission_esdf {
+                    &["--mission-esdf"][..]
+                } else {
+                    &[]
+                })
                 .arg("--mission-dir")
                 .arg(&run_dir)
                 .output()?;
@@ -112,6 +119,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
             mode: RayMode::Exact,
             pin_threads: a.pin_threads,
         },
+        field: a.mission_esdf.then(FieldConfig::default),
         ..Default::default()
     };
     let mut mapper = Mapper::new(&cfg)?;
@@ -156,9 +164,10 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     }
     let wall = start.elapsed().as_secs_f64();
     let rss_drive = peak_rss().unwrap_or(0);
+    let field_bytes = mapper.field().map_or(0, |f| f.memory_bytes()) as u64;
     let resident = mapper
         .tile_stats()
-        .map_or(mapper.map().grid().live_bytes() as u64, |t| {
+        .map_or(mapper.map().grid().live_bytes() as u64 + field_bytes, |t| {
             t.resident_bytes
         });
     let working = mapper.integrator().memory_bytes() as u64;
@@ -177,7 +186,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
     let q = |p| crate::quantile::percentile(&sorted, p);
     let total: f64 = ms.iter().sum();
     println!(
-        "frames {} p50 {:.2} ms p99 {:.2} ms max {:.2} ms, {:.2} Mpoints/s; peak RSS {} MiB (drive), {} MiB (with the export); map {} MiB resident, integrator {} MiB, {} leaves; tiles loaded {loaded} evicted {evicted}, worst wait {worst_wait:.2} ms; export {export_s:.1} s; wall {wall:.0} s",
+        "frames {} p50 {:.2} ms p99 {:.2} ms max {:.2} ms, {:.2} Mpoints/s; peak RSS {} MiB (drive), {} MiB (with the export); map {} MiB resident (field {} MiB), integrator {} MiB, {} leaves; tiles loaded {loaded} evicted {evicted}, worst wait {worst_wait:.2} ms; export {export_s:.1} s; wall {wall:.0} s",
         ms.len(),
         q(0.5),
         q(0.99),
@@ -186,6 +195,7 @@ pub(super) fn child(a: &BenchArgs) -> Result<()> {
         rss_drive >> 20,
         peak_rss().unwrap_or(0) >> 20,
         resident >> 20,
+        field_bytes >> 20,
         working >> 20,
         leaves
     );

@@ -103,6 +103,10 @@ pub struct BenchArgs {
     /// With --mission: alternated rounds of the two runs.
     #[arg(long, default_value_t = 1)]
     mission_rounds: usize,
+    /// With --mission: keep a distance field too (2 m, over the whole map; its bands go
+    /// to the store with their tiles, and into the final map files).
+    #[arg(long)]
+    mission_esdf: bool,
     /// With --mission: keep the stores and maps here (default: a temporary directory,
     /// removed after).
     #[arg(long, value_name = "DIR")]
