@@ -156,8 +156,9 @@ pub unsafe extern "C" fn voxmap_control_save(
     })
 }
 
-/// Replace the service's map with the map file at `path` (on the service's machine). 0, or
-/// an error code (the map is unchanged on failure).
+/// Replace the service's map with the map file at `path` (on the service's machine), or
+/// with the tile store in the directory `path` (continued lazily). 0, or an error code (the
+/// map is unchanged on failure).
 ///
 /// # Safety
 /// `control` is null or a live connection; `path` null or a NUL-terminated string.

@@ -241,7 +241,8 @@ impl MapControl {
         self.checked(req).map(|_| ())
     }
 
-    /// Replace the service's map with the file at `path`.
+    /// Replace the service's map with the map file at `path`, or with the tile store in the
+    /// directory `path` (continued lazily: its tiles load as frames and windows reach them).
     pub fn load(&self, path: &str) -> Result<(), ClientError> {
         let req =
             ControlRequest::with_path(ControlKind::Load, path).map_err(ClientError::BadRequest)?;

@@ -166,7 +166,8 @@ impl Control {
         self.control.save(path).map_err(|e| voxmap_error(&e))
     }
 
-    /// Replace the service's map with the map file at ``path``.
+    /// Replace the service's map with the map file at ``path``, or with the tile store in
+    /// the directory ``path`` (continued lazily).
     fn load(&self, path: &str) -> PyResult<()> {
         self.control.load(path).map_err(|e| voxmap_error(&e))
     }

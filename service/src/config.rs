@@ -79,6 +79,9 @@ pub struct Config {
     /// Keep the map's resident bytes under this ("256M", "2G", bytes, or "unlimited");
     /// needs a store.
     pub memory_budget: String,
+    /// With a store, `serve` saves it this often (seconds) when frames came since; 0 = only
+    /// on request and at exit.
+    pub store_save_interval_s: f64,
 }
 
 /// `[esdf]`: whether the service keeps a distance field, and its [`FieldConfig`].
@@ -281,6 +284,9 @@ impl Config {
                 self.resolution,
                 voxmap_map::integrate::MAX_RANGE_VOXELS
             );
+        }
+        if !(0.0..=86_400.0).contains(&self.store_save_interval_s) {
+            bail!("store_save_interval_s must be in [0, 86400] (a day)");
         }
         let budget = self.memory_budget()?;
         if budget.is_some() && self.store.is_empty() {

@@ -314,3 +314,122 @@ fn a_store_killed_at_any_moment_holds_its_last_save_exactly() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Wait until the service has integrated `n` frames.
+fn wait_integrated(ctl: &voxmap_client::MapControl, n: u64) {
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while ctl.stats().unwrap().frames_integrated < n {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "frames not integrated"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_service_keeps_its_map_and_field_in_a_store_saves_it_and_loads_another_lazily() {
+    use voxmap_client::{FramePublisher, MapControl, MapScope};
+    use voxmap_tests::{connect_with_retry, unique_prefix, Service};
+    let dir = tmpdir("store_serve");
+    let scans = dir.join("scans");
+    let f = write_frames(&scans);
+    let esdf = ["--esdf", "--esdf-max-distance", "1.0"];
+    // Another store of the same map parameters and field, built offline.
+    let other = dir.join("other");
+    ok(&[
+        &["replay", "--offline", "--out", s(&dir.join("other.vxm"))][..],
+        &["--store", s(&other)],
+        &MAPPING[..],
+        &esdf[..],
+        &[s(&scans)],
+    ]
+    .concat());
+    let other_tiles = ok(&["inspect", s(&other)]);
+    assert!(other_tiles.contains("distance field"), "{other_tiles}");
+
+    let store = dir.join("store");
+    let prefix = unique_prefix("store-serve");
+    let serve = [
+        &["--store", s(&store), "--memory-budget", "4M"][..],
+        &["--store-save-interval", "1"],
+        &MAPPING[..4],
+        &esdf[..],
+    ]
+    .concat();
+    let svc = Service::start(&prefix, &serve);
+    let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    let mut frames_out = connect_with_retry(|| FramePublisher::connect(&prefix, "default"));
+    // Frames are published once the service listens: its first stats answer says so.
+    ctl.stats().unwrap();
+    for (i, (pose, pts)) in f.iter().take(24).enumerate() {
+        frames_out
+            .publish(pose, i as u64 * 100_000_000, pts)
+            .unwrap();
+        wait_integrated(&ctl, i as u64 + 1);
+    }
+    let st = ctl.stats().unwrap();
+    assert!(
+        st.tile_evictions > 0 && st.tiles_stored > 0 && st.memory_budget_bytes == 4 << 20,
+        "{st:?}"
+    );
+    // The periodic save commits without a request.
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let generation = || {
+        let text = ok(&["inspect", s(&store)]);
+        text.lines()
+            .find_map(|l| l.trim().strip_prefix("generation"))
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .unwrap_or(0)
+    };
+    while generation() == 0 {
+        assert!(std::time::Instant::now() < deadline, "no periodic save");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    ctl.save(s(&store)).unwrap();
+    let committed = ok(&["inspect", s(&store), "--check"]);
+    assert!(committed.contains("0 refused"), "{committed}");
+
+    // Loading another store continues it lazily: nothing is in memory until reached.
+    ctl.load(s(&other)).unwrap();
+    let st = ctl.stats().unwrap();
+    assert_eq!((st.map_leaves, st.tiles_resident), (0, 0), "{st:?}");
+    assert!(st.tiles_stored > 0);
+    // A snapshot window around the sensor brings its tiles back.
+    ctl.set_scope(MapScope::AroundSensor {
+        half_extents: [4.0, 4.0, 2.0],
+    })
+    .unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while ctl.stats().unwrap().tile_loads == 0 {
+        assert!(std::time::Instant::now() < deadline, "no tile loaded");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // A store of another resolution is refused; the service keeps the one it has.
+    let coarse = dir.join("coarse");
+    ok(&[
+        &["replay", "--offline", "--out", s(&dir.join("coarse.vxm"))][..],
+        &["--store", s(&coarse), "--resolution", "0.2"],
+        &[s(&scans)],
+    ]
+    .concat());
+    let before = ctl.stats().unwrap().tiles_stored;
+    let e = ctl.load(s(&coarse)).unwrap_err().to_string();
+    assert!(e.contains("resolution"), "{e}");
+    assert_eq!(ctl.stats().unwrap().tiles_stored, before);
+
+    // Back to the first store; SIGTERM saves it; a restart with --load continues it.
+    ctl.load(s(&store)).unwrap();
+    let (status, log) = svc.signal_and_wait("TERM");
+    assert!(status.success(), "{log}");
+    assert!(log.contains("tile store saved"), "{log}");
+    let svc = Service::start(
+        &prefix,
+        &[&["--load", s(&store)][..], &MAPPING[..4], &esdf[..]].concat(),
+    );
+    let ctl = connect_with_retry(|| MapControl::connect(&prefix, "default"));
+    let st = ctl.stats().unwrap();
+    assert!(st.tiles_stored > 0 && st.map_leaves == 0, "{st:?}");
+    drop(svc);
+    let _ = std::fs::remove_dir_all(&dir);
+}

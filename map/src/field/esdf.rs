@@ -22,6 +22,10 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use voxmap_reader::mapfile::BandRecord;
 
+/// Patches transformed in parallel before their bands are stored: at most 256 × 64 leaves'
+/// new bands exist beside the old ones.
+const PATCHES_AT_ONCE: usize = 256;
+
 /// What one update did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FieldReport {
@@ -567,7 +571,11 @@ impl DistanceField {
                 (a.min(lo), b.max(hi))
             }))
         });
-        self.transform_patches(map, &patches);
+        // In chunks: the new bands of a chunk replace the old before the next chunk is
+        // made, so a frame that transforms much of the field does not hold it twice.
+        for chunk in patches.chunks(PATCHES_AT_ONCE) {
+            self.transform_patches(map, chunk);
+        }
         report.time = t0.elapsed();
         report
     }

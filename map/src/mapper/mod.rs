@@ -203,34 +203,20 @@ impl Mapper {
     /// the one there, whose tiles then load as frames or [`Mapper::load_region`] reach
     /// them, and whose last frame becomes the mapper's. With a memory budget, the map's
     /// resident bytes are kept under it after each frame by evicting tiles to the store.
-    /// Refused, changing nothing, where the mapper keeps a distance field (not yet
-    /// supported with a store), its map is not empty, or the store's map parameters are
-    /// not the mapper's (with its distance field's settings, or none: the field's bands
-    /// are stored with the tiles).
+    /// Refused, changing nothing, where the mapper's map is not empty or the store's map
+    /// parameters are not the mapper's (with its distance field's settings, or none: the
+    /// field's bands are stored with the tiles).
     pub fn open_store(&mut self, cfg: &StoreConfig) -> Result<(), StoreError> {
-        let refuse = |problem: String| StoreError::Params {
-            path: cfg.dir.clone(),
-            problem,
-        };
         if self.map.grid().leaf_count() > 0 || self.tiles.is_some() {
-            return Err(refuse(
-                "a tile store is opened for an empty mapper only".into(),
-            ));
+            return Err(StoreError::Params {
+                path: cfg.dir.clone(),
+                problem: "a tile store is opened for an empty mapper only".into(),
+            });
         }
-        let params = StoreParams {
-            resolution: self.map.resolution(),
-            model: *self.map.model(),
-            frac_bits: self.map.quantized().frac_bits,
-            field: self.field.as_ref().map(|f| *f.config()),
-        };
+        let params = self.store_params();
         let (store, stored, last) = if cfg.resume {
             let (store, manifest) = TileStore::open(&cfg.dir)?;
-            if manifest.params != params {
-                return Err(refuse(format!(
-                    "the store's map has {}; this mapper's {}",
-                    manifest.params, params
-                )));
-            }
+            self.check_store_params(&cfg.dir, &manifest.params)?;
             let stored = (manifest.tiles.iter())
                 .map(|e| VoxelCoord::from_array(e.tile))
                 .collect();
@@ -249,6 +235,48 @@ impl Mapper {
         self.last = last;
         self.tiles = Some(Tiles::new(store, cfg.memory_budget, stored));
         Ok(())
+    }
+
+    /// Continue the tile store in `cfg.dir` (lazily, as [`Mapper::open_store`] with
+    /// `resume`) in place of the mapper's map: the map, its field and, with a store, that
+    /// store's changes since its last save are dropped (it keeps its last commit).
+    /// Refused, changing nothing, where `cfg.dir` holds no store or one of other map
+    /// parameters; an I/O error opening it after those checks leaves the mapper empty,
+    /// without a store.
+    pub fn switch_store(&mut self, cfg: &StoreConfig) -> Result<(), StoreError> {
+        let manifest = crate::store::read_manifest(&cfg.dir)?;
+        self.check_store_params(&cfg.dir, &manifest.params)?;
+        // The old store's threads end before the new one opens: it may be the same
+        // directory, whose segments the new store must not share with a live writer.
+        self.tiles = None;
+        self.clear();
+        self.sensor = None;
+        self.open_store(&StoreConfig {
+            resume: true,
+            ..cfg.clone()
+        })
+    }
+
+    /// The parameters a store of this mapper's map is kept with.
+    fn store_params(&self) -> StoreParams {
+        StoreParams {
+            resolution: self.map.resolution(),
+            model: *self.map.model(),
+            frac_bits: self.map.quantized().frac_bits,
+            field: self.field.as_ref().map(|f| *f.config()),
+        }
+    }
+
+    /// Refuse a store in `dir` kept with other parameters than this mapper's.
+    fn check_store_params(&self, dir: &Path, theirs: &StoreParams) -> Result<(), StoreError> {
+        let ours = self.store_params();
+        if *theirs == ours {
+            return Ok(());
+        }
+        Err(StoreError::Params {
+            path: dir.into(),
+            problem: format!("the store's map has {theirs}; this mapper's {ours}"),
+        })
     }
 
     /// Bring back the stored tiles overlapping the world box [lo, hi] (a snapshot's

@@ -21,6 +21,20 @@ const TILE: i32 = 1 << INTERNAL_TOTAL_LOG2;
 const SAVE_BACKLOG: usize = 16 << 20;
 /// Tiles evicted after one frame while the map is within its share.
 const EVICT_PER_FRAME: usize = 4;
+/// Evictions between two returns of freed heap memory to the system.
+const TRIM_EVERY: u32 = 16;
+
+/// Return the allocator's free pages to the system. An evicted tile's distance field
+/// bands are thousands of small allocations; freed, they leave holes that glibc's malloc
+/// keeps, and the process's RSS would stay above the budget by tens of MiB.
+fn give_back_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim takes no pointers and is thread-safe in glibc (it locks each
+    // arena it trims); it only releases free memory.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
 
 /// How a mapper keeps its store: where, and the memory budget (bytes) its map stays under.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -134,6 +148,8 @@ pub(crate) struct Tiles {
     stats: TileStats,
     /// The store's writer failed: no more evictions (told once, in that frame's report).
     write_failed: bool,
+    /// Evictions since the freed memory was last given back.
+    untrimmed: u32,
     /// The last frame's box (world) and the sensor positions of the last two frames: the
     /// next frame's box is guessed from them, to load its tiles ahead.
     frame_box: Option<([f64; 3], [f64; 3])>,
@@ -149,6 +165,7 @@ impl Tiles {
             stored,
             clock: 0,
             write_failed: false,
+            untrimmed: 0,
             frame_box: None,
             sensors: [None; 2],
             stats: TileStats {
@@ -436,6 +453,11 @@ impl Tiles {
                 break;
             }
             report.evicted += 1;
+            self.untrimmed += 1;
+        }
+        if self.untrimmed >= TRIM_EVERY {
+            self.untrimmed = 0;
+            give_back_freed_memory();
         }
         report.evict_time = start.elapsed();
     }

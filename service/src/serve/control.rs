@@ -15,6 +15,7 @@ use iceoryx2::prelude::*;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use voxmap_ipc::{ControlKind, ControlRequest, ControlResponse};
+use voxmap_map::mapper::StoreConfig;
 
 type Request = ActiveRequest<ipc::Service, ControlRequest, (), ControlResponse, ()>;
 
@@ -140,6 +141,9 @@ impl Control {
                     return Some(Answer::err("bad path".into()));
                 };
                 let path: PathBuf = p.into();
+                if kind == ControlKind::Load && voxmap_map::store::exists(&path) {
+                    return Some(load_store(&path, s));
+                }
                 if let Some(dir) = s.mapper.store_dir().map(Path::to_path_buf) {
                     return Some(store_file_request(kind, &path, &dir, s));
                 }
@@ -191,14 +195,40 @@ impl Control {
     }
 }
 
-/// `save` and `load` when the map is kept in a tile store. `save` to the store's
-/// directory saves incrementally (the tiles changed since the last save, then the
+/// `load` of a tile store's directory: the service continues that store, lazily (its
+/// tiles load as frames and snapshot windows reach them), in place of its map, keeping its
+/// memory budget. The map it had, and its own store's changes since their last save, are
+/// dropped, as a loaded map file drops them. Runs in the loop: opening reads the manifest.
+fn load_store(dir: &Path, s: &mut MapState) -> Answer {
+    let cfg = StoreConfig {
+        dir: dir.into(),
+        memory_budget: s.mapper.tile_stats().and_then(|t| t.memory_budget),
+        resume: true,
+    };
+    match s.mapper.switch_store(&cfg) {
+        Ok(()) => {
+            let stored = s.mapper.tile_stats().map_or(0, |t| t.tiles_stored);
+            Answer::ok(
+                format!(
+                    "continuing the tile store {} ({stored} tiles stored, last frame {})",
+                    dir.display(),
+                    s.mapper.last_frame().sequence
+                ),
+                true,
+            )
+        }
+        Err(e) => Answer::err(format!("{} not loaded: {e}", dir.display())),
+    }
+}
+
+/// `save` and `load` of a map file when the map is kept in a tile store. `save` to the
+/// store's directory saves incrementally (the tiles changed since the last save, then the
 /// manifest); to another path it writes a map file of every tile, streamed. Both run in
-/// the loop: frames wait meanwhile. `load` is refused: the store is the map.
+/// the loop: frames wait meanwhile. A map file's `load` is refused: the store is the map.
 fn store_file_request(kind: ControlKind, path: &Path, dir: &Path, s: &mut MapState) -> Answer {
     if kind == ControlKind::Load {
         return Answer::err(format!(
-            "{} not loaded: the map is kept in the tile store {}; restart with --load to change it",
+            "{} not loaded: the map is kept in the tile store {}; a map file does not load into a store (load a store's directory, or restart without --store)",
             path.display(),
             dir.display()
         ));

@@ -38,6 +38,10 @@ pub struct ServeArgs {
     /// or continue the tile store in this directory (as --store).
     #[arg(long)]
     pub load: Option<PathBuf>,
+    /// With a tile store: save it this often (seconds) when frames came since; 0 = only on
+    /// request and at exit (`store_save_interval_s`, default 60).
+    #[arg(long, value_name = "SECONDS")]
+    pub store_save_interval: Option<f64>,
     /// Save the map here on SIGINT/SIGTERM.
     #[arg(long)]
     pub save_on_exit: Option<PathBuf>,
@@ -98,6 +102,10 @@ impl ServeArgs {
         }
         if let Some(v) = self.intake {
             c.intake = v;
+        }
+        if let Some(v) = self.store_save_interval {
+            c.store_save_interval_s = v;
+            c.check()?;
         }
         if let Some(v) = self.queue_depth {
             c.queue_depth = v;
@@ -234,6 +242,41 @@ impl Ports {
     }
 }
 
+/// The tile store's saves between requests: every `store_save_interval_s` when frames
+/// were integrated since the last one.
+struct StoreSaves {
+    every: Option<Duration>,
+    last: Instant,
+    /// Frames integrated when the last save began.
+    covered: u64,
+}
+
+impl StoreSaves {
+    fn new(every_s: f64) -> Self {
+        Self {
+            every: (every_s > 0.0).then(|| Duration::from_secs_f64(every_s)),
+            last: Instant::now(),
+            covered: 0,
+        }
+    }
+
+    /// Save if one is due, the map is kept in a store, and frames came since the last
+    /// save; a failure is logged (the tiles stay in memory, the next save tries again).
+    fn when_due(&mut self, s: &mut MapState) {
+        let Some(every) = self.every else { return };
+        let integrated = s.stats.integrated;
+        if self.last.elapsed() < every || integrated == self.covered {
+            return;
+        }
+        self.last = Instant::now();
+        match s.mapper.save_store() {
+            Some(Ok(_)) => self.covered = integrated,
+            Some(Err(e)) => eprintln!("voxmap serve: saving the tile store: {e}"),
+            None => {}
+        }
+    }
+}
+
 pub fn run(a: ServeArgs) -> Result<()> {
     let cfg = a.resolve()?;
     // Checked before anything is opened: a bad variable stops the start.
@@ -297,6 +340,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         .map_err(|e| anyhow!(e).context("attaching the tick"))?;
     let started = Instant::now();
     let mut last_log = Instant::now();
+    let mut store_saves = StoreSaves::new(cfg.store_save_interval_s);
     let interval = Duration::from_secs_f64(cfg.snapshot_interval_ms / 1e3);
     let mut last_publish = Instant::now();
     // Integrated frames not yet in a published snapshot (under snapshot_interval_ms).
@@ -342,6 +386,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         })?;
         if ticked {
             out.update_connections();
+            store_saves.when_due(&mut s);
         }
         if last_log.elapsed() >= Duration::from_secs(5) {
             last_log = Instant::now();
