@@ -194,6 +194,10 @@ struct Shared {
     /// Bytes in the segments this process wrote (records).
     written_bytes: u64,
     records_written: u64,
+    /// Records copied out of mostly dead segments.
+    records_copied: u64,
+    /// The owner is closing the store: copies are skipped (no commit would name them).
+    closing: bool,
     /// Each segment's bytes of live records (those the index names).
     live: HashMap<u32, u64>,
     /// The segment being written and its length.
@@ -210,6 +214,12 @@ enum Job {
         last_observed: u64,
         raw: Arc<RawTile>,
     },
+    /// Copy the tile's record at `from` (in a segment mostly of dead records) to the
+    /// active segment, unless a newer record has replaced it meanwhile.
+    Copy {
+        tile: VoxelCoord,
+        from: Loc,
+    },
     Flush(mpsc::Sender<Result<(), String>>),
 }
 
@@ -220,6 +230,8 @@ pub struct StoreCounters {
     pub tiles: u64,
     pub pending_bytes: u64,
     pub records_written: u64,
+    /// Records copied out of segments of mostly dead records (compaction).
+    pub records_copied: u64,
     pub written_bytes: u64,
     /// Bytes of the segment files on disk.
     pub disk_bytes: u64,
@@ -568,7 +580,46 @@ impl TileStore {
         write_manifest(&self.dir, &manifest)?;
         self.generation += 1;
         self.remove_segments_but(&keep);
+        self.compact();
         Ok(self.generation)
+    }
+
+    /// Hand the live records of closed segments that hold mostly dead records (replaced
+    /// or forgotten tiles) to the writer, to be copied into the active segment; a later
+    /// commit names none of theirs and removes them. Without this a long mission that
+    /// keeps revisiting its tiles would grow its store without bound. At most half a
+    /// segment's bytes a commit, copied behind: the next save waits for what is left.
+    fn compact(&mut self) {
+        let Some(jobs) = &self.jobs else { return };
+        let copies = {
+            let s = self.lock();
+            if s.error.is_some() {
+                return;
+            }
+            let size =
+                |id: u32| std::fs::metadata(self.dir.join(segment_name(id))).map_or(0, |m| m.len());
+            let mut sparse: Vec<(u32, u64)> = (s.live.iter())
+                .filter(|&(&id, &live)| id != s.active.0 && live > 0 && live * 2 < size(id))
+                .map(|(&id, &live)| (id, live))
+                .collect();
+            sparse.sort_unstable();
+            let mut room = SEGMENT_MAX / 2;
+            let mut copies = Vec::new();
+            for (id, live) in sparse {
+                if live > room {
+                    break;
+                }
+                room -= live;
+                copies.extend((s.index.iter()).filter(|(_, l)| l.segment == id));
+            }
+            copies
+                .into_iter()
+                .map(|(t, l)| (*t, *l))
+                .collect::<Vec<_>>()
+        };
+        for (tile, from) in copies {
+            let _ = jobs.send(Job::Copy { tile, from });
+        }
     }
 
     /// Remove segment files whose number is not in `keep` (best effort: a file left is
@@ -610,6 +661,7 @@ impl TileStore {
             tiles: tiles as u64,
             pending_bytes: s.pending_bytes as u64,
             records_written: s.records_written,
+            records_copied: s.records_copied,
             written_bytes: s.written_bytes,
             disk_bytes,
             generation: self.generation,
@@ -620,6 +672,7 @@ impl TileStore {
 impl Drop for TileStore {
     /// The writer finishes what it was handed (nothing is committed).
     fn drop(&mut self) {
+        self.lock().closing = true;
         self.jobs = None;
         self.loads = None;
         if let Some(w) = self.writer.take() {
@@ -773,9 +826,12 @@ fn read_at_most(f: &File, buf: &mut [u8], at: u64) -> std::io::Result<usize> {
 }
 
 /// The writer thread: compress and append each record handed to it, then point the index
-/// at it; sync on a flush and when a segment is closed.
+/// at it; copy the live records of mostly dead segments; sync on a flush and when a
+/// segment is closed.
 fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc::Receiver<Job>) {
     let lock = || shared.lock().unwrap_or_else(|e| e.into_inner());
+    // Closed segments that copies read from.
+    let mut old: HashMap<u32, File> = HashMap::new();
     for job in jobs {
         match job {
             Job::Flush(reply) => {
@@ -797,43 +853,93 @@ fn write_records(dir: &Path, mut seg: File, shared: &Mutex<Shared>, jobs: &mpsc:
                     continue;
                 }
                 let bytes = record::encode(tile, last_observed, &raw);
-                let (mut id, mut len) = lock().active;
-                let rotated = (|| -> std::io::Result<()> {
-                    if len + bytes.len() as u64 > SEGMENT_MAX && len > SEGMENT_HEAD {
-                        seg.sync_data()?;
-                        id += 1;
-                        seg = new_segment(&dir.join(segment_name(id)))?;
-                        len = SEGMENT_HEAD;
-                    }
-                    seg.write_all(&bytes)
-                })();
-                let mut s = lock();
-                if let Err(e) = rotated {
+                let Some(loc) = append(dir, &mut seg, shared, &bytes, raw.leaves) else {
                     // The tile stays pending, in memory: nothing is lost, the owner hears.
-                    s.error = Some(format!("segment {}: {e}", segment_name(id)));
                     continue;
-                }
-                let loc = Loc {
-                    segment: id,
-                    offset: len,
-                    len: bytes.len() as u32,
-                    leaves: raw.leaves,
                 };
-                s.active = (id, len + bytes.len() as u64);
-                s.records_written += 1;
-                s.written_bytes += bytes.len() as u64;
-                if let Some(old) = s.index.insert(tile, loc) {
-                    *s.live.entry(old.segment).or_default() -= u64::from(old.len);
-                }
-                *s.live.entry(id).or_default() += u64::from(loc.len);
+                let mut s = lock();
+                point_index(&mut s, tile, loc);
                 if s.pending.get(&tile).is_some_and(|p| p.0 == put) {
                     s.pending.remove(&tile);
                     s.pending_bytes -= raw.bytes.len();
                 }
             }
+            Job::Copy { tile, from } => {
+                {
+                    let s = lock();
+                    if s.error.is_some() || s.closing || s.index.get(&tile) != Some(&from) {
+                        continue;
+                    }
+                }
+                let path = dir.join(segment_name(from.segment));
+                let mut bytes = vec![0u8; from.len as usize];
+                // A record that cannot be read back whole stays where it is (its segment
+                // with it); reading it for a frame will say why.
+                let read = match old.entry(from.segment) {
+                    hashbrown::hash_map::Entry::Occupied(f) => Ok(f.into_mut()),
+                    hashbrown::hash_map::Entry::Vacant(v) => File::open(&path).map(|f| v.insert(f)),
+                }
+                .and_then(|f| read_at_most(f, &mut bytes, from.offset));
+                if read.ok() != Some(bytes.len()) {
+                    continue;
+                }
+                let Some(loc) = append(dir, &mut seg, shared, &bytes, from.leaves) else {
+                    continue;
+                };
+                let mut s = lock();
+                // A put of the tile may have been written between the check and now.
+                if s.index.get(&tile) == Some(&from) {
+                    point_index(&mut s, tile, loc);
+                    s.records_copied += 1;
+                }
+            }
         }
     }
     let _ = seg.sync_data();
+}
+
+/// Append a whole record to the active segment (a new one past [`SEGMENT_MAX`]); where it
+/// went, or `None` after recording the failure for the owner.
+fn append(
+    dir: &Path,
+    seg: &mut File,
+    shared: &Mutex<Shared>,
+    bytes: &[u8],
+    leaves: u32,
+) -> Option<Loc> {
+    let lock = || shared.lock().unwrap_or_else(|e| e.into_inner());
+    let (mut id, mut len) = lock().active;
+    let written = (|| -> std::io::Result<()> {
+        if len + bytes.len() as u64 > SEGMENT_MAX && len > SEGMENT_HEAD {
+            seg.sync_data()?;
+            id += 1;
+            *seg = new_segment(&dir.join(segment_name(id)))?;
+            len = SEGMENT_HEAD;
+        }
+        seg.write_all(bytes)
+    })();
+    let mut s = lock();
+    if let Err(e) = written {
+        s.error = Some(format!("segment {}: {e}", segment_name(id)));
+        return None;
+    }
+    s.active = (id, len + bytes.len() as u64);
+    s.records_written += 1;
+    s.written_bytes += bytes.len() as u64;
+    Some(Loc {
+        segment: id,
+        offset: len,
+        len: bytes.len() as u32,
+        leaves,
+    })
+}
+
+/// Point the index at the tile's new record, moving its bytes' liveness with it.
+fn point_index(s: &mut Shared, tile: VoxelCoord, loc: Loc) {
+    if let Some(old) = s.index.insert(tile, loc) {
+        *s.live.entry(old.segment).or_default() -= u64::from(old.len);
+    }
+    *s.live.entry(loc.segment).or_default() += u64::from(loc.len);
 }
 
 fn write_manifest(dir: &Path, m: &Manifest) -> Result<(), StoreError> {

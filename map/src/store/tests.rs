@@ -431,3 +431,58 @@ fn a_band_record_of_a_leaf_the_record_lacks_is_refused() {
     assert!(e.contains("obstacles"), "{e}");
     assert_eq!((g.leaves().count(), g.band_voxels()), (0, 0));
 }
+
+#[test]
+fn segments_of_mostly_dead_records_are_compacted_away() {
+    let frames = route();
+    let (out_leg, back) = (&frames[..24], &frames[24..44]);
+    let dir = Scratch::new("compact");
+    let out = Scratch::new("compact-out");
+    let store = |resume| StoreConfig {
+        dir: dir.0.clone(),
+        memory_budget: None,
+        resume,
+    };
+    let mut m = Mapper::new(&config()).unwrap();
+    m.open_store(&store(false)).unwrap();
+    insert_all(&mut m, out_leg);
+    m.save_store().unwrap().unwrap();
+    drop(m);
+    let first = read_manifest(&dir.0).unwrap();
+    let seg = first.tiles[0].segment;
+    assert!(first.tiles.iter().all(|e| e.segment == seg));
+
+    // The way back rewrites most of the first leg's tiles in a new segment.
+    let mut m = Mapper::new(&config()).unwrap();
+    m.open_store(&store(true)).unwrap();
+    insert_all(&mut m, back);
+    m.save_store().unwrap().unwrap();
+    let after = read_manifest(&dir.0).unwrap();
+    let live: u64 = (after.tiles.iter())
+        .filter(|e| e.segment == seg)
+        .map(|e| u64::from(e.len))
+        .sum();
+    let size = std::fs::metadata(dir.0.join(segment_name(seg)))
+        .unwrap()
+        .len();
+    assert!(
+        live > 0 && 2 * live < size,
+        "the first segment is {live} of {size} bytes live"
+    );
+    // That save handed the first segment's live records to the writer; the next one
+    // names none of them and removes it.
+    m.save_store().unwrap().unwrap();
+    let compacted = read_manifest(&dir.0).unwrap();
+    assert!(compacted.tiles.iter().all(|e| e.segment != seg));
+    assert!(!dir.0.join(segment_name(seg)).exists());
+    assert!(m.tile_stats().unwrap().store.records_copied > 0);
+    drop(m);
+
+    // The same map as without a store, from the store alone.
+    let mut free = Mapper::new(&config()).unwrap();
+    insert_all(&mut free, &frames[..44]);
+    let want = file_of(&mut free, &out.0, "free.vxm");
+    let p = out.0.join("export.vxm");
+    export(&dir.0, &p).unwrap();
+    assert!(std::fs::read(&p).unwrap() == want);
+}
