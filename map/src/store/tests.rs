@@ -404,6 +404,27 @@ fn a_band_record_of_a_leaf_the_record_lacks_is_refused() {
     let raw = record::raw_tile(grid, tile, Some(field));
     let rec = raw.decode(tile, &q).unwrap();
     assert!(!rec.bands.is_empty());
+    // Seeds for the fuzz target (`VOXMAP_FUZZ_SEEDS=fuzz/corpus/store_files`): the
+    // smallest tile's record with bands, and a manifest.
+    if let Some(d) = std::env::var_os("VOXMAP_FUZZ_SEEDS") {
+        // Two obstacles and a free voxel: a record of a few leaves with their bands.
+        let mut small = crate::OccupancyMap::new(0.1, Default::default()).unwrap();
+        for (v, value) in [([1, 2, 3], 100), ([9, 2, 3], 100), ([5, 5, 5], -10)] {
+            small.set_value(VoxelCoord::from_array(v), value);
+        }
+        let mut f = crate::field::DistanceField::new(*field.config(), 0.1).unwrap();
+        f.rebuild(&small, None);
+        let tile = VoxelCoord::new(0, 0, 0);
+        let raw = record::raw_tile(small.grid(), tile, Some(&f));
+        assert!(!raw.split().1.is_empty());
+        let d = Path::new(&d);
+        std::fs::write(d.join("record-bands"), record::encode(tile, 1, &raw)).unwrap();
+        let store = Scratch::new("seed");
+        let mut s = with_new_store(&store.0, None);
+        insert_all(&mut s, &route()[..2]);
+        s.save_store().unwrap().unwrap();
+        std::fs::copy(store.0.join(MANIFEST), d.join("manifest")).unwrap();
+    }
     // Restored into a new field: the same bands.
     let mut f = crate::field::DistanceField::new(*field.config(), 0.1).unwrap();
     f.restore_tile(&rec.leaves, rec.bands.clone()).unwrap();
