@@ -151,8 +151,9 @@ int voxmap_control_stats(const struct voxmap_control *control, struct voxmap_sta
 // `control` is null or a live connection; `path` null or a NUL-terminated string.
 int voxmap_control_save(const struct voxmap_control *control, const char *path);
 
-// Replace the service's map with the map file at `path` (on the service's machine). 0, or
-// an error code (the map is unchanged on failure).
+// Replace the service's map with the map file at `path` (on the service's machine), or
+// with the tile store in the directory `path` (continued lazily). 0, or an error code (the
+// map is unchanged on failure).
 //
 // # Safety
 // `control` is null or a live connection; `path` null or a NUL-terminated string.
