@@ -340,14 +340,14 @@ impl DistanceField {
         let obstacles = leaves
             .iter()
             .map(|(o, l)| (*o, patch::obstacles(l, policy)));
-        let unplaced = self.cfg.window.is_some() && self.window.is_none();
+        let placed = self.window_placed();
         check_bands(
             &kept,
             false,
             self.radius,
             self.window,
             |o| origins.contains(&o),
-            obstacles.filter(|_| !unplaced),
+            obstacles.filter(|_| placed),
         )?;
         for (o, leaf) in leaves {
             let band = kept.remove(o);
@@ -406,7 +406,12 @@ impl DistanceField {
     /// Whether the field holds a band for the leaf at `origin` when it has one: the leaf
     /// reaches into the window, which is placed if one is asked for.
     pub fn holds_band(&self, origin: VoxelCoord) -> bool {
-        self.overlaps_window(origin) && (self.cfg.window.is_none() || self.window.is_some())
+        self.overlaps_window(origin) && self.window_placed()
+    }
+
+    /// No window is asked for, or it has been placed (by an update with a sensor).
+    fn window_placed(&self) -> bool {
+        self.cfg.window.is_none() || self.window.is_some()
     }
 
     /// Whether the leaf at `origin` reaches into the window (or there is none).

@@ -74,15 +74,19 @@ fn config() -> MapperConfig {
     }
 }
 
+/// How a test keeps its store in `dir`.
+fn store_in(dir: &Path, memory_budget: Option<u64>, resume: bool) -> StoreConfig {
+    StoreConfig {
+        dir: dir.into(),
+        memory_budget,
+        resume,
+    }
+}
+
 /// A mapper keeping a new store in `dir`.
 fn with_new_store(dir: &Path, memory_budget: Option<u64>) -> Mapper {
     let mut m = Mapper::new(&config()).unwrap();
-    m.open_store(&StoreConfig {
-        dir: dir.into(),
-        memory_budget,
-        resume: false,
-    })
-    .unwrap();
+    m.open_store(&store_in(dir, memory_budget, false)).unwrap();
     m
 }
 
@@ -157,11 +161,7 @@ fn a_resumed_store_loads_lazily_and_goes_on_as_if_never_stopped() {
     let want = file_of(&mut free, &out.0, "free.vxm");
 
     let dir = Scratch::new("resume");
-    let cfg = |resume| StoreConfig {
-        dir: dir.0.clone(),
-        memory_budget: None,
-        resume,
-    };
+    let cfg = |resume| store_in(&dir.0, None, resume);
     let mut m = Mapper::new(&config()).unwrap();
     m.open_store(&cfg(false)).unwrap();
     insert_all(&mut m, first);
@@ -217,12 +217,7 @@ fn a_damaged_tile_is_refused_by_name_and_its_region_reads_unknown() {
     std::fs::write(&seg, &bytes).unwrap();
 
     let mut m = Mapper::new(&config()).unwrap();
-    m.open_store(&StoreConfig {
-        dir: dir.0.clone(),
-        memory_budget: None,
-        resume: true,
-    })
-    .unwrap();
+    m.open_store(&store_in(&dir.0, None, true)).unwrap();
     let tile = VoxelCoord::from_array(e.tile);
     let centre = m
         .map()
@@ -345,12 +340,8 @@ fn a_distance_field_under_a_budget_equals_the_unbudgeted_field() {
         let full = (free.map().grid().live_bytes() + free.field().unwrap().memory_bytes()) as u64;
         let dir = Scratch::new("field");
         let mut m = Mapper::new(&cfg).unwrap();
-        m.open_store(&StoreConfig {
-            dir: dir.0.clone(),
-            memory_budget: Some(full / 3),
-            resume: false,
-        })
-        .unwrap();
+        m.open_store(&store_in(&dir.0, Some(full / 3), false))
+            .unwrap();
         let (loaded, evicted) = insert_all(&mut m, &frames);
         assert!(
             evicted > 4 && loaded > 2,
@@ -368,11 +359,7 @@ fn a_distance_field_under_a_budget_equals_the_unbudgeted_field() {
         // Saved half way and resumed with the same field: the rest of the frames from the
         // store's state reach the same map and field.
         let dir = Scratch::new("field-resume");
-        let store = |resume| StoreConfig {
-            dir: dir.0.clone(),
-            memory_budget: Some(full / 3),
-            resume,
-        };
+        let store = |resume| store_in(&dir.0, Some(full / 3), resume);
         let mut m = Mapper::new(&cfg).unwrap();
         m.open_store(&store(false)).unwrap();
         insert_all(&mut m, &frames[..30]);
@@ -459,11 +446,7 @@ fn segments_of_mostly_dead_records_are_compacted_away() {
     let (out_leg, back) = (&frames[..24], &frames[24..44]);
     let dir = Scratch::new("compact");
     let out = Scratch::new("compact-out");
-    let store = |resume| StoreConfig {
-        dir: dir.0.clone(),
-        memory_budget: None,
-        resume,
-    };
+    let store = |resume| store_in(&dir.0, None, resume);
     let mut m = Mapper::new(&config()).unwrap();
     m.open_store(&store(false)).unwrap();
     insert_all(&mut m, out_leg);
